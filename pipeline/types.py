@@ -1,0 +1,101 @@
+"""Data types at the boundary between the pipeline and its callers (server, bench, simulator).
+
+Units are part of the names: ``t_s`` seconds, ``angle_deg`` degrees, ``fs_hz`` hertz.
+Raw streams carry their declared units as strings; :mod:`pipeline.prepare` converts them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+Leg = Literal["left", "right"]
+Segment = Literal["thigh", "shank"]
+GyroUnit = Literal["deg/s", "rad/s"]
+AccUnit = Literal["m/s2", "g"]
+Activity = Literal["walking", "running", "unknown"]
+
+
+@dataclass(frozen=True)
+class RawSensorStream:
+    """All samples of one IMU in one session, as uploaded (any order is sorted by the caller).
+
+    ``t_s`` is seconds since the session started on the app's clock, strictly increasing.
+    ``gyr`` and ``acc`` are (N, 3) in the units named by ``gyro_unit`` and ``acc_unit``.
+    """
+
+    sensor_id: str
+    leg: Leg
+    segment: Segment
+    fs_hz: float
+    t_s: np.ndarray
+    gyr: np.ndarray
+    acc: np.ndarray
+    gyro_unit: GyroUnit = "deg/s"
+    acc_unit: AccUnit = "m/s2"
+
+
+@dataclass(frozen=True)
+class StrideMetrics:
+    """One stride: heel strike to the next heel strike of the same leg."""
+
+    leg: Leg
+    index: int
+    t_start_s: float
+    t_end_s: float
+    duration_s: float
+    t_toe_off_s: float
+    stance_time_s: float
+    swing_time_s: float
+    stance_pct: float
+    peak_swing_flexion_deg: float
+    min_flexion_deg: float
+    rom_deg: float
+    stance_flexion_deg: float
+    estimator: str
+    quality: float  # 0 (untrustworthy) .. 1 (all checks passed)
+    quality_reasons: tuple[str, ...] = ()
+
+
+@dataclass
+class LegResult:
+    """The continuous knee flexion estimate and the strides of one leg."""
+
+    leg: Leg
+    fs_hz: float
+    t_s: np.ndarray  # common time grid of the leg, seconds since session start
+    angle_deg: np.ndarray  # knee flexion, positive = flexion, NaN inside gaps
+    estimator: np.ndarray  # per-sample estimator name (str array), "" where no estimate
+    strides: list[StrideMetrics]
+    gaps_s: list[tuple[float, float]] = field(default_factory=list)
+    walking_s: float = 0.0
+    info: dict = field(default_factory=dict)  # axes, diagnostics: JSON-serialisable only
+
+
+@dataclass
+class SessionResult:
+    algorithm_version: str
+    activity: str
+    legs: dict[str, LegResult]
+    warnings: list[str] = field(default_factory=list)
+
+    def summary(self) -> dict:
+        """A small JSON-serialisable summary per leg (stored with the session)."""
+        out: dict = {"algorithm_version": self.algorithm_version, "activity": self.activity,
+                     "warnings": list(self.warnings), "legs": {}}
+        for leg, res in self.legs.items():
+            strides = res.strides
+            peaks = [s.peak_swing_flexion_deg for s in strides]
+            roms = [s.rom_deg for s in strides]
+            out["legs"][leg] = {
+                "n_strides": len(strides),
+                "walking_s": round(float(res.walking_s), 2),
+                "peak_swing_flexion_deg_median": float(np.median(peaks)) if peaks else None,
+                "rom_deg_median": float(np.median(roms)) if roms else None,
+                "estimators": {e: sum(1 for s in strides if s.estimator == e)
+                               for e in sorted({s.estimator for s in strides})},
+                "gaps": len(res.gaps_s),
+            }
+        return out

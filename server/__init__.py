@@ -1,0 +1,1 @@
+"""The HTTP service: FastAPI app, auth, storage, background processing. Calls ``pipeline``."""

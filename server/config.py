@@ -1,0 +1,47 @@
+"""Configuration from environment variables (prefix ``GAITMON_``), with defaults that need no set-up."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="GAITMON_", env_file=".env", extra="ignore")
+
+    data_dir: Path = Path("data")
+    # Empty means: an SQLite file under data_dir (the embedded default).
+    database_url: str = ""
+    # Request bodies larger than this (after gzip decompression) get 413.
+    max_body_bytes: int = 8 * 1024 * 1024
+    max_samples_per_batch: int = 20_000
+    # embedded: the API process runs queued jobs in a thread (SQLite default);
+    # procrastinate: jobs go to the PostgreSQL queue and `gaitmon worker` runs them.
+    job_runner: str = "auto"
+    # A job whose worker stopped heart-beating for this long is taken up again.
+    job_stall_seconds: int = 300
+    log_level: str = "INFO"
+
+    @property
+    def resolved_database_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        return f"sqlite:///{(self.data_dir / 'gaitmon.sqlite').resolve()}"
+
+    @property
+    def is_sqlite(self) -> bool:
+        return self.resolved_database_url.startswith("sqlite")
+
+    @property
+    def resolved_job_runner(self) -> str:
+        if self.job_runner != "auto":
+            return self.job_runner
+        return "embedded" if self.is_sqlite else "procrastinate"
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()
