@@ -1,0 +1,90 @@
+"""Shared fixtures: every HTTP test runs on SQLite and on a real PostgreSQL.
+
+PostgreSQL comes from GAITMON_TEST_POSTGRES_URL (default: the local trust-auth server, database ``test``). Each
+pytest-xdist worker gets a database of its own, created from that URL. Without a reachable server the PostgreSQL
+variants skip with the reason, unless GAITMON_REQUIRE_POSTGRES=1 (set by .ci/run), which turns the skip into a
+failure.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from sqlalchemy import create_engine, text
+from sqlalchemy.engine import make_url
+
+from server.config import Settings
+from server.migrate import upgrade_to_head
+
+PG_URL = os.environ.get("GAITMON_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
+REQUIRE_PG = os.environ.get("GAITMON_REQUIRE_POSTGRES") == "1"
+
+
+def _worker_suffix() -> str:
+    return os.environ.get("PYTEST_XDIST_WORKER", "main")
+
+
+@pytest.fixture(scope="session")
+def postgres_url() -> Iterator[str]:
+    """A freshly created, migrated PostgreSQL database for this test worker."""
+    admin = create_engine(PG_URL, isolation_level="AUTOCOMMIT")
+    try:
+        with admin.connect() as conn:
+            conn.execute(text("select 1"))
+    except Exception as exc:  # noqa: BLE001 - any connection failure means "not reachable"
+        admin.dispose()
+        reason = f"PostgreSQL not reachable at {PG_URL}: {type(exc).__name__}"
+        if REQUIRE_PG:
+            pytest.fail(reason + " (GAITMON_REQUIRE_POSTGRES=1)")
+        pytest.skip(reason)
+    name = f"gaitmon_test_{_worker_suffix()}"
+    with admin.connect() as conn:
+        conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        conn.execute(text(f'CREATE DATABASE "{name}"'))
+    url = make_url(PG_URL).set(database=name).render_as_string(hide_password=False)
+    upgrade_to_head(url)
+    yield url
+    with admin.connect() as conn:
+        conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+    admin.dispose()
+
+
+@pytest.fixture(scope="session")
+def sqlite_template(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One migrated SQLite file, copied for each test (faster than migrating every time)."""
+    path = tmp_path_factory.mktemp("sqlite-template") / "template.sqlite"
+    upgrade_to_head(f"sqlite:///{path}")
+    return path
+
+
+def _truncate_all(url: str) -> None:
+    engine = create_engine(url)
+    with engine.begin() as conn:
+        tables = conn.execute(text(
+            "select tablename from pg_tables where schemaname = 'public' and tablename <> 'alembic_version'"
+        )).scalars().all()
+        if tables:
+            conn.execute(text("TRUNCATE " + ", ".join(f'"{t}"' for t in tables) + " RESTART IDENTITY CASCADE"))
+    engine.dispose()
+
+
+@pytest.fixture(params=["sqlite", "postgres"])
+def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
+    """An empty, migrated database: SQLite file or the worker's PostgreSQL database (truncated)."""
+    if request.param == "sqlite":
+        path = tmp_path / "gaitmon.sqlite"
+        shutil.copy(request.getfixturevalue("sqlite_template"), path)
+        return f"sqlite:///{path}"
+    url = request.getfixturevalue("postgres_url")
+    _truncate_all(url)
+    return url
+
+
+@pytest.fixture
+def settings(database_url: str, tmp_path: Path) -> Settings:
+    # job_runner "manual": tests drive the queue themselves (see server.jobs) unless a test asks otherwise.
+    return Settings(database_url=database_url, data_dir=tmp_path / "data", job_runner="manual")
