@@ -40,5 +40,6 @@ def get_db(request: Request) -> Iterator[Session]:
 def all_metadata() -> MetaData:
     """The metadata with every model module imported (add new model modules here)."""
     from server import models
+    from server.trends import models as _trend_models  # noqa: F401 - registers the trend summary tables
 
     return models.Base.metadata

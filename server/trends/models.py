@@ -1,0 +1,57 @@
+"""Per-session-leg summaries the trend queries aggregate from (kept in step by :mod:`server.trends.summaries`).
+
+A one-year daily trend reads ~365 small rows instead of ~365,000 strides: each row holds the included values of one
+metric of one session-leg as a compact float32 array plus their count, mean, sd and median.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+
+from sqlalchemy import DateTime, Float, ForeignKey, Index, Integer, LargeBinary, String
+from sqlalchemy.orm import Mapped, mapped_column
+
+from server.models import Base, utcnow
+
+
+class TrendSessionLeg(Base):
+    """Counts of one leg of one processed session: strides, quality exclusions, fallbacks, gaps, walking time."""
+
+    __tablename__ = "trend_session_legs"
+    __table_args__ = (Index("ix_trend_session_legs_patient_time", "patient_id", "started_at"),)
+    session_id: Mapped[str] = mapped_column(ForeignKey("sessions.id", ondelete="CASCADE"), primary_key=True)
+    leg: Mapped[str] = mapped_column(String(5), primary_key=True)
+    # Denormalised from the session so the per-patient time-range scan needs no join.
+    patient_id: Mapped[str] = mapped_column(ForeignKey("patients.id", ondelete="CASCADE"))
+    started_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
+    n_strides: Mapped[int] = mapped_column(Integer)
+    n_low_quality: Mapped[int] = mapped_column(Integer)
+    n_fallback: Mapped[int] = mapped_column(Integer)  # strides whose angle came from a fallback estimator
+    n_gaps: Mapped[int] = mapped_column(Integer)
+    walking_s: Mapped[float] = mapped_column(Float)
+    algorithm_version: Mapped[str | None] = mapped_column(String(32))
+    refreshed_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+
+class TrendMetricValues(Base):
+    """The included (quality-passing, plausible) values of one metric of one session-leg.
+
+    ``values`` is little-endian float32, in stride order; ``n_implausible`` counts quality-passing strides outside
+    the metric's plausibility limits (low-quality strides are counted once, on :class:`TrendSessionLeg`).
+    """
+
+    __tablename__ = "trend_metric_values"
+    __table_args__ = (
+        Index("ix_trend_metric_values_patient_metric_leg_time", "patient_id", "metric", "leg", "started_at"),
+    )
+    session_id: Mapped[str] = mapped_column(ForeignKey("sessions.id", ondelete="CASCADE"), primary_key=True)
+    leg: Mapped[str] = mapped_column(String(5), primary_key=True)
+    metric: Mapped[str] = mapped_column(String(40), primary_key=True)
+    patient_id: Mapped[str] = mapped_column(ForeignKey("patients.id", ondelete="CASCADE"))
+    started_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
+    n_included: Mapped[int] = mapped_column(Integer)
+    n_implausible: Mapped[int] = mapped_column(Integer)
+    mean: Mapped[float | None] = mapped_column(Float)
+    sd: Mapped[float | None] = mapped_column(Float)
+    median: Mapped[float | None] = mapped_column(Float)
+    values: Mapped[bytes] = mapped_column(LargeBinary)

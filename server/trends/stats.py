@@ -1,0 +1,226 @@
+"""Pure statistics of the trends view: bucket descriptives, slope with a 95 % CI, baseline-vs-latest change.
+
+No database, no web: numpy/scipy in, dataclasses out, so every number can be checked by hand in tests.
+
+Conventions
+- ``sd`` is the sample standard deviation (ddof=1); ``None`` with fewer than two values.
+- Percentiles use numpy's default linear interpolation (Hyndman-Fan type 7, as R and Excel PERCENTILE.INC).
+- ``cv`` is sd / mean as a fraction (``None`` when the mean is 0 or sd undefined).
+- A "session point" summarises one session (or, for count metrics, one day) by its number of observations, mean and
+  sd; windows pool session points exactly (pooled mean and variance from per-session n, mean, sd).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from scipy import stats as sps
+
+SlopeMethod = Literal["ols", "theil_sen"]
+
+
+@dataclass(frozen=True)
+class Describe:
+    n: int
+    mean: float | None
+    sd: float | None
+    median: float | None
+    p10: float | None
+    p90: float | None
+    cv: float | None
+
+
+def describe(values: np.ndarray) -> Describe:
+    """Descriptive statistics of the included values of one bucket (NaN must already be removed)."""
+    v = np.asarray(values, dtype=np.float64)
+    n = int(v.size)
+    if n == 0:
+        return Describe(0, None, None, None, None, None, None)
+    mean = float(v.mean())
+    sd = float(v.std(ddof=1)) if n >= 2 else None
+    p10, median, p90 = (float(q) for q in np.percentile(v, [10.0, 50.0, 90.0]))
+    cv = sd / mean if sd is not None and mean != 0 else None
+    return Describe(n, mean, sd, median, p10, p90, cv)
+
+
+@dataclass(frozen=True)
+class Slope:
+    """Slope of the values over time in units per day, with its 95 % confidence interval."""
+
+    method: SlopeMethod
+    n: int
+    slope_per_day: float | None
+    intercept: float | None
+    ci95_per_day: tuple[float, float] | None
+    p_value: float | None = None
+
+    def per_week(self) -> tuple[float | None, tuple[float, float] | None]:
+        slope = None if self.slope_per_day is None else 7.0 * self.slope_per_day
+        ci = None if self.ci95_per_day is None else (7.0 * self.ci95_per_day[0], 7.0 * self.ci95_per_day[1])
+        return slope, ci
+
+
+def ols_slope(t_days: np.ndarray, y: np.ndarray) -> Slope:
+    """Ordinary least squares y = a + b t with a t-based 95 % CI for b.
+
+    b = Sxy / Sxx, s^2 = SSE / (n - 2), se(b) = sqrt(s^2 / Sxx), CI = b -/+ t(0.975, n - 2) se(b)
+    (any regression textbook, e.g. Montgomery & Runger, Applied Statistics, eq. 11-21). Two points give a slope but no
+    CI (zero residual degrees of freedom); one point or identical times give neither.
+    """
+    t = np.asarray(t_days, dtype=np.float64)
+    v = np.asarray(y, dtype=np.float64)
+    n = int(t.size)
+    if n < 2:
+        return Slope("ols", n, None, None, None)
+    tm, ym = t.mean(), v.mean()
+    sxx = float(((t - tm) ** 2).sum())
+    if sxx <= 0.0:
+        return Slope("ols", n, None, None, None)
+    b = float(((t - tm) * (v - ym)).sum() / sxx)
+    a = float(ym - b * tm)
+    if n < 3:
+        return Slope("ols", n, b, a, None)
+    sse = float(((v - (a + b * t)) ** 2).sum())
+    se = math.sqrt(sse / (n - 2) / sxx)
+    tq = float(sps.t.ppf(0.975, n - 2))
+    p = float(2.0 * sps.t.sf(abs(b) / se, n - 2)) if se > 0 else 0.0
+    return Slope("ols", n, b, a, (b - tq * se, b + tq * se), p)
+
+
+def theil_sen_slope(t_days: np.ndarray, y: np.ndarray) -> Slope:
+    """Theil-Sen estimator (median of pairwise slopes) with Sen's (1968) 95 % CI, via scipy.stats.theilslopes.
+
+    Robust to outlying sessions (breakdown point ~29 %); the CI is distribution-free (based on Kendall's tau).
+    """
+    t = np.asarray(t_days, dtype=np.float64)
+    v = np.asarray(y, dtype=np.float64)
+    n = int(t.size)
+    if n < 2 or float(np.ptp(t)) <= 0.0:
+        return Slope("theil_sen", n, None, None, None)
+    res = sps.theilslopes(v, t, alpha=0.95)
+    ci = (float(res.low_slope), float(res.high_slope)) if n >= 3 else None
+    if ci is not None and not all(math.isfinite(c) for c in ci):
+        ci = None
+    return Slope("theil_sen", n, float(res.slope), float(res.intercept), ci)
+
+
+def slope(t_days: np.ndarray, y: np.ndarray, method: SlopeMethod = "ols") -> Slope:
+    return theil_sen_slope(t_days, y) if method == "theil_sen" else ols_slope(t_days, y)
+
+
+@dataclass(frozen=True)
+class Point:
+    """One session (or one day for count metrics): time in days, number of observations, their mean and sd."""
+
+    t_days: float
+    n: int
+    mean: float
+    sd: float | None = None
+
+
+def pool(points: Sequence[Point]) -> tuple[int, float | None, float | None]:
+    """Exact pooled (n, mean, sd) of the observations behind the points.
+
+    Pooled variance = (sum (n_i - 1) s_i^2 + sum n_i (m_i - M)^2) / (N - 1) (the within + between decomposition);
+    a point without sd (one observation) contributes no within-point variance.
+    """
+    n_tot = sum(p.n for p in points)
+    if n_tot == 0:
+        return 0, None, None
+    mean = sum(p.n * p.mean for p in points) / n_tot
+    if n_tot < 2:
+        return n_tot, mean, None
+    ss = sum((p.n - 1) * (p.sd or 0.0) ** 2 + p.n * (p.mean - mean) ** 2 for p in points)
+    return n_tot, mean, math.sqrt(max(ss, 0.0) / (n_tot - 1))
+
+
+@dataclass(frozen=True)
+class Window:
+    start_days: float
+    end_days: float
+    n_sessions: int
+    n: int  # observations (strides; days for count metrics)
+    mean: float | None
+    sd: float | None
+    ci95: tuple[float, float] | None
+    ci_basis: str  # "sessions" (between-session) or "observations" (within-session, fewer than 3 sessions)
+
+
+def window_summary(points: Sequence[Point], start_days: float, end_days: float) -> Window:
+    """Mean of a window with a 95 % CI.
+
+    With >= 3 sessions the CI is t-based over the session means (between-session variability is what a repeated
+    measurement would see); with fewer it falls back to the pooled observations (mean -/+ t * sd / sqrt(n)), which is
+    narrower and says so in ``ci_basis``.
+    """
+    n, mean, sd = pool(points)
+    ci: tuple[float, float] | None = None
+    basis = "observations"
+    if len(points) >= 3:
+        means = np.array([p.mean for p in points])
+        se = float(means.std(ddof=1)) / math.sqrt(len(points))
+        tq = float(sps.t.ppf(0.975, len(points) - 1))
+        ci = (float(means.mean()) - tq * se, float(means.mean()) + tq * se)
+        basis = "sessions"
+    elif n >= 2 and sd is not None and mean is not None:
+        tq = float(sps.t.ppf(0.975, n - 1))
+        half = tq * sd / math.sqrt(n)
+        ci = (mean - half, mean + half)
+    return Window(start_days, end_days, len(points), n, mean, sd, ci, basis)
+
+
+@dataclass(frozen=True)
+class Change:
+    baseline: Window | None
+    latest: Window | None
+    delta: float | None
+    mdc: float | None
+    significant: bool
+    reasons: list[str] = field(default_factory=list)
+
+
+def change(points: Sequence[Point], *, mdc: float, mdc_relative: bool = False, window_days: float = 14.0,
+           min_n: int = 20) -> Change:
+    """Baseline window (the first ``window_days`` from the first point) vs latest window (the last ``window_days``
+    up to the last point).
+
+    When the data span less than two windows the windows shrink to half the span each, so they never overlap
+    (points exactly at the midpoint then belong to neither). ``significant`` needs all of: |delta| > MDC, both
+    windows with >= ``min_n`` observations, and non-overlapping 95 % CIs. ``mdc_relative``: the MDC is that
+    fraction of the baseline mean.
+    """
+    pts = sorted(points, key=lambda p: p.t_days)
+    if len(pts) < 2:
+        return Change(None, None, None, None if mdc_relative else mdc, False, ["needs data from two sessions"])
+    first, last = pts[0].t_days, pts[-1].t_days
+    span = last - first
+    if span <= 0:
+        return Change(None, None, None, None if mdc_relative else mdc, False, ["all data at one time"])
+    w = min(window_days, span / 2.0)
+    base = [p for p in pts if p.t_days < first + w]
+    late = [p for p in pts if p.t_days > last - w]
+    bw = window_summary(base, first, first + w)
+    lw = window_summary(late, last - w, last)
+    reasons: list[str] = []
+    if bw.mean is None or lw.mean is None:
+        return Change(bw, lw, None, None if mdc_relative else mdc, False, ["a window has no data"])
+    delta = lw.mean - bw.mean
+    eff_mdc = mdc * abs(bw.mean) if mdc_relative else mdc
+    significant = True
+    if abs(delta) <= eff_mdc:
+        significant = False
+        reasons.append(f"|delta| {abs(delta):.3g} <= MDC {eff_mdc:.3g}")
+    if bw.n < min_n or lw.n < min_n:
+        significant = False
+        reasons.append(f"fewer than {min_n} observations in a window (baseline {bw.n}, latest {lw.n})")
+    if bw.ci95 is None or lw.ci95 is None:
+        significant = False
+        reasons.append("a window has no confidence interval")
+    elif not (bw.ci95[1] < lw.ci95[0] or lw.ci95[1] < bw.ci95[0]):
+        significant = False
+        reasons.append("the windows' 95 % CIs overlap")
+    return Change(bw, lw, delta, eff_mdc, significant, reasons)
