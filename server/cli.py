@@ -1,0 +1,227 @@
+"""The ``gaitmon`` command: serve, migrate, create-token, revoke-token, worker, simulate.
+
+Progress and logs go to stderr; the only stdout output of ``create-token`` is the token (its last line), so
+``TOKEN=$(gaitmon create-token --role admin)`` works.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import inspect
+import logging
+import os
+import signal
+import sys
+from collections.abc import Sequence
+from datetime import UTC, datetime
+
+from sqlalchemy import select, text
+from sqlalchemy.engine import make_url
+
+from server.config import Settings, get_settings
+
+log = logging.getLogger("gaitmon.cli")
+
+# Any fixed number: serialises concurrent `migrate`/`serve` start-ups of several replicas on one PostgreSQL.
+MIGRATION_LOCK_ID = 727_011_001
+
+
+def setup_logging(level: str) -> None:
+    logging.basicConfig(stream=sys.stderr, level=level.upper(),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
+
+
+def safe_url(url: str) -> str:
+    return make_url(url).render_as_string(hide_password=True)
+
+
+def migrate_database(settings: Settings) -> None:
+    """Alembic to head, plus procrastinate's schema on PostgreSQL; safe to run again and from several replicas."""
+    from server.migrate import upgrade_to_head
+
+    url = settings.resolved_database_url
+    if settings.is_sqlite:
+        upgrade_to_head(url)
+        log.info("database migrated to head (%s)", safe_url(url))
+        return
+    from server.db import make_engine
+    from server.jobs.worker import apply_schema
+
+    engine = make_engine(url)
+    try:
+        with engine.connect() as conn:
+            conn.execute(text("SELECT pg_advisory_lock(:k)"), {"k": MIGRATION_LOCK_ID})
+            conn.commit()
+            try:
+                upgrade_to_head(url)
+                installed = apply_schema(url)
+            finally:
+                conn.execute(text("SELECT pg_advisory_unlock(:k)"), {"k": MIGRATION_LOCK_ID})
+                conn.commit()
+    finally:
+        engine.dispose()
+    log.info("database migrated to head%s (%s)", ", procrastinate schema installed" if installed else "",
+             safe_url(url))
+
+
+def auto_migrate_enabled() -> bool:
+    return os.environ.get("GAITMON_AUTO_MIGRATE", "true").strip().lower() not in {"0", "false", "no", "off"}
+
+
+def cmd_serve(args: argparse.Namespace, settings: Settings) -> int:
+    import uvicorn
+
+    from server.app import create_app
+
+    if auto_migrate_enabled():
+        migrate_database(settings)
+    else:
+        log.info("GAITMON_AUTO_MIGRATE=false: not migrating")
+    app = create_app(settings)
+    log.info("gaitmon serving on http://%s:%d (database %s, jobs %s)", args.host, args.port,
+             safe_url(settings.resolved_database_url), settings.resolved_job_runner)
+    uvicorn.run(app, host=args.host, port=args.port, log_level=settings.log_level.lower(), proxy_headers=True)
+    return 0
+
+
+def cmd_migrate(args: argparse.Namespace, settings: Settings) -> int:
+    migrate_database(settings)
+    return 0
+
+
+def _sessionmaker(settings: Settings):  # noqa: ANN202
+    from server.db import make_engine, make_sessionmaker
+
+    return make_sessionmaker(make_engine(settings.resolved_database_url))
+
+
+def cmd_create_token(args: argparse.Namespace, settings: Settings) -> int:
+    from server.auth import create_clinician, issue_token
+    from server.models import Token
+
+    if args.role == "clinician" and not args.name:
+        print("error: --name is required for --role clinician", file=sys.stderr)
+        return 2
+    with _sessionmaker(settings)() as db:
+        if args.role == "clinician":
+            clinician, token = create_clinician(db, args.name, email=args.email)
+            db.commit()
+            print(f"created clinician {clinician.id} ({clinician.name})", file=sys.stderr)
+            digest = hashlib.sha256(token.encode()).hexdigest()
+            token_id = db.scalars(select(Token.id).where(Token.token_hash == digest)).one()
+        else:
+            row, token = issue_token(db, role="admin", name=args.name)
+            db.commit()
+            token_id = row.id
+        print(f"created {args.role} token {token_id} (shown once; revoke with: gaitmon revoke-token {token_id})",
+              file=sys.stderr)
+    sys.stderr.flush()
+    print(token, flush=True)
+    return 0
+
+
+def cmd_revoke_token(args: argparse.Namespace, settings: Settings) -> int:
+    from server.models import Token
+
+    with _sessionmaker(settings)() as db:
+        row = db.get(Token, args.token_id)
+        if row is None:
+            print(f"error: no token with id {args.token_id}", file=sys.stderr)
+            return 1
+        if row.revoked_at is None:
+            row.revoked_at = datetime.now(UTC)
+            db.commit()
+            print(f"token {row.id} revoked", file=sys.stderr)
+        else:
+            print(f"token {row.id} was already revoked", file=sys.stderr)
+    return 0
+
+
+def cmd_worker(args: argparse.Namespace, settings: Settings) -> int:
+    if settings.resolved_job_runner == "procrastinate":
+        from server.jobs.worker import run_worker, schema_present
+
+        if not schema_present(settings.resolved_database_url):
+            print("error: the job queue schema is missing; run `gaitmon migrate` first", file=sys.stderr)
+            return 1
+        run_worker(settings, concurrency=args.concurrency)
+        return 0
+    from server.jobs.embedded import EmbeddedRunner, worker_name
+
+    if args.concurrency != 1:
+        log.warning("--concurrency is ignored with the %s runner (one session at a time)",
+                    settings.resolved_job_runner)
+    # Another process (the API's embedded thread) may be working too: only heartbeat-stale sessions are recovered.
+    runner = EmbeddedRunner(_sessionmaker(settings), settings, recover_all_at_start=False,
+                            name=worker_name("worker"))
+
+    def _stop(signum: int, _frame: object) -> None:
+        log.info("signal %d: stopping after the current session", signum)
+        runner.request_stop()
+
+    signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGINT, _stop)
+    log.info("worker polling %s for queued sessions", safe_url(settings.resolved_database_url))
+    runner.run()
+    return 0
+
+
+def _simulate_missing(args: argparse.Namespace, settings: Settings) -> int:
+    print("error: `gaitmon simulate` is not available in this build (server.simulate_cli is missing)",
+          file=sys.stderr)
+    return 2
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="gaitmon", description="Gait monitoring backend")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("serve", help="run the HTTP API (migrates the database first unless "
+                                     "GAITMON_AUTO_MIGRATE=false)")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.set_defaults(func=cmd_serve)
+
+    p = sub.add_parser("migrate", help="bring the database schema (and the job queue schema) to the latest version")
+    p.set_defaults(func=cmd_migrate)
+
+    p = sub.add_parser("create-token", help="create an admin token, or a clinician with its token; "
+                                            "prints the token as the last line")
+    p.add_argument("--role", choices=["admin", "clinician"], required=True)
+    p.add_argument("--name", default=None)
+    p.add_argument("--email", default=None)
+    p.set_defaults(func=cmd_create_token)
+
+    p = sub.add_parser("revoke-token", help="revoke a token by its id")
+    p.add_argument("token_id")
+    p.set_defaults(func=cmd_revoke_token)
+
+    p = sub.add_parser("worker", help="process queued sessions (PostgreSQL: procrastinate worker; "
+                                      "SQLite: polling loop)")
+    p.add_argument("--concurrency", type=int, default=1)
+    p.set_defaults(func=cmd_worker)
+
+    try:
+        from server.simulate_cli import register
+    except ImportError:
+        p = sub.add_parser("simulate", help="(unavailable in this build)")
+        p.set_defaults(func=_simulate_missing)
+    else:
+        register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    settings = get_settings()
+    setup_logging(settings.log_level)
+    func = args.func
+    # simulate_cli's handlers may take (args) only; ours take (args, settings).
+    code = func(args, settings) if len(inspect.signature(func).parameters) >= 2 else func(args)
+    return int(code or 0)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
