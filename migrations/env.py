@@ -7,6 +7,7 @@ from sqlalchemy import engine_from_config, pool
 
 from server.config import get_settings
 from server.db import all_metadata
+from server.migrate import include_name
 
 config = context.config
 target_metadata = all_metadata()
@@ -34,7 +35,7 @@ def run_migrations_online() -> None:
 
 def _run(connection) -> None:  # noqa: ANN001
     context.configure(connection=connection, target_metadata=target_metadata, render_as_batch=True,
-                      compare_type=True)
+                      compare_type=True, include_name=include_name)
     with context.begin_transaction():
         context.run_migrations()
 
