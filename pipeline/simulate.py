@@ -1,0 +1,622 @@
+"""Thigh and shank IMU simulator with exact ground truth (knee angle, gait events, per-stride metrics).
+
+Model
+-----
+A planar-in-sagittal leg chain embedded in 3-D: the pelvis moves forward along a heading ``psi`` (turns rotate
+about the vertical) with a vertical bob; the thigh inclination equals the hip flexion, the shank inclination is
+``thigh - knee`` (knee flexion positive). Segment frames (x forward, y left, z up along the segment) are
+``R_seg = Rz(psi) @ Ry(-theta)``, so a positive segment angle swings the distal end forward and the knee flexion
+rate is ``(omega_shank - omega_thigh) . y`` in segment coordinates.
+
+Joint curves are truncated Fourier series (8 harmonics) of normative gait curves per pattern (Perry and Burnfield,
+Gait Analysis, 2nd ed., fig. 7-3/8-3 shapes; Rhudy et al. 2024 fig. 6 for running), heel strike at 0 % of the
+cycle, toe-off at the pattern's stance fraction, with smooth stride-to-stride variability. Every scalar degree of
+freedom (thigh and shank angles, heading, forward speed, pelvis height) is sampled on a 500 Hz grid and turned into
+a quintic interpolating spline; the spline *is* the kinematics. Angular velocity and acceleration are evaluated
+from exact spline derivatives by rigid-body kinematics (``a = a_hip + sum alpha x r + omega x (omega x r)``), so
+integrating the relative sagittal gyro reproduces the true knee angle to numerical precision.
+
+Sensor effects: arbitrary mounting rotation (random per sensor, mirrored between legs), lever arms from the knee
+joint centre, gravity, gyro bias and white noise, accelerometer noise, heel-strike impacts (damped oscillations on
+the accelerometers, a small transient rotation on the shank gyro), soft-tissue wobble of the thigh sensor (a
+damped transient rotation and translation: it integrates back to zero, as real wobble does), packet loss (dropped
+BLE packets and longer outages), per-sensor start offset, timestamp sync error and clock drift.
+
+Pure numpy/scipy, seeded and deterministic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from scipy.interpolate import BSpline, CubicSpline, make_interp_spline
+
+from pipeline.types import RawSensorStream
+
+Pattern = Literal["normal", "slow", "fast", "stiff-knee", "crouch", "running"]
+PATTERNS: tuple[str, ...] = ("normal", "slow", "fast", "stiff-knee", "crouch", "running")
+GRAVITY_MS2 = 9.80665
+_GRID_HZ = 500.0
+_N_HARMONICS = 8
+
+
+@dataclass(frozen=True)
+class _PatternSpec:
+    knee_pts: tuple[tuple[float, float], ...]  # (cycle %, knee flexion deg)
+    hip_pts: tuple[tuple[float, float], ...]  # (cycle %, hip flexion deg)
+    stride_s: float
+    speed_ms: float
+    stance_frac: float
+    bob_m: float
+    impact_g: float
+
+
+# Keypoints of normative curves; 0 % = heel strike. Shapes after Perry & Burnfield (walking), crouch after
+# Rodda & Graham 2004 (CP crouch gait), stiff-knee after Goldberg et al. 2003, running after Novacheck 1998.
+_SPECS: dict[str, _PatternSpec] = {
+    "normal": _PatternSpec(
+        ((0, 4), (13, 17), (25, 12), (40, 3), (60, 38), (71, 61), (85, 37), (95, 6)),
+        ((0, 25), (15, 20), (35, 5), (52, -10), (60, -8), (72, 10), (85, 27), (92, 29)),
+        1.10, 1.30, 0.60, 0.025, 2.0),
+    "slow": _PatternSpec(
+        ((0, 4), (13, 12), (28, 8), (42, 3), (63, 34), (74, 54), (86, 34), (95, 6)),
+        ((0, 21), (15, 17), (35, 4), (54, -7), (62, -5), (75, 9), (87, 23), (93, 24)),
+        1.40, 0.75, 0.63, 0.015, 1.2),
+    "fast": _PatternSpec(
+        ((0, 5), (12, 22), (25, 15), (38, 5), (58, 40), (69, 66), (83, 40), (94, 8)),
+        ((0, 30), (15, 24), (35, 5), (50, -13), (58, -11), (70, 12), (84, 33), (91, 34)),
+        0.95, 1.75, 0.58, 0.035, 3.0),
+    "stiff-knee": _PatternSpec(
+        ((0, 5), (13, 11), (28, 8), (42, 4), (60, 17), (72, 37), (85, 22), (95, 7)),
+        ((0, 26), (15, 21), (35, 5), (52, -8), (60, -6), (72, 12), (85, 29), (92, 30)),
+        1.30, 0.90, 0.62, 0.02, 1.5),
+    "crouch": _PatternSpec(
+        ((0, 30), (12, 37), (28, 31), (44, 25), (60, 40), (72, 57), (85, 45), (95, 33)),
+        ((0, 40), (15, 35), (35, 22), (52, 12), (60, 14), (72, 27), (85, 43), (92, 44)),
+        1.20, 0.80, 0.62, 0.02, 1.2),
+    "running": _PatternSpec(
+        ((0, 16), (14, 40), (27, 33), (38, 24), (55, 72), (70, 104), (85, 60), (94, 20)),
+        ((0, 35), (20, 20), (40, -10), (50, -6), (65, 25), (80, 45), (90, 42)),
+        0.72, 3.0, 0.38, 0.07, 6.0),
+}
+
+
+@dataclass
+class SimConfig:
+    """What to simulate. Levels are multipliers (1 = realistic default, 0 = off) unless a unit is named."""
+
+    pattern: str = "normal"
+    fs_hz: float = 100.0
+    seed: int = 0
+    n_strides: int | None = None  # walking strides in total (over all bouts); default 40 unless duration_s
+    duration_s: float | None = None  # approximate session length; bouts and breaks are added until reached
+    legs: tuple[str, ...] = ("left", "right")
+    mounting: Literal["random", "aligned"] = "random"
+    bout_strides: int = 20
+    activities: tuple[str, ...] = ("standing", "turn", "sitting")  # between bouts, cycled
+    walking_turns: bool = True  # a 180 deg turn in the middle of every other bout
+    gyro_noise_dps: float = 0.3  # white noise SD per sample
+    gyro_bias_dps: float = 1.0  # SD of the constant per-axis bias
+    gyro_bias_walk_dps: float = 0.05  # SD of the slow bias drift over a minute
+    acc_noise_ms2: float = 0.05
+    acc_bias_ms2: float = 0.1
+    impact_level: float = 1.0
+    wobble_level: float = 1.0
+    variability: float = 1.0  # stride-to-stride variability multiplier
+    packet_loss: float = 0.005  # probability of dropping one BLE packet
+    packet_samples: int = 6
+    outages_per_min: float = 0.2  # longer runs of lost samples (0.3-2 s)
+    sync_offset_ms: float = 10.0  # SD of each sensor's timestamp error
+    clock_drift_ppm: float = 50.0  # SD of each sensor's clock rate error
+    gyro_unit: Literal["deg/s", "rad/s"] = "deg/s"
+    acc_unit: Literal["m/s2", "g"] = "m/s2"
+
+
+@dataclass(frozen=True)
+class TruthStride:
+    """One true stride (heel strike to the next heel strike); metrics as in :class:`pipeline.types.StrideMetrics`."""
+
+    leg: str
+    t_start_s: float
+    t_end_s: float
+    t_toe_off_s: float
+    peak_swing_flexion_deg: float
+    min_flexion_deg: float
+    rom_deg: float
+    stance_flexion_deg: float
+    steady: bool  # full gait amplitude over the whole stride (not gait initiation / termination)
+    turning: bool
+
+
+@dataclass
+class LegTruth:
+    leg: str
+    t_s: np.ndarray  # true time (session clock), uniform at 500 Hz
+    angle_deg: np.ndarray  # knee flexion
+    heel_strikes_s: np.ndarray
+    toe_offs_s: np.ndarray
+    strides: list[TruthStride]
+    bouts_s: list[tuple[float, float]]  # walking bouts (first to last heel strike)
+
+    def angle_at(self, t_s: np.ndarray) -> np.ndarray:
+        return np.interp(t_s, self.t_s, self.angle_deg)
+
+
+@dataclass
+class SimSession:
+    config: SimConfig
+    activity: str
+    duration_s: float
+    streams: list[RawSensorStream]
+    truth: dict[str, LegTruth]
+    info: dict = field(default_factory=dict)  # mounting matrices, lever arms, biases, clock errors per sensor
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Normative curves
+
+
+def _fourier_coefs(points: tuple[tuple[float, float], ...]) -> np.ndarray:
+    """Complex Fourier coefficients (0.._N_HARMONICS) of the periodic cubic spline through the keypoints."""
+    x = np.array([p[0] for p in points] + [100.0]) / 100.0
+    y = np.array([p[1] for p in points] + [points[0][1]])
+    phase = np.arange(1024) / 1024
+    dense = CubicSpline(x, y, bc_type="periodic")(phase)
+    return np.fft.rfft(dense)[: _N_HARMONICS + 1] / 1024
+
+
+def _eval_fourier(coefs: np.ndarray, phase: np.ndarray) -> np.ndarray:
+    k = np.arange(len(coefs))
+    z = np.exp(2j * np.pi * np.outer(phase, k))
+    w = np.where(k == 0, 1.0, 2.0)
+    return (z * (coefs * w)).real.sum(axis=1)
+
+
+def _smoothstep(u: np.ndarray) -> np.ndarray:
+    u = np.clip(u, 0.0, 1.0)
+    return u**3 * (10 - 15 * u + 6 * u**2)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Timeline
+
+
+@dataclass
+class _Bout:
+    t0: float
+    t1: float
+    turn: bool
+
+
+@dataclass
+class _Timeline:
+    t: np.ndarray
+    env: np.ndarray  # gait amplitude 0..1
+    phase: np.ndarray  # left-leg gait phase (cycles)
+    sit: np.ndarray  # 0 standing .. 1 sitting
+    heading_rad: np.ndarray
+    bouts: list[_Bout]
+
+
+def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator) -> _Timeline:
+    """Lay out bouts and breaks; return the smooth global envelopes on the 500 Hz grid."""
+    stride_s = spec.stride_s * float(np.clip(1 + 0.05 * rng.standard_normal(), 0.9, 1.1))
+    total_strides = cfg.n_strides if cfg.n_strides is not None else (None if cfg.duration_s else 40)
+    events: list[tuple[str, float, float, dict]] = []  # (kind, t0, t1, params)
+    t = 2.0 + rng.uniform(0, 1)  # quiet standing first: apps start recording before the patient walks
+    done = 0
+    k = 0
+    while True:
+        if total_strides is not None:
+            n = min(cfg.bout_strides, total_strides - done)
+        else:
+            n = int(min(cfg.bout_strides, max(3, ((cfg.duration_s or 0) - t - 3) / stride_s)))
+        if n < 3:
+            break
+        dur = n * stride_s
+        events.append(("walk", t, t + dur, {"turn": cfg.walking_turns and k % 2 == 1 and n >= 8}))
+        t += dur
+        done += n
+        if total_strides is not None and done >= total_strides:
+            break
+        if cfg.duration_s is not None and t > cfg.duration_s - 6:
+            break
+        kind = cfg.activities[k % len(cfg.activities)] if cfg.activities else "standing"
+        sit_s = rng.uniform(8, 15)
+        brk = {"sitting": 5.5 + sit_s, "turn": 5.0}.get(kind, rng.uniform(4, 8))
+        if cfg.duration_s is not None and t + brk + 3 * stride_s + 3 > cfg.duration_s:
+            break
+        if kind == "sitting":
+            events.append(("sit", t + 1.0, t + 1.0 + 2.0 + sit_s + 2.0, {}))
+        elif kind == "turn":
+            events.append(("turn", t + 1.0, t + 3.5, {"angle": np.pi * rng.choice([-1, 1]) * rng.uniform(0.5, 1)}))
+        t += brk
+        k += 1
+    t_end = max(t + 2.5, cfg.duration_s or 0.0)
+    grid = np.arange(0.0, t_end + 1e-9, 1.0 / _GRID_HZ)
+    env = np.zeros_like(grid)
+    sit = np.zeros_like(grid)
+    heading = np.zeros_like(grid)
+    freq = np.zeros_like(grid)
+    bouts: list[_Bout] = []
+    for kind, t0, t1, p in events:
+        if kind == "walk":
+            # Gait initiation/termination: amplitude ramps over the first and last stride.
+            ramp = np.minimum(_smoothstep((grid - t0) / stride_s), _smoothstep((t1 - grid) / stride_s))
+            env = np.maximum(env, ramp)
+            inside = (grid >= t0) & (grid <= t1)
+            n = max(1, round((t1 - t0) / stride_s))
+            cv = 0.02 * cfg.variability
+            per = 1.0 / (stride_s * np.clip(1 + cv * rng.standard_normal(n + 2), 0.85, 1.15))
+            knots = t0 + (np.arange(n + 2) - 0.5) * stride_s
+            freq[inside] = CubicSpline(knots, per)(grid[inside])
+            bouts.append(_Bout(t0, t1, bool(p["turn"])))
+            if p["turn"]:
+                mid = 0.5 * (t0 + t1)
+                heading += np.pi * _smoothstep((grid - mid + 1.25 * stride_s) / (2.5 * stride_s))
+        elif kind == "sit":
+            down = _smoothstep((grid - t0) / 2.0)
+            up = _smoothstep((grid - (t1 - 2.0)) / 2.0)
+            sit += down - up
+        elif kind == "turn":
+            heading += p["angle"] * _smoothstep((grid - t0) / (t1 - t0))
+    phase = np.concatenate([[0.0], np.cumsum(0.5 * (freq[1:] + freq[:-1]) / _GRID_HZ)])
+    # Each bout starts with a left heel strike: shift the phase to an integer at the bout start.
+    for b in bouts:
+        i0 = int(np.searchsorted(grid, b.t0))
+        i1 = int(np.searchsorted(grid, b.t1, side="right"))
+        frac = phase[i0] - np.floor(phase[i0])
+        phase[i0:] += (1 - frac) % 1
+        del i1
+    return _Timeline(grid, env, phase, sit, heading, bouts)
+
+
+def _smooth_noise(rng: np.random.Generator, t: np.ndarray, sd: float, corr_s: float) -> np.ndarray:
+    """Smooth random signal: a cubic spline through N(0, sd) knots every ``corr_s`` seconds (C2, so its
+    derivatives stay small and realistic)."""
+    if sd == 0 or len(t) == 0:
+        return np.zeros(len(t))
+    knots = np.arange(t[0] - corr_s, t[-1] + 2 * corr_s, corr_s)
+    return CubicSpline(knots, sd * rng.standard_normal(len(knots)))(t)
+
+
+def _per_stride_signal(rng: np.random.Generator, phase: np.ndarray, sd: float) -> np.ndarray:
+    """A smooth signal taking one random value per stride (cubic through the stride mid-points)."""
+    n = int(np.ceil(phase[-1])) + 3
+    vals = sd * rng.standard_normal(n)
+    return CubicSpline(np.arange(n) - 0.5, vals)(phase)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Rigid-body kinematics
+
+
+def _rz(psi: np.ndarray) -> np.ndarray:
+    c, s = np.cos(psi), np.sin(psi)
+    o, z = np.ones_like(psi), np.zeros_like(psi)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+
+
+def _seg_rot(psi: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Segment-to-world rotation Rz(psi) @ Ry(-theta)."""
+    c, s = np.cos(-theta), np.sin(-theta)
+    o, z = np.ones_like(theta), np.zeros_like(theta)
+    ry = np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
+    return _rz(psi) @ ry
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q = rng.standard_normal(4)
+    q /= np.linalg.norm(q)
+    w, x, y, z = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N,3,3) about one unit axis by angles (N,) (Rodrigues)."""
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    return np.eye(3) + s * k + (1 - c) * (k @ k)
+
+
+@dataclass
+class _LegSplines:
+    thigh: BSpline
+    shank: BSpline
+
+
+@dataclass
+class _BodySplines:
+    heading: BSpline
+    speed: BSpline
+    height: BSpline
+
+
+def _eval3(sp: BSpline, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return sp(t), sp(t, 1), sp(t, 2)
+
+
+def _segment_motion(body: _BodySplines, theta: BSpline, t: np.ndarray):
+    """Rotation, world angular velocity and world angular acceleration of a segment at times t."""
+    psi, dpsi, ddpsi = _eval3(body.heading, t)
+    th, dth, ddth = _eval3(theta, t)
+    rot = _seg_rot(psi, th)
+    zero = np.zeros_like(t)
+    y_h = np.stack([-np.sin(psi), np.cos(psi), zero], -1)
+    x_h = np.stack([np.cos(psi), np.sin(psi), zero], -1)
+    z_w = np.stack([zero, zero, np.ones_like(t)], -1)
+    omega = dpsi[:, None] * z_w - dth[:, None] * y_h
+    # d/dt(y_h) = -dpsi * x_h
+    alpha = ddpsi[:, None] * z_w - ddth[:, None] * y_h + (dth * dpsi)[:, None] * x_h
+    return rot, omega, alpha
+
+
+def _hip_acc(body: _BodySplines, t: np.ndarray, side: float, half_width_m: float) -> np.ndarray:
+    psi, dpsi, ddpsi = _eval3(body.heading, t)
+    v, dv = body.speed(t), body.speed(t, 1)
+    ddz = body.height(t, 2)
+    zero = np.zeros_like(t)
+    x_h = np.stack([np.cos(psi), np.sin(psi), zero], -1)
+    y_h = np.stack([-np.sin(psi), np.cos(psi), zero], -1)
+    acc = dv[:, None] * x_h + (v * dpsi)[:, None] * y_h
+    acc[:, 2] += ddz
+    acc += side * half_width_m * (-ddpsi[:, None] * x_h - (dpsi**2)[:, None] * y_h)
+    return acc
+
+
+def _point_acc(rot: np.ndarray, omega: np.ndarray, alpha: np.ndarray, r_local: np.ndarray) -> np.ndarray:
+    r = rot @ r_local
+    return np.cross(alpha, r) + np.cross(omega, np.cross(omega, r))
+
+
+def _transient(t: np.ndarray, onsets: np.ndarray, amp: float, freq_hz: float, tau_s: float,
+               deriv: int = 0) -> np.ndarray:
+    """Sum of damped sines A exp(-u/tau) sin(2 pi f u), u = t - onset >= 0 (or its 1st/2nd derivative)."""
+    out = np.zeros_like(t)
+    if amp == 0 or len(onsets) == 0:
+        return out
+    w, a = 2 * np.pi * freq_hz, 1.0 / tau_s
+    span = 8 * tau_s
+    for t0 in onsets:
+        i0, i1 = np.searchsorted(t, [t0, t0 + span])
+        u = t[i0:i1] - t0
+        e = np.exp(-a * u)
+        s, c = np.sin(w * u), np.cos(w * u)
+        if deriv == 0:
+            out[i0:i1] += amp * e * s
+        elif deriv == 1:
+            out[i0:i1] += amp * e * (w * c - a * s)
+        else:
+            out[i0:i1] += amp * e * ((a * a - w * w) * s - 2 * a * w * c)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Truth
+
+
+def _crossings(t: np.ndarray, phase: np.ndarray, offset: float, mask: np.ndarray) -> np.ndarray:
+    """Times where phase - offset crosses an integer while mask (walking) holds; linear within a grid step."""
+    p = phase - offset
+    k = np.floor(p)
+    idx = np.nonzero((k[1:] > k[:-1]) & mask[1:] & mask[:-1])[0]
+    frac = (k[idx + 1] - p[idx]) / (p[idx + 1] - p[idx])
+    return t[idx] + frac * (t[idx + 1] - t[idx])
+
+
+def _leg_truth(leg: str, tl: _Timeline, knee: np.ndarray, phase: np.ndarray, stance_frac: float) -> LegTruth:
+    t = tl.t
+    walking = tl.env > 0
+    hs = _crossings(t, phase, 0.0, walking)
+    to = _crossings(t, phase, stance_frac, walking)
+    strides: list[TruthStride] = []
+    bouts = [(b.t0, b.t1) for b in tl.bouts]
+    for a, b in zip(hs[:-1], hs[1:], strict=False):
+        same_bout = any(b0 - 1e-6 <= a and b <= b1 + 1e-6 for b0, b1 in bouts)
+        tos = to[(to > a) & (to < b)]
+        if not same_bout or len(tos) != 1:
+            continue
+        i0, i1 = np.searchsorted(t, [a, b])
+        ito = int(np.searchsorted(t, tos[0]))
+        seg = knee[i0:i1 + 1]
+        stance = knee[i0: i0 + max(1, (ito - i0) // 2) + 1]
+        steady = bool(np.all(tl.env[i0:i1 + 1] >= 1.0 - 1e-9))
+        turning = bool(np.ptp(tl.heading_rad[i0:i1 + 1]) > np.radians(5))
+        strides.append(TruthStride(
+            leg=leg, t_start_s=float(a), t_end_s=float(b), t_toe_off_s=float(tos[0]),
+            peak_swing_flexion_deg=float(knee[ito:i1 + 1].max()), min_flexion_deg=float(seg.min()),
+            rom_deg=float(seg.max() - seg.min()), stance_flexion_deg=float(stance.max()),
+            steady=steady, turning=turning))
+    bout_ranges = []
+    for b0, b1 in bouts:
+        inb = hs[(hs >= b0 - 1e-6) & (hs <= b1 + 1e-6)]
+        if len(inb):
+            bout_ranges.append((float(inb[0]), float(inb[-1])))
+    return LegTruth(leg, t, knee, hs, to, strides, bout_ranges)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Sensors
+
+
+def _sample_times(rng: np.random.Generator, cfg: SimConfig, t_end: float) -> tuple[np.ndarray, np.ndarray, dict]:
+    """True sample instants and reported timestamps of one sensor (before packet loss)."""
+    fs = cfg.fs_hz
+    drift = cfg.clock_drift_ppm * 1e-6 * rng.standard_normal()
+    start = rng.uniform(0.0, 1.0 / fs) + rng.uniform(0.0, 0.05)
+    n = int((t_end - 0.1 - start) * fs * (1 + drift))
+    k = np.arange(n)
+    t_true = start + k / (fs * (1 + drift))
+    sync = cfg.sync_offset_ms * 1e-3 * rng.standard_normal()
+    t_rep = start + sync + k / fs
+    if t_rep[0] < 0:
+        t_rep -= t_rep[0]
+    return t_true, t_rep, {"drift_ppm": drift * 1e6, "sync_offset_ms": sync * 1e3, "start_s": start}
+
+
+def _keep_mask(rng: np.random.Generator, cfg: SimConfig, n: int) -> np.ndarray:
+    keep = np.ones(n, dtype=bool)
+    ps = max(1, cfg.packet_samples)
+    n_packets = -(-n // ps)
+    lost = np.nonzero(rng.random(n_packets) < cfg.packet_loss)[0]
+    for p in lost:
+        keep[p * ps:(p + 1) * ps] = False
+    dur_min = n / cfg.fs_hz / 60
+    for _ in range(rng.poisson(cfg.outages_per_min * dur_min)):
+        i0 = int(rng.integers(0, n))
+        keep[i0: i0 + int(rng.uniform(0.3, 2.0) * cfg.fs_hz)] = False
+    keep[:ps] = True  # the first packet always arrives: it anchors the stream
+    return keep
+
+
+def _mounting(rng: np.random.Generator, cfg: SimConfig, leg: str, seg: str, left_mounts: dict) -> np.ndarray:
+    """Sensor-to-segment rotation. Right-leg mountings are the sagittal mirror of the left ones plus a small
+    random difference (a real patient does not place the two sides identically)."""
+    if cfg.mounting == "aligned":
+        return np.eye(3)
+    if leg == "left" or seg not in left_mounts:
+        r = _random_rotation(rng)
+        left_mounts[seg] = r
+        if leg == "left":
+            return r
+    m = np.diag([1.0, -1.0, 1.0])
+    axis = rng.standard_normal(3)
+    axis /= np.linalg.norm(axis)
+    perturb = _axis_angle(axis, np.array([np.radians(rng.uniform(0, 10))]))[0]
+    return m @ left_mounts[seg] @ m @ perturb
+
+
+def simulate_session(cfg: SimConfig) -> SimSession:
+    """Simulate one recording session; see the module docstring for the model."""
+    if cfg.pattern not in _SPECS:
+        raise ValueError(f"unknown pattern {cfg.pattern!r}; expected one of {PATTERNS}")
+    spec = _SPECS[cfg.pattern]
+    rng = np.random.default_rng(cfg.seed)
+    tl = _build_timeline(cfg, spec, rng)
+    t = tl.t
+
+    knee_c = _fourier_coefs(spec.knee_pts)
+    hip_c = _fourier_coefs(spec.hip_pts)
+    subj_knee = float(np.clip(1 + 0.04 * rng.standard_normal(), 0.92, 1.08))
+    subj_hip = float(np.clip(1 + 0.08 * rng.standard_normal(), 0.85, 1.15))
+    var = cfg.variability
+
+    # Posture between bouts: standing with slight sway, sitting at hip 90 / knee 90 deg.
+    stand_knee = rng.uniform(2, 6)
+    stand_hip = rng.uniform(0, 5)
+    heading = tl.heading_rad + _smooth_noise(rng, t, np.radians(1.0), 2.0)
+    body = _BodySplines(
+        heading=make_interp_spline(t, heading, k=5),
+        speed=make_interp_spline(t, tl.env * spec.speed_ms * (1 + 0.06 * np.cos(4 * np.pi * tl.phase)), k=5),
+        height=make_interp_spline(t, tl.env * spec.bob_m * np.cos(4 * np.pi * tl.phase) - 0.45 * tl.sit, k=5),
+    )
+
+    legs: dict[str, _LegSplines] = {}
+    truth: dict[str, LegTruth] = {}
+    phases: dict[str, np.ndarray] = {}
+    for leg in cfg.legs:
+        phase = tl.phase + (0.0 if leg == "left" else 0.5)
+        phases[leg] = phase
+        s_knee = _eval_fourier(knee_c, phase % 1.0)
+        s_min = s_knee.min()
+        amp = subj_knee * (1 + _per_stride_signal(rng, phase, 0.025 * var))
+        off = _per_stride_signal(rng, phase, 0.6 * var)
+        gait_knee = s_min + amp * (s_knee - s_min) + off
+        gait_hip = subj_hip * _eval_fourier(hip_c, phase % 1.0) * (1 + _per_stride_signal(rng, phase, 0.03 * var))
+        sway_k = _smooth_noise(rng, t, 0.7, 1.5)
+        sway_h = _smooth_noise(rng, t, 0.7, 1.5)
+        post_knee = (1 - tl.sit) * (stand_knee + sway_k) + tl.sit * (90.0 + sway_k)
+        post_hip = (1 - tl.sit) * (stand_hip + sway_h) + tl.sit * (88.0 + sway_h)
+        knee = tl.env * gait_knee + (1 - tl.env) * post_knee
+        hip = tl.env * gait_hip + (1 - tl.env) * post_hip
+        thigh = make_interp_spline(t, np.radians(hip), k=5)
+        shank = make_interp_spline(t, np.radians(hip - knee), k=5)
+        legs[leg] = _LegSplines(thigh, shank)
+        knee_true = np.degrees(thigh(t) - shank(t))
+        truth[leg] = _leg_truth(leg, tl, knee_true, phase, spec.stance_frac)
+
+    thigh_len = rng.uniform(0.38, 0.46)
+    half_width = rng.uniform(0.08, 0.11)
+    streams: list[RawSensorStream] = []
+    info: dict = {"sensors": {}, "thigh_length_m": thigh_len}
+    left_mounts: dict[str, np.ndarray] = {}
+    # Mountings draw from their own stream so "aligned" and "random" share identical kinematics and noise.
+    rng_mount = np.random.default_rng([cfg.seed, 1])
+    rng_loss = np.random.default_rng([cfg.seed, 2])  # likewise: loss settings change nothing but the loss
+    gyro_scale = 1.0 if cfg.gyro_unit == "deg/s" else np.pi / 180
+    acc_scale = 1.0 if cfg.acc_unit == "m/s2" else 1.0 / GRAVITY_MS2
+    for leg in cfg.legs:
+        side = 1.0 if leg == "left" else -1.0  # +y is lateral for the left leg
+        hs = truth[leg].heel_strikes_s
+        for seg in ("thigh", "shank"):
+            r_mount = _mounting(rng_mount, cfg, leg, seg, left_mounts)
+            if seg == "thigh":
+                lever = np.array([rng.uniform(-0.03, 0.05), side * rng.uniform(0.06, 0.09), rng.uniform(0.12, 0.25)])
+            else:
+                lever = np.array([rng.uniform(-0.02, 0.05), side * rng.uniform(0.04, 0.07),
+                                  -rng.uniform(0.08, 0.22)])
+            t_true, t_rep, clock = _sample_times(rng, cfg, t[-1])
+            m = len(t_true)
+            rot_t, om_t, al_t = _segment_motion(body, legs[leg].thigh, t_true)
+            acc_w = _hip_acc(body, t_true, side, half_width)
+            if seg == "thigh":
+                rot, om, _ = rot_t, om_t, al_t
+                acc_w = acc_w + _point_acc(rot_t, om_t, al_t, lever + np.array([0, 0, -thigh_len]))
+            else:
+                rot, om, al = _segment_motion(body, legs[leg].shank, t_true)
+                acc_w = acc_w + _point_acc(rot_t, om_t, al_t, np.array([0, 0, -thigh_len]))
+                acc_w = acc_w + _point_acc(rot, om, al, lever)
+            f_w = acc_w + np.array([0.0, 0.0, GRAVITY_MS2])
+            r_sensor = rot @ r_mount  # sensor-to-world
+            gyr = np.einsum("nji,nj->ni", r_sensor, om)
+            acc = np.einsum("nji,nj->ni", r_sensor, f_w)
+
+            # Transient rotation about a sensor-frame axis: soft-tissue wobble (thigh) or impact (shank).
+            # Its angle returns to zero, so the integrated gyro keeps the true orientation on average.
+            if seg == "thigh":
+                rot_amp, rot_f, rot_tau = np.radians(0.8) * cfg.wobble_level, 11.0, 0.06
+                tr_amp, imp_g = 0.0015 * cfg.wobble_level, 0.3 * spec.impact_g * cfg.impact_level
+            else:
+                rot_amp, rot_f, rot_tau = np.radians(0.3) * cfg.impact_level, 18.0, 0.03
+                tr_amp, imp_g = 0.0, spec.impact_g * cfg.impact_level
+            axis = rng.standard_normal(3)
+            axis /= np.linalg.norm(axis)
+            if rot_amp > 0 and len(hs):
+                ang = _transient(t_true, hs, rot_amp, rot_f, rot_tau)
+                dang = _transient(t_true, hs, rot_amp, rot_f, rot_tau, deriv=1)
+                rw = _axis_angle(axis, ang)
+                gyr = np.einsum("nji,nj->ni", rw, gyr) + dang[:, None] * axis
+                acc = np.einsum("nji,nj->ni", rw, acc)
+            if tr_amp > 0 and len(hs):
+                tdir = rng.standard_normal(3)
+                acc += _transient(t_true, hs, tr_amp, 9.0, 0.07, deriv=2)[:, None] * (tdir / np.linalg.norm(tdir))
+            if imp_g > 0 and len(hs):
+                # Heel-strike shock travels up the segment (mostly along its long axis, some anterior).
+                d_seg = np.array([rng.uniform(0.1, 0.4), 0.0, 1.0])
+                d_sensor = r_mount.T @ (d_seg / np.linalg.norm(d_seg))
+                acc += _transient(t_true, hs, imp_g * GRAVITY_MS2, 28.0, 0.012)[:, None] * d_sensor
+
+            gbias = np.radians(cfg.gyro_bias_dps) * rng.standard_normal(3)
+            gwalk = np.stack([_smooth_noise(rng, t_true, np.radians(cfg.gyro_bias_walk_dps), 20.0)
+                              for _ in range(3)], -1)
+            gyr = gyr + gbias + gwalk + np.radians(cfg.gyro_noise_dps) * rng.standard_normal((m, 3))
+            abias = cfg.acc_bias_ms2 * rng.standard_normal(3)
+            acc = acc + abias + cfg.acc_noise_ms2 * rng.standard_normal((m, 3))
+
+            keep = _keep_mask(rng_loss, cfg, m)
+            sid = f"{leg[0].upper()}-{seg}"
+            streams.append(RawSensorStream(
+                sensor_id=sid, leg=leg, segment=seg, fs_hz=float(cfg.fs_hz), t_s=t_rep[keep],
+                gyr=np.degrees(gyr[keep]) * gyro_scale, acc=acc[keep] * acc_scale,
+                gyro_unit=cfg.gyro_unit, acc_unit=cfg.acc_unit))
+            info["sensors"][sid] = {"mounting": r_mount.tolist(), "lever_arm_m": lever.tolist(),
+                                    "gyro_bias_dps": np.degrees(gbias).tolist(), "dropped": int((~keep).sum()),
+                                    **clock}
+    activity = "running" if cfg.pattern == "running" else "walking"
+    return SimSession(cfg, activity, float(t[-1]), streams, truth, info)

@@ -1,0 +1,187 @@
+"""Physics and bookkeeping checks of the IMU simulator (pipeline/simulate.py)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from pipeline.simulate import GRAVITY_MS2, SimConfig, SimSession, simulate_session
+
+CLEAN = dict(gyro_noise_dps=0.0, gyro_bias_dps=0.0, gyro_bias_walk_dps=0.0, acc_noise_ms2=0.0, acc_bias_ms2=0.0,
+             impact_level=0.0, wobble_level=0.0, packet_loss=0.0, outages_per_min=0.0, sync_offset_ms=0.0,
+             clock_drift_ppm=0.0)
+
+
+def _stream(sim: SimSession, sid: str):
+    return next(s for s in sim.streams if s.sensor_id == sid)
+
+
+def _knee_from_gyro(sim: SimSession, leg: str) -> tuple[np.ndarray, np.ndarray]:
+    """Integrate the relative sagittal angular velocity (segment y axis) into a knee angle, degrees."""
+    p = leg[0].upper()
+    th, sh = _stream(sim, f"{p}-thigh"), _stream(sim, f"{p}-shank")
+    mounts = sim.info["sensors"]
+    w_th = th.gyr @ np.array(mounts[f"{p}-thigh"]["mounting"]).T  # sensor -> segment frame
+    w_sh = sh.gyr @ np.array(mounts[f"{p}-shank"]["mounting"]).T
+    t = th.t_s
+    w_sh_y = np.interp(t, sh.t_s, w_sh[:, 1])
+    rate = w_sh_y - w_th[:, 1]
+    angle = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(t))])
+    return t, angle + sim.truth[leg].angle_at(t[:1])[0]
+
+
+@pytest.fixture(scope="module")
+def clean_sim() -> SimSession:
+    return simulate_session(SimConfig(pattern="normal", fs_hz=200, seed=3, n_strides=16, bout_strides=8,
+                                      activities=("sitting",), **CLEAN))
+
+
+@pytest.mark.parametrize("mounting", ["aligned", "random"])
+def test_integrated_relative_gyro_reproduces_true_knee_angle(mounting: str) -> None:
+    sim = simulate_session(SimConfig(pattern="fast", fs_hz=200, seed=5, n_strides=10, mounting=mounting, **CLEAN))
+    for leg in ("left", "right"):
+        t, est = _knee_from_gyro(sim, leg)
+        err = est - sim.truth[leg].angle_at(t)
+        assert np.sqrt(np.mean(err**2)) < 0.2
+        assert np.abs(err).max() < 0.6
+
+
+def test_accelerometer_reads_gravity_at_rest(clean_sim: SimSession) -> None:
+    for s in clean_sim.streams:
+        quiet = s.t_s < 1.5  # every session starts with quiet standing
+        norms = np.linalg.norm(s.acc[quiet], axis=1)
+        assert quiet.sum() > 100
+        assert np.allclose(norms, GRAVITY_MS2, atol=0.05)
+        # and during walking it does not (impacts are off: this is the leg's own acceleration)
+        assert np.linalg.norm(s.acc, axis=1).std() > 1.0
+
+
+def test_sitting_bends_knee_to_about_90_degrees(clean_sim: SimSession) -> None:
+    angle = clean_sim.truth["left"].angle_deg
+    assert 85 < angle.max() < 95
+    # the thigh is horizontal while seated, so gravity lies in its sagittal plane, off its long axis
+    assert np.abs(angle - 90).min() < 2
+
+
+def test_mounting_rotation_preserves_norms_and_changes_axes() -> None:
+    base = SimConfig(pattern="normal", seed=11, n_strides=6, **CLEAN)
+    a = simulate_session(dataclasses.replace(base, mounting="aligned"))
+    r = simulate_session(dataclasses.replace(base, mounting="random"))
+    for sa, sr in zip(a.streams, r.streams, strict=True):
+        assert np.allclose(sa.t_s, sr.t_s)
+        assert np.allclose(np.linalg.norm(sa.gyr, axis=1), np.linalg.norm(sr.gyr, axis=1), atol=1e-6)
+        assert np.allclose(np.linalg.norm(sa.acc, axis=1), np.linalg.norm(sr.acc, axis=1), atol=1e-6)
+        assert np.abs(sa.gyr - sr.gyr).max() > 10.0
+        m = np.array(r.info["sensors"][sr.sensor_id]["mounting"])
+        assert np.allclose(m @ m.T, np.eye(3), atol=1e-9) and np.isclose(np.linalg.det(m), 1.0)
+
+
+def test_right_mounting_mirrors_left() -> None:
+    sim = simulate_session(SimConfig(seed=2, n_strides=4, **CLEAN))
+    mirror = np.diag([1.0, -1.0, 1.0])
+    for seg in ("thigh", "shank"):
+        left = np.array(sim.info["sensors"][f"L-{seg}"]["mounting"])
+        right = np.array(sim.info["sensors"][f"R-{seg}"]["mounting"])
+        rel = (mirror @ left @ mirror).T @ right  # the small random placement difference
+        angle = np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1, 1)))
+        assert angle <= 10.0 + 1e-6
+
+
+def test_truth_events_are_ordered_and_legs_alternate() -> None:
+    sim = simulate_session(SimConfig(pattern="normal", seed=4, n_strides=30))
+    hs = {leg: sim.truth[leg].heel_strikes_s for leg in ("left", "right")}
+    for leg in ("left", "right"):
+        tr = sim.truth[leg]
+        assert np.all(np.diff(tr.heel_strikes_s) > 0.5)
+        assert len(tr.strides) >= 20
+        for s in tr.strides:
+            assert s.t_start_s < s.t_toe_off_s < s.t_end_s
+            assert 0.55 < (s.t_toe_off_s - s.t_start_s) / (s.t_end_s - s.t_start_s) < 0.65
+            assert s.min_flexion_deg <= s.stance_flexion_deg
+            assert not s.steady or s.stance_flexion_deg <= s.peak_swing_flexion_deg
+            assert s.rom_deg >= s.peak_swing_flexion_deg - s.min_flexion_deg - 1e-9
+            if s.steady:  # the swing peak is the stride's maximum
+                assert np.isclose(s.rom_deg, s.peak_swing_flexion_deg - s.min_flexion_deg, atol=0.5)
+            assert s.peak_swing_flexion_deg == pytest.approx(
+                tr.angle_deg[(tr.t_s >= s.t_toe_off_s) & (tr.t_s <= s.t_end_s)].max(), abs=1e-9)
+    # a right heel strike lies between consecutive left heel strikes of a steady stride
+    for s in sim.truth["left"].strides:
+        if s.steady:
+            inside = hs["right"][(hs["right"] > s.t_start_s) & (hs["right"] < s.t_end_s)]
+            assert len(inside) == 1
+            assert 0.4 < (inside[0] - s.t_start_s) / (s.t_end_s - s.t_start_s) < 0.6
+
+
+@pytest.mark.parametrize(("pattern", "peak", "min_", "stance"), [
+    ("normal", (55, 70), (0, 8), (0.58, 0.62)),
+    ("stiff-knee", (33, 42), (0, 10), (0.6, 0.64)),
+    ("crouch", (50, 65), (20, 30), (0.6, 0.64)),
+    ("running", (90, 120), (5, 30), (0.35, 0.40)),
+])
+def test_pattern_characteristics(pattern: str, peak: tuple, min_: tuple, stance: tuple) -> None:
+    sim = simulate_session(SimConfig(pattern=pattern, seed=7, n_strides=16, legs=("left",)))
+    st = [s for s in sim.truth["left"].strides if s.steady]
+    assert len(st) >= 8
+    peaks = np.array([s.peak_swing_flexion_deg for s in st])
+    assert peak[0] < np.median(peaks) < peak[1]
+    assert 0.3 < peaks.std() < 4.0  # stride-to-stride variability, not a copy
+    assert min_[0] < np.median([s.min_flexion_deg for s in st]) < min_[1]
+    frac = np.median([(s.t_toe_off_s - s.t_start_s) / (s.t_end_s - s.t_start_s) for s in st])
+    assert stance[0] < frac < stance[1]
+    assert sim.activity == ("running" if pattern == "running" else "walking")
+
+
+def test_packet_loss_drops_runs_of_samples() -> None:
+    base = SimConfig(seed=8, n_strides=20, fs_hz=100)
+    full = simulate_session(dataclasses.replace(base, packet_loss=0.0, outages_per_min=0.0))
+    lossy = simulate_session(dataclasses.replace(base, packet_loss=0.1, outages_per_min=10.0))
+    for sf, sl in zip(full.streams, lossy.streams, strict=True):
+        assert len(sl.t_s) < 0.93 * len(sf.t_s)
+        assert np.all(np.diff(sl.t_s) > 0)
+        gaps = np.diff(sl.t_s)
+        assert gaps.max() > 0.25  # an outage
+        assert np.sum(gaps > 1.5 / 100) >= 5
+        assert len(sl.t_s) == len(sl.gyr) == len(sl.acc)
+        # surviving samples are unchanged: the loss only removes data
+        idx = np.searchsorted(sf.t_s, sl.t_s)
+        assert np.allclose(sf.t_s[idx], sl.t_s)
+        assert np.allclose(sf.gyr[idx], sl.gyr)
+
+
+def test_sensors_are_not_sample_synchronous() -> None:
+    sim = simulate_session(SimConfig(seed=9, n_strides=8, fs_hz=50, clock_drift_ppm=200))
+    starts = [s.t_s[0] for s in sim.streams]
+    assert len({round(x, 6) for x in starts}) == len(starts)
+    drifts = [v["drift_ppm"] for v in sim.info["sensors"].values()]
+    assert len(set(drifts)) == len(drifts) and max(abs(d) for d in drifts) > 0
+
+
+def test_units_are_converted() -> None:
+    base = SimConfig(seed=10, n_strides=4)
+    a = simulate_session(base)
+    b = simulate_session(dataclasses.replace(base, gyro_unit="rad/s", acc_unit="g"))
+    for sa, sb in zip(a.streams, b.streams, strict=True):
+        assert sb.gyro_unit == "rad/s" and sb.acc_unit == "g"
+        assert np.allclose(np.radians(sa.gyr), sb.gyr)
+        assert np.allclose(sa.acc / GRAVITY_MS2, sb.acc)
+
+
+def test_deterministic_per_seed() -> None:
+    cfg = SimConfig(pattern="slow", seed=12, n_strides=6)
+    a, b = simulate_session(cfg), simulate_session(cfg)
+    c = simulate_session(dataclasses.replace(cfg, seed=13))
+    for sa, sb in zip(a.streams, b.streams, strict=True):
+        assert np.array_equal(sa.t_s, sb.t_s) and np.array_equal(sa.gyr, sb.gyr) and np.array_equal(sa.acc, sb.acc)
+    assert np.array_equal(a.truth["left"].angle_deg, b.truth["left"].angle_deg)
+    assert not np.array_equal(a.streams[0].gyr[:100], c.streams[0].gyr[:100])
+
+
+def test_duration_config_and_bad_pattern() -> None:
+    sim = simulate_session(SimConfig(seed=1, duration_s=90, legs=("right",)))
+    assert 85 <= sim.duration_s <= 100
+    assert {s.leg for s in sim.streams} == {"right"} and set(sim.truth) == {"right"}
+    assert len(sim.truth["right"].bouts_s) >= 2
+    with pytest.raises(ValueError):
+        simulate_session(SimConfig(pattern="moonwalk"))
