@@ -91,11 +91,12 @@ async def recover_async(app: procrastinate.App, database_url: str, settings: Set
                                   stall_seconds=settings.job_stall_seconds)
     # Also sessions that are queued but have no waiting job (e.g. the API crashed between commit and defer).
     ids += await asyncio.to_thread(_queued_without_job, database_url)
-    for sid in dict.fromkeys(ids):
+    unique = list(dict.fromkeys(ids))
+    for sid in unique:
         await _defer_async(app, sid)
-    if ids:
-        log.warning("recovery: %d session(s) deferred again", len(ids))
-    return len(ids)
+    if unique:
+        log.warning("recovery: %d session(s) deferred again", len(unique))
+    return len(unique)
 
 
 def _queued_without_job(database_url: str) -> list[str]:
