@@ -1,0 +1,152 @@
+"""RFC 9457 problem details for every error the API returns (never a stack trace)."""
+
+from __future__ import annotations
+
+import logging
+from http import HTTPStatus
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+log = logging.getLogger("gaitmon.api")
+
+PROBLEM_JSON = "application/problem+json"
+# Validation errors past this many are summarised: a batch of 20 000 NaN rows must not echo 20 000 entries.
+MAX_FIELD_ERRORS = 50
+
+
+def problem_type(slug: str) -> str:
+    return f"urn:gaitmon:problem:{slug}"
+
+
+def _default_slug(status: int) -> str:
+    try:
+        return HTTPStatus(status).phrase.lower().replace(" ", "-").replace("'", "")
+    except ValueError:
+        return "error"
+
+
+def problem_body(status: int, detail: str, *, title: str | None = None, slug: str | None = None,
+                 instance: str | None = None, errors: list[dict[str, str]] | None = None) -> dict[str, Any]:
+    try:
+        default_title = HTTPStatus(status).phrase
+    except ValueError:
+        default_title = "Error"
+    body: dict[str, Any] = {
+        "type": problem_type(slug or _default_slug(status)),
+        "title": title or default_title,
+        "status": status,
+        "detail": detail,
+    }
+    if instance:
+        body["instance"] = instance
+    if errors is not None:
+        body["errors"] = errors
+    return body
+
+
+def problem_response(status: int, detail: str, *, title: str | None = None, slug: str | None = None,
+                     instance: str | None = None, errors: list[dict[str, str]] | None = None,
+                     headers: dict[str, str] | None = None) -> JSONResponse:
+    return JSONResponse(
+        problem_body(status, detail, title=title, slug=slug, instance=instance, errors=errors),
+        status_code=status, media_type=PROBLEM_JSON, headers=headers,
+    )
+
+
+class ProblemError(Exception):
+    """Raise anywhere in a request to answer with a problem document."""
+
+    def __init__(self, status: int, detail: str, *, title: str | None = None, slug: str | None = None,
+                 errors: list[dict[str, str]] | None = None, headers: dict[str, str] | None = None) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.detail = detail
+        self.title = title
+        self.slug = slug
+        self.errors = errors
+        self.headers = headers
+
+
+def not_found(what: str) -> ProblemError:
+    return ProblemError(404, f"{what} not found", slug="not-found")
+
+
+def forbidden(detail: str) -> ProblemError:
+    return ProblemError(403, detail, slug="forbidden")
+
+
+def conflict(detail: str, slug: str = "conflict") -> ProblemError:
+    return ProblemError(409, detail, slug=slug)
+
+
+def invalid(field: str, message: str, *, status: int = 422) -> ProblemError:
+    """One invalid field (checks that need the settings or the database, so pydantic cannot do them)."""
+    return ProblemError(status, f"{field}: {message}", title="Validation failed", slug="validation-error",
+                        errors=[{"field": field, "message": message}])
+
+
+def _field_name(loc: tuple[Any, ...]) -> str:
+    """("body", "gyro", 17, 2) -> "gyro[17][2]"; ("query", "leg") -> "leg"."""
+    parts = list(loc[1:]) if loc and loc[0] in ("body", "query", "path", "header", "cookie") else list(loc)
+    out = ""
+    for p in parts:
+        if isinstance(p, int):
+            out += f"[{p}]"
+        else:
+            out += ("." if out else "") + str(p)
+    return out or (str(loc[0]) if loc else "request")
+
+
+def validation_errors(exc: RequestValidationError) -> list[dict[str, str]]:
+    errs = exc.errors()
+    out = [{"field": _field_name(tuple(e.get("loc", ()))), "message": str(e.get("msg", "invalid"))}
+           for e in errs[:MAX_FIELD_ERRORS]]
+    if len(errs) > MAX_FIELD_ERRORS:
+        out.append({"field": "", "message": f"... and {len(errs) - MAX_FIELD_ERRORS} more errors"})
+    return out
+
+
+async def _problem_error_handler(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, ProblemError)
+    return problem_response(exc.status, exc.detail, title=exc.title, slug=exc.slug, instance=request.url.path,
+                            errors=exc.errors, headers=exc.headers)
+
+
+async def _validation_handler(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    errors = validation_errors(exc)
+    first = errors[0] if errors else {"field": "request", "message": "invalid"}
+    detail = f"{first['field']}: {first['message']}"
+    if len(errors) > 1:
+        detail += f" (and {len(exc.errors()) - 1} more)"
+    return problem_response(422, detail, title="Validation failed", slug="validation-error",
+                            instance=request.url.path, errors=errors)
+
+
+async def _http_exception_handler(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, StarletteHTTPException)
+    status = exc.status_code
+    detail = exc.detail if isinstance(exc.detail, str) else HTTPStatus(status).phrase
+    if status == 404 and detail == "Not Found":
+        detail = f"No resource at {request.url.path}"
+    elif status == 405:
+        detail = f"Method {request.method} is not allowed on {request.url.path}"
+    return problem_response(status, detail, instance=request.url.path, headers=dict(exc.headers or {}))
+
+
+async def _unhandled_handler(request: Request, exc: Exception) -> JSONResponse:
+    # The traceback goes to the log only; the client gets a generic problem document.
+    log.exception("unhandled error on %s %s", request.method, request.url.path)
+    return problem_response(500, "An internal error occurred; it has been logged.", slug="internal-error",
+                            instance=request.url.path)
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    app.add_exception_handler(ProblemError, _problem_error_handler)
+    app.add_exception_handler(RequestValidationError, _validation_handler)
+    app.add_exception_handler(StarletteHTTPException, _http_exception_handler)
+    app.add_exception_handler(Exception, _unhandled_handler)
