@@ -34,7 +34,7 @@ def bearer(token: str) -> dict[str, str]:
 def batch_body(sensor_id: str, seq: int, n: int = 50, fs_hz: float = 100.0, *, t0_ms: float | None = None,
                seed: int = 0, timestamps: bool = False) -> dict[str, Any]:
     """A batch of ``n`` random samples starting where batch ``seq`` of equal batches would start."""
-    rng = np.random.default_rng(seed * 1000 + seq)
+    rng = np.random.default_rng(abs(seed * 1000 + seq))
     t0 = seq * n * 1000.0 / fs_hz if t0_ms is None else t0_ms
     body: dict[str, Any] = {
         "sensor_id": sensor_id, "seq": seq, "t0_ms": t0,

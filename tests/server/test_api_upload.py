@@ -1,0 +1,243 @@
+"""Batch upload: idempotency (201/200/409), any order, validation with nothing stored, gzip and size limits."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import zlib
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+from sqlalchemy import func, select
+
+from server import ingest
+from server.api.body_limit import _GzipInflater, _Reject
+from server.config import Settings
+from server.models import Batch
+from server.rawdata import load_streams
+from tests.server.helpers import Api, batch_body, bearer, count_rows, open_api
+
+
+@pytest.fixture
+def api(settings: Settings) -> Iterator[Api]:
+    small = settings.model_copy(update={"max_body_bytes": 300_000, "max_samples_per_batch": 1000})
+    with open_api(small) as a:
+        yield a
+
+
+def _batches(api: Api) -> int:
+    with api.engine.connect() as conn:
+        return conn.execute(select(func.count()).select_from(Batch)).scalar_one()
+
+
+def test_new_replay_and_conflict(api: Api) -> None:
+    _, dev, sess = api.setup_device_session()
+    body = batch_body("L-shank", 3, n=40)
+    r = api.upload(dev, sess["id"], body)
+    assert r.status_code == 201
+    assert r.json() == {"sensor_id": "L-shank", "seq": 3, "samples": 40, "duplicate": False}
+    # Identical values in another JSON form (explicit timestamps equal to the implicit ones, gzip): a replay.
+    replay = dict(body, timestamps_ms=(body["t0_ms"] + np.arange(40) * 10.0).tolist())
+    r = api.upload(dev, sess["id"], replay, gzipped=True)
+    assert r.status_code == 200 and r.json()["duplicate"] is True and r.json()["samples"] == 40
+    changed = json.loads(json.dumps(body))
+    changed["gyro"][5][1] += 0.001
+    r = api.upload(dev, sess["id"], changed)
+    assert r.status_code == 409
+    assert r.headers["content-type"].startswith("application/problem+json")
+    assert _batches(api) == 1
+    # Same seq on another sensor is a different batch.
+    assert api.upload(dev, sess["id"], batch_body("L-thigh", 3, n=40)).status_code == 201
+    assert _batches(api) == 2
+
+
+def test_shuffled_order_with_duplicates_stores_each_sample_once(api: Api) -> None:
+    _, dev, sess = api.setup_device_session()
+    rng = np.random.default_rng(7)
+    n, n_batches = 37, 12
+    plan = [(s, q) for s in ("L-thigh", "L-shank") for q in range(n_batches)]
+    plan += [plan[i] for i in rng.choice(len(plan), 10)]  # resent after "timeouts"
+    rng.shuffle(plan)
+    codes = [api.upload(dev, sess["id"], batch_body(s, q, n=n)).status_code for s, q in plan]
+    assert codes.count(201) == 2 * n_batches and codes.count(200) == 10
+    got = api.client.get(f"/v1/sessions/{sess['id']}", headers=bearer(dev)).json()
+    for sensor in ("L-thigh", "L-shank"):
+        rec = got["received"][sensor]
+        assert (rec["batches"], rec["samples"], rec["gaps"], rec["missing_seq"]) == (n_batches, n * n_batches, 0, [])
+        assert rec["first_t_s"] == 0.0 and rec["last_t_s"] == pytest.approx((n * n_batches - 1) / 100.0)
+    with api.client.app.state.sessionmaker() as db:  # type: ignore[attr-defined]
+        streams = {s.sensor_id: s for s in load_streams(db, sess["id"])}
+    shank = streams["L-shank"]
+    assert shank.t_s.shape == (n * n_batches,)
+    np.testing.assert_allclose(np.diff(shank.t_s), 0.01, atol=1e-9)
+    expected = np.concatenate([batch_body("L-shank", q, n=n)["gyro"] for q in range(n_batches)])
+    np.testing.assert_allclose(shank.gyr, expected, rtol=1e-6)
+
+
+def test_gaps_from_missing_seq_and_time_jumps(api: Api) -> None:
+    _, dev, sess = api.setup_device_session()
+    for q in (0, 1, 3):  # seq 2 lost
+        assert api.upload(dev, sess["id"], batch_body("L-thigh", q, n=20)).status_code == 201
+    # A jump of 5 periods inside one batch of the other sensor.
+    t = (np.arange(20) * 10.0)
+    t[10:] += 40.0
+    body = batch_body("L-shank", 0, n=20)
+    body["timestamps_ms"] = t.tolist()
+    assert api.upload(dev, sess["id"], body).status_code == 201
+    rec = api.client.get(f"/v1/sessions/{sess['id']}", headers=bearer(dev)).json()["received"]
+    assert rec["L-thigh"]["gaps"] == 1 and rec["L-thigh"]["missing_seq"] == [2]
+    assert rec["L-thigh"]["gap_s"] == pytest.approx(0.2)
+    assert rec["L-shank"]["gaps"] == 1 and rec["L-shank"]["gap_s"] == pytest.approx(0.04)
+
+
+def _nan_body() -> bytes:
+    body = json.dumps(batch_body("L-shank", 0, n=5))
+    return body.replace(body[body.index("[[") + 2:body.index(",", body.index("[["))], "NaN", 1).encode()
+
+
+INVALID = {
+    "nan literal": lambda: _nan_body(),
+    "infinity literal": lambda: _nan_body().replace(b"NaN", b"Infinity"),
+    "overflow to inf": lambda: _nan_body().replace(b"NaN", b"1e999"),
+    "length mismatch": lambda: json.dumps(dict(batch_body("L-shank", 0, n=5),
+                                               acc=batch_body("L-shank", 0, n=4)["acc"])).encode(),
+    "row of 2": lambda: json.dumps(dict(batch_body("L-shank", 0, n=5), gyro=[[1, 2]] * 5)).encode(),
+    "timestamps count": lambda: json.dumps(dict(batch_body("L-shank", 0, n=5), timestamps_ms=[0, 10])).encode(),
+    "timestamps not increasing": lambda: json.dumps(dict(batch_body("L-shank", 0, n=5),
+                                                         timestamps_ms=[0, 10, 10, 20, 30])).encode(),
+    "t0 far from first timestamp": lambda: json.dumps(dict(batch_body("L-shank", 0, n=3, t0_ms=500.0),
+                                                           timestamps_ms=[0, 10, 20])).encode(),
+    "negative seq": lambda: json.dumps(batch_body("L-shank", -1, n=5)).encode(),
+    "unknown sensor": lambda: json.dumps(batch_body("R-shank", 0, n=5)).encode(),
+    "too many samples": lambda: json.dumps(batch_body("L-shank", 0, n=1001)).encode(),
+    "empty batch": lambda: json.dumps(dict(batch_body("L-shank", 0, n=5), gyro=[], acc=[])).encode(),
+    "not json": lambda: b"{not json",
+}
+
+
+@pytest.mark.parametrize("case", sorted(INVALID))
+def test_invalid_batches_get_422_problem_and_change_nothing(api: Api, case: str) -> None:
+    _, dev, sess = api.setup_device_session()
+    before = count_rows(api.engine)
+    headers = {**bearer(dev), "Content-Type": "application/json"}
+    r = api.client.post(f"/v1/sessions/{sess['id']}/batches", content=INVALID[case](), headers=headers)
+    assert r.status_code == 422, r.text
+    assert r.headers["content-type"].startswith("application/problem+json")
+    problem = r.json()
+    assert {"type", "title", "status", "detail"} <= set(problem) and problem["status"] == 422
+    assert problem["errors"] and all({"field", "message"} <= set(e) for e in problem["errors"])
+    assert count_rows(api.engine) == before
+    after = api.client.get(f"/v1/sessions/{sess['id']}", headers=bearer(dev)).json()
+    assert after["status"] == "receiving" and after["received"] == sess["received"]
+
+
+def test_many_invalid_rows_give_a_bounded_error_list(api: Api) -> None:
+    _, dev, sess = api.setup_device_session()
+    body = json.dumps(dict(batch_body("L-shank", 0, n=500), gyro=[[1.0, 2.0]] * 500))
+    r = api.client.post(f"/v1/sessions/{sess['id']}/batches", content=body,
+                        headers={**bearer(dev), "Content-Type": "application/json"})
+    assert r.status_code == 422
+    assert 1 < len(r.json()["errors"]) <= 51
+    assert r.json()["errors"][0]["field"].startswith("gyro[0]")
+
+
+def test_gzip_upload_and_corrupt_gzip(api: Api) -> None:
+    _, dev, sess = api.setup_device_session()
+    r = api.upload(dev, sess["id"], batch_body("L-thigh", 0, n=200), gzipped=True)
+    assert r.status_code == 201 and r.json()["samples"] == 200
+    headers = {**bearer(dev), "Content-Encoding": "gzip", "Content-Type": "application/json"}
+    for corrupt in (b"this is not gzip", gzip.compress(b'{"sensor_id": "L-thigh"}')[:-6]):
+        r = api.client.post(f"/v1/sessions/{sess['id']}/batches", content=corrupt, headers=headers)
+        assert r.status_code == 400
+        assert r.headers["content-type"].startswith("application/problem+json")
+    r = api.client.post(f"/v1/sessions/{sess['id']}/batches", content=b"{}",
+                        headers={**bearer(dev), "Content-Encoding": "br"})
+    assert r.status_code == 415
+    assert _batches(api) == 1
+
+
+def _bomb(inflated_bytes: int) -> bytes:
+    comp = zlib.compressobj(9, zlib.DEFLATED, 16 + zlib.MAX_WBITS)
+    block = b"0" * (1 << 20)
+    parts = [comp.compress(block) for _ in range(inflated_bytes // len(block))]
+    return b"".join(parts) + comp.flush()
+
+
+def test_gzip_bomb_gets_413_without_inflating(api: Api) -> None:
+    _, dev, sess = api.setup_device_session()
+    bomb = _bomb(64 << 20)
+    assert len(bomb) < api.settings.max_body_bytes  # small on the wire, 64 MiB inflated
+    headers = {**bearer(dev), "Content-Encoding": "gzip", "Content-Type": "application/json"}
+    r = api.client.post(f"/v1/sessions/{sess['id']}/batches", content=bomb, headers=headers)
+    assert r.status_code == 413
+    assert r.headers["content-type"].startswith("application/problem+json")
+    assert _batches(api) == 0
+    # The inflater stops one byte past the limit: the 64 MiB never exist in memory.
+    inflater = _GzipInflater(limit=100_000)
+    with pytest.raises(_Reject) as exc:
+        for i in range(0, len(bomb), 4096):
+            inflater.feed(bomb[i:i + 4096])
+    assert exc.value.status == 413 and len(inflater.out) == 100_001
+
+
+def test_plain_body_over_limit_gets_413(api: Api) -> None:
+    _, dev, sess = api.setup_device_session()
+    big = json.dumps(batch_body("L-thigh", 0, n=8000)).encode()
+    assert len(big) > api.settings.max_body_bytes
+    r = api.client.post(f"/v1/sessions/{sess['id']}/batches", content=big,
+                        headers={**bearer(dev), "Content-Type": "application/json"})
+    assert r.status_code == 413 and r.json()["status"] == 413
+    # Chunked, without Content-Length: the streaming count catches it.
+    chunks = iter([big[i:i + 65536] for i in range(0, len(big), 65536)])
+    r = api.client.post(f"/v1/sessions/{sess['id']}/batches", content=chunks,
+                        headers={**bearer(dev), "Content-Type": "application/json"})
+    assert r.status_code == 413
+    assert _batches(api) == 0
+
+
+def test_concatenated_gzip_members_are_one_body() -> None:
+    data = json.dumps({"a": list(range(1000))}).encode()
+    stream = gzip.compress(data[:500]) + gzip.compress(data[500:])
+    inflater = _GzipInflater(limit=10**6)
+    for i in range(0, len(stream), 7):
+        inflater.feed(stream[i:i + 7])
+    assert inflater.finish() == data
+
+
+def test_upload_after_complete_is_409_and_complete_is_idempotent(api: Api) -> None:
+    _, dev, sess = api.setup_device_session()
+    r = api.client.post(f"/v1/sessions/{sess['id']}/complete", headers=bearer(dev))
+    assert r.status_code == 422 and r.json()["type"].endswith("session-empty")
+    assert api.upload(dev, sess["id"], batch_body("L-thigh", 0)).status_code == 201
+    r = api.client.post(f"/v1/sessions/{sess['id']}/complete", headers=bearer(dev))
+    assert r.status_code == 202 and r.json()["status"] == "queued" and r.json()["completed_at"]
+    r2 = api.client.post(f"/v1/sessions/{sess['id']}/complete", headers=bearer(dev))
+    assert r2.status_code == 202 and r2.json()["status"] == "queued"
+    assert r2.json()["completed_at"] == r.json()["completed_at"]
+    r = api.upload(dev, sess["id"], batch_body("L-thigh", 1))
+    assert r.status_code == 409 and r.headers["content-type"].startswith("application/problem+json")
+    # Even an identical replay after completion is refused: the session is closed.
+    assert api.upload(dev, sess["id"], batch_body("L-thigh", 0)).status_code == 409
+    assert _batches(api) == 1
+
+
+def test_concurrent_identical_insert_rereads(api: Api, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The unique key decides a race: the loser's IntegrityError becomes 200 (same) or 409 (different)."""
+    _, dev, sess = api.setup_device_session()
+    body = batch_body("L-thigh", 0, n=10)
+    assert api.upload(dev, sess["id"], body).status_code == 201
+    real = ingest._find_batch
+    calls = {"n": 0}
+
+    def miss_first(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202 - the pre-check "misses" the other insert
+        calls["n"] += 1
+        return None if calls["n"] == 1 else real(*args, **kwargs)
+
+    monkeypatch.setattr(ingest, "_find_batch", miss_first)
+    r = api.upload(dev, sess["id"], body)
+    assert r.status_code == 200 and r.json()["duplicate"] is True and calls["n"] == 2
+    calls["n"] = 0
+    changed = dict(body, acc=[[0.0, 0.0, 0.0]] * 10)
+    assert api.upload(dev, sess["id"], changed).status_code == 409 and calls["n"] == 2
+    assert _batches(api) == 1
