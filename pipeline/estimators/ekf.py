@@ -1,0 +1,91 @@
+"""Extended Kalman filter for the knee flexion angle (Rhudy et al. 2024, Sect. 2.3.2 and 2.4.2, Eq. 13-15, 22-24).
+
+State ``x = alpha``, input ``u = g1.j1 - g2.j2`` as in the KF (Eq. 20, ``F = 1``). The measurement is the
+lever-arm-corrected thigh acceleration in the joint plane, predicted by rotating the shank acceleration by the knee
+angle (Eq. 23): ``[a2.x2, a2.y2] = Rot(x) [a1.x1, a1.y1]`` (Rhudy numbering: 1 shank, 2 thigh), Jacobian Eq. 24.
+``R`` is diagonal (``r_x``, ``r_y`` in (m/s^2)^2). This package numbers the thigh 1 and the shank 2 and measures
+flexion as (angle of the shank's knee acceleration) - (angle of the thigh's) (:mod:`pipeline.axes`), so here the
+ROTATED vector ``acc_a`` is the thigh's and the MEASURED ``acc_b`` the shank's: ``b = Rot(alpha) a``.
+
+Why it behaves like a KF with a data-dependent gain: with ``r_x = r_y = r`` the update is
+``x += P |a1| |a2| / (P |a1|^2 + r) * sin(alpha_acc - x)``, i.e. the accelerometer angle weighted by the
+acceleration magnitudes. The default ``r`` is therefore the KF's ``R`` (deg^2) times ``g^2`` in rad^2 units, so both
+filters have the same time constant ``tau_s`` when the segments see about 1 g.
+
+The recursion is nonlinear in the state, so it runs as one scalar loop (pure Python floats, no numpy per sample).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pipeline.estimators.kf import DEFAULT_R_DEG2, DEFAULT_TAU_S, interval_rate, q_for_time_constant
+
+G_MPS2 = 9.80665
+DEG2_TO_RAD2 = math.radians(1.0) ** 2
+DEFAULT_R_MPS2_SQ = DEFAULT_R_DEG2 * DEG2_TO_RAD2 * G_MPS2**2
+
+
+def ekf_angle(rate_dps: np.ndarray, acc_a_plane_mps2: np.ndarray, acc_b_plane_mps2: np.ndarray,
+              fs_hz: float, *, tau_s: float = DEFAULT_TAU_S, r_x_mps2_sq: float = DEFAULT_R_MPS2_SQ,
+              r_y_mps2_sq: float | None = None, update_mask: np.ndarray | None = None,
+              x0_deg: float | None = None, p0_deg2: float | None = None) -> np.ndarray:
+    """Knee flexion (deg) by the EKF of Rhudy et al. Eq. 22-24.
+
+    ``acc_*_plane_mps2`` are (N, 2): the lever-arm-corrected accelerations projected on each segment's joint-plane
+    axes ``(x_i, y_i)`` of Eq. 7, with ``b = Rot(alpha) a``. ``tau_s`` sets Q as in the KF, with R's angle
+    equivalent ``r_x / g^2``. ``update_mask`` False skips the measurement update (impacts, NaN samples).
+    Without ``x0_deg`` the state starts at the accelerometer angle of the first usable sample (variance
+    ``DEFAULT_R_DEG2``)."""
+    rate = interval_rate(np.asarray(rate_dps, dtype=float))
+    a1 = np.asarray(acc_a_plane_mps2, dtype=float).reshape(-1, 2)
+    a2 = np.asarray(acc_b_plane_mps2, dtype=float).reshape(-1, 2)
+    n = rate.shape[0]
+    if a1.shape[0] != n or a2.shape[0] != n:
+        raise ValueError("rate and accelerations differ in length")
+    if n == 0:
+        return np.empty(0)
+    finite = np.isfinite(a1).all(axis=1) & np.isfinite(a2).all(axis=1)
+    mask = finite if update_mask is None else np.asarray(update_mask, dtype=bool) & finite
+    dt = 1.0 / fs_hz
+    rx = float(r_x_mps2_sq)
+    ry = rx if r_y_mps2_sq is None else float(r_y_mps2_sq)
+    q = q_for_time_constant(tau_s, fs_hz, 0.5 * (rx + ry) / G_MPS2**2)
+    if x0_deg is None:
+        first = np.flatnonzero(mask)
+        if first.size:
+            k0 = int(first[0])
+            x = math.atan2(a1[k0, 0] * a2[k0, 1] - a1[k0, 1] * a2[k0, 0], a1[k0, 0] * a2[k0, 0] + a1[k0, 1] * a2[k0, 1])
+            x -= math.radians(float(np.sum(rate[:k0])) * dt)  # carried back to sample 0 with the gyroscope
+        else:
+            x = 0.0
+    else:
+        x = math.radians(x0_deg)
+    p = DEG2_TO_RAD2 * (DEFAULT_R_DEG2 if p0_deg2 is None else p0_deg2)
+    du = (np.radians(rate) * dt).tolist()
+    mask_l = mask.tolist()
+    s1x, s1y = a1[:, 0].tolist(), a1[:, 1].tolist()
+    t2x, t2y = a2[:, 0].tolist(), a2[:, 1].tolist()
+    out = [0.0] * n
+    cos, sin = math.cos, math.sin
+    for k in range(n):
+        if k > 0:
+            x += du[k - 1]  # Eq. 15 prediction with f = x + dt u (Eq. 20), F = 1
+            p += q
+        if mask_l[k]:
+            c, s = cos(x), sin(x)
+            ax, ay = s1x[k], s1y[k]
+            # h(x) = Rot(x) a (Eq. 23) and its Jacobian H (Eq. 24)
+            hx, hy = c * ax - s * ay, s * ax + c * ay
+            jx, jy = -s * ax - c * ay, c * ax - s * ay
+            # S = H P H^T + R (2x2), K = P H^T S^-1 (1x2)
+            s11, s12, s22 = p * jx * jx + rx, p * jx * jy, p * jy * jy + ry
+            det = s11 * s22 - s12 * s12
+            kx = p * (jx * s22 - jy * s12) / det
+            ky = p * (jy * s11 - jx * s12) / det
+            x += kx * (t2x[k] - hx) + ky * (t2y[k] - hy)
+            p *= 1.0 - (kx * jx + ky * jy)
+        out[k] = x
+    return np.degrees(np.asarray(out))

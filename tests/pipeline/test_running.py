@@ -1,0 +1,124 @@
+"""Running: foot strikes, gait-cycle windows, impact masks, 7 Hz filter (Rhudy et al. 2024, Sect. 2.2.2)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.running import (
+    G_MPS2,
+    cycle_window_mask,
+    detect_foot_strikes,
+    find_cycles,
+    gait_cycles,
+    impact_mask,
+    looks_like_running,
+    lowpass_7hz,
+)
+
+FS = 200.0
+
+
+def _gait_acc(stride_s: float, impact_g: float, n_strides: int = 30, seed: int = 0,
+              whip_g: float = 3.5) -> tuple[np.ndarray, np.ndarray]:
+    """Shank accelerations (N,3) of a gait with jittered strides: gravity, a smooth swing 'whip' of ``whip_g``
+    (larger than the impact's raw magnitude when ``impact_g`` is small) and a damped 28 Hz impact ringing at every
+    foot strike. Returns the accelerations and the true strike indices."""
+    rng = np.random.default_rng(seed)
+    lengths = stride_s * (1 + 0.04 * rng.standard_normal(n_strides))
+    strikes_s = 0.5 + np.concatenate(([0.0], np.cumsum(lengths)))
+    n = int((strikes_s[-1] + 0.5) * FS)
+    t = np.arange(n) / FS
+    acc = np.zeros((n, 3))
+    acc[:, 2] = G_MPS2
+    for a, b in zip(strikes_s[:-1], strikes_s[1:], strict=True):
+        u = (t - a) / (b - a)
+        inside = (u >= 0) & (u < 1)
+        bump = np.where(inside, np.exp(-0.5 * ((u - 0.7) / 0.06) ** 2), 0.0)
+        acc[:, 0] += whip_g * G_MPS2 * bump
+    for s in strikes_s:
+        u = t - s
+        ring = np.where(u >= 0, np.exp(-np.clip(u, 0, None) / 0.012) * np.sin(2 * np.pi * 28 * np.clip(u, 0, None)),
+                        0.0)
+        acc[:, 2] += impact_g * G_MPS2 * ring
+        acc[:, 0] += 0.3 * impact_g * G_MPS2 * ring
+    acc += 0.05 * rng.standard_normal(acc.shape)
+    return acc, np.round(strikes_s * FS).astype(int)
+
+
+def test_foot_strikes_found_even_when_the_swing_peaks_are_higher() -> None:
+    acc, truth = _gait_acc(0.72, impact_g=3.0)
+    mag = np.linalg.norm(acc, axis=1)
+    assert mag[truth].max() < mag.max()  # raw magnitude peaks are the swings, not the impacts
+    found = detect_foot_strikes(acc, FS)
+    assert found.size == truth.size
+    assert np.abs(found - truth).max() <= 3  # within 15 ms of the true strike
+
+
+def test_cycles_skip_gaps_and_implausible_intervals() -> None:
+    acc, truth = _gait_acc(0.72, impact_g=4.0)
+    valid = np.ones(acc.shape[0], dtype=bool)
+    valid[truth[10] + 20: truth[10] + 40] = False  # packet loss inside cycle 10
+    strikes = np.delete(truth, 20)  # a missed strike: cycle 19 spans two strides
+    cycles = gait_cycles(strikes, FS, valid)
+    starts = [a for a, _ in cycles]
+    assert truth[10] not in starts
+    assert truth[19] not in starts
+    assert len(cycles) == truth.size - 1 - 3  # the gap cycle and the doubled cycle (replacing two) are dropped
+
+
+def test_fit_windows_cover_40_to_80_percent() -> None:
+    cycles = [(100, 300), (300, 500)]
+    mask = cycle_window_mask(cycles, 600)
+    assert mask.sum() == 160
+    assert mask[180] and mask[259] and not mask[260] and not mask[179]
+    assert not mask[:180].any() and not mask[500:].any()
+
+
+def test_impact_mask_is_five_percent_of_the_cycle_each_side() -> None:
+    strikes = np.array([200, 344, 488, 632])  # 144-sample (0.72 s) cycles
+    mask = impact_mask(strikes, 800, FS)
+    w = int(np.ceil(0.05 * 144))
+    for s in strikes:
+        assert mask[s - w:s + w + 1].all()
+        assert not mask[s - w - 2] and not mask[s + w + 2]
+    assert mask.sum() == strikes.size * (2 * w + 1)
+
+
+@pytest.mark.parametrize(("stride_s", "impact_g", "running"), [(0.72, 5.0, True), (1.1, 1.5, False),
+                                                                (0.72, 0.8, False), (1.0, 5.0, False)])
+def test_running_is_recognised_by_cadence_and_impacts(stride_s: float, impact_g: float, running: bool) -> None:
+    acc, _ = _gait_acc(stride_s, impact_g=impact_g, whip_g=2.0)
+    cycles = find_cycles(acc, FS)
+    assert looks_like_running(cycles) is running
+
+
+def test_lowpass_is_zero_lag_and_respects_gaps() -> None:
+    t = np.arange(int(10 * FS)) / FS
+    slow = np.sin(2 * np.pi * 1.5 * t)
+    fast = 0.5 * np.sin(2 * np.pi * 25 * t)
+    valid = np.ones(t.size, dtype=bool)
+    valid[1000:1040] = False
+    x = slow + fast
+    x[1000:1040] = 1e3  # garbage inside the gap must not leak into its neighbours
+    y = lowpass_7hz(x, FS, valid)
+    inner = np.r_[100:900, 1140:1900]
+    assert np.abs(y[inner] - slow[inner]).max() < 0.02  # 25 Hz removed, 1.5 Hz passed without lag
+    assert np.abs(y[:1000]).max() < 2
+
+
+def test_real_simulated_running_strikes() -> None:
+    """On the project simulator's running pattern (impacts weaker than the swing whip in raw magnitude)."""
+    from pipeline.prepare import prepare_leg
+    from pipeline.simulate import SimConfig, simulate_session
+
+    sim = simulate_session(SimConfig(pattern="running", fs_hz=FS, seed=3, n_strides=20, legs=("left",)))
+    by = {s.segment: s for s in sim.streams}
+    prep = prepare_leg("left", by["thigh"], by["shank"])
+    cycles = find_cycles(prep.acc_shank_mps2, prep.fs_hz, prep.valid)
+    truth = sim.truth["left"].heel_strikes_s
+    found = prep.t_s[cycles.strikes]
+    err = np.array([np.min(np.abs(truth - f)) for f in found])
+    assert found.size >= truth.size - 2
+    assert np.median(err) < 0.03
+    assert looks_like_running(cycles)
