@@ -1,0 +1,231 @@
+"""Knee joint axes, joint centres and the accelerometer knee angle (Seel et al. 2014, written out as Eq. 1-7 in
+Rhudy et al., Sensors 2024, 24, 695). Segment 1 is the THIGH, segment 2 the SHANK throughout this package.
+
+Sign convention (the knee flexion rate ``g1.j1 - g2.j2`` is positive for flexion, for either leg and any mounting):
+
+* the sign of ``j2`` is chosen so that the largest excursions of the shank's sagittal angular velocity ``g2.j2``
+  are positive. In walking these are the mid-swing peaks, when the shank swings forward faster than anything else;
+  in stance the shank rotates the other way (knee travelling forward over the foot), so stance is negative.
+* the sign of ``j1`` is chosen so that ``g1.j1`` correlates positively with ``g2.j2`` (thigh and shank swing forward
+  together in gait). Both axes then point in the same physical direction and the knee angle is the thigh's rotation
+  about that axis minus the shank's; with the shank swinging forward counted positive, flexion is positive.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+MAX_FIT_SAMPLES = 2000
+FIT_CHUNKS = 20
+N_RESTARTS = 4
+_EPS = 1e-9
+
+
+@dataclass
+class JointAxes:
+    j1: np.ndarray  # thigh frame
+    j2: np.ndarray  # shank frame
+    rms_residual_dps: float
+    n_samples: int
+
+
+@dataclass
+class JointCentres:
+    o1: np.ndarray  # position of the thigh sensor relative to the knee centre, thigh frame [m]
+    o2: np.ndarray  # position of the shank sensor relative to the knee centre, shank frame [m]
+    rms_residual_mps2: float
+    absolute: bool  # True when both in-plane sensor->knee directions are well defined (absolute angle possible)
+
+
+def select_fit_samples(g1: np.ndarray, g2: np.ndarray, valid: np.ndarray,
+                       max_samples: int = MAX_FIT_SAMPLES, chunks: int = FIT_CHUNKS) -> np.ndarray:
+    """A bounded, deterministic sample set for the axis/centre fits: the most dynamic samples of each of
+    ``chunks`` equal time chunks, so the cost does not grow with session length and the set spans the session."""
+    idx = np.flatnonzero(valid)
+    if idx.size <= max_samples:
+        return idx
+    mag = np.linalg.norm(g1[idx], axis=1) + np.linalg.norm(g2[idx], axis=1)
+    per_chunk = int(np.ceil(max_samples / chunks))
+    picked = []
+    for part, m in zip(np.array_split(idx, chunks), np.array_split(mag, chunks), strict=True):
+        if part.size <= per_chunk:
+            picked.append(part)
+        else:
+            picked.append(part[np.argpartition(-m, per_chunk - 1)[:per_chunk]])
+    return np.sort(np.concatenate(picked))
+
+
+def _sph(phi: float, theta: float) -> np.ndarray:
+    return np.array([np.cos(phi) * np.cos(theta), np.cos(phi) * np.sin(theta), np.sin(phi)])
+
+
+def _sph_derivs(phi: float, theta: float) -> tuple[np.ndarray, np.ndarray]:
+    d_phi = np.array([-np.sin(phi) * np.cos(theta), -np.sin(phi) * np.sin(theta), np.cos(phi)])
+    d_theta = np.array([-np.cos(phi) * np.sin(theta), np.cos(phi) * np.cos(theta), 0.0])
+    return d_phi, d_theta
+
+
+def _to_sph(j: np.ndarray) -> tuple[float, float]:
+    j = j / np.linalg.norm(j)
+    return float(np.arcsin(np.clip(j[2], -1.0, 1.0))), float(np.arctan2(j[1], j[0]))
+
+
+def _axis_residuals(x: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> np.ndarray:
+    """Seel Eq. 2: ||g1 x j1|| - ||g2 x j2|| per sample, via ||g x j||^2 = |g|^2 - (g.j)^2 for unit j."""
+    j1, j2 = _sph(x[0], x[1]), _sph(x[2], x[3])
+    n1 = np.sqrt(np.maximum(np.einsum("ij,ij->i", g1, g1) - (g1 @ j1) ** 2, _EPS))
+    n2 = np.sqrt(np.maximum(np.einsum("ij,ij->i", g2, g2) - (g2 @ j2) ** 2, _EPS))
+    return n1 - n2
+
+
+def _axis_jacobian(x: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> np.ndarray:
+    """Analytic Jacobian of Eq. 2: d||g x j||/dj = -(g.j) g / ||g x j||, chained with the spherical map."""
+    jac = np.empty((g1.shape[0], 4))
+    for k, (g, sign) in enumerate(((g1, 1.0), (g2, -1.0))):
+        phi, theta = x[2 * k], x[2 * k + 1]
+        j = _sph(phi, theta)
+        d_phi, d_theta = _sph_derivs(phi, theta)
+        gj = g @ j
+        norm = np.sqrt(np.maximum(np.einsum("ij,ij->i", g, g) - gj ** 2, _EPS))
+        coef = -sign * gj / norm
+        jac[:, 2 * k] = coef * (g @ d_phi)
+        jac[:, 2 * k + 1] = coef * (g @ d_theta)
+    return jac
+
+
+def _principal_axis(g: np.ndarray) -> np.ndarray:
+    """Dominant rotation axis of a segment (McGrath et al. 2018: in gait most angular velocity is sagittal)."""
+    _, _, vt = np.linalg.svd(g, full_matrices=False)
+    return vt[0]
+
+
+def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | None = None) -> JointAxes:
+    """Joint axis of the knee in the thigh (``j1``) and shank (``j2``) sensor frames by Seel's Eq. 2
+    (Rhudy et al. 2024, Eq. 2-3), solved with ``scipy.optimize.least_squares`` on a bounded sample set.
+
+    Initialised with each segment's principal rotation axis (McGrath et al. 2018) plus a few seeded restarts;
+    deterministic. Signs follow the module convention (flexion rate ``g1.j1 - g2.j2`` positive).
+    """
+    valid = np.ones(g1_rps.shape[0], dtype=bool) if valid is None else valid
+    idx = select_fit_samples(g1_rps, g2_rps, valid)
+    if idx.size < 10:
+        raise ValueError("too few samples to estimate the knee axis")
+    g1, g2 = g1_rps[idx], g2_rps[idx]
+    p1, p2 = _principal_axis(g1), _principal_axis(g2)
+    starts = [np.array([*_to_sph(p1), *_to_sph(p2)])]
+    rng = np.random.default_rng(0)
+    for _ in range(N_RESTARTS):
+        starts.append(np.array([rng.uniform(-1.4, 1.4), rng.uniform(-np.pi, np.pi),
+                                rng.uniform(-1.4, 1.4), rng.uniform(-np.pi, np.pi)]))
+    best = None
+    for x0 in starts:
+        sol = least_squares(_axis_residuals, x0, jac=_axis_jacobian, args=(g1, g2), method="lm", max_nfev=200)
+        if best is None or sol.cost < best.cost - 1e-12:
+            best = sol
+    assert best is not None
+    j1, j2 = _sph(best.x[0], best.x[1]), _sph(best.x[2], best.x[3])
+    j1, j2 = orient_axes(j1, j2, g1_rps[valid], g2_rps[valid])
+    rms = float(np.rad2deg(np.sqrt(2.0 * best.cost / idx.size)))
+    return JointAxes(j1=j1, j2=j2, rms_residual_dps=rms, n_samples=int(idx.size))
+
+
+def orient_axes(j1: np.ndarray, j2: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Apply the module sign convention: largest excursions of ``g2.j2`` positive, ``g1.j1`` correlated with it."""
+    w2 = g2 @ j2
+    if w2.size and -np.percentile(w2, 0.5) > np.percentile(w2, 99.5):
+        j2 = -j2
+        w2 = -w2
+    w1 = g1 @ j1
+    if w1.size and float(np.dot(w1 - w1.mean(), w2 - w2.mean())) < 0:
+        j1 = -j1
+    return j1, j2
+
+
+def angular_acceleration(g: np.ndarray, fs_hz: float) -> np.ndarray:
+    """Seel Eq. 1 (Rhudy et al. 2024, Eq. 1): five-point central difference; one-sided at the ends."""
+    gd = np.gradient(g, 1.0 / fs_hz, axis=0)
+    if g.shape[0] >= 5:
+        gd[2:-2] = (g[:-4] - 8.0 * g[1:-3] + 8.0 * g[3:-1] - g[4:]) * (fs_hz / 12.0)
+    return gd
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(N,3) -> (N,3,3) cross-product matrices."""
+    z = np.zeros(v.shape[0])
+    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], -1),
+                     np.stack([v[:, 2], z, -v[:, 0]], -1),
+                     np.stack([-v[:, 1], v[:, 0], z], -1)], axis=1)
+
+
+def gamma_matrices(g: np.ndarray, gd: np.ndarray) -> np.ndarray:
+    """Seel's Gamma_g(o) = g x (g x o) + gdot x o is linear in o: returns M with Gamma = M @ o, (N,3,3)."""
+    sg = _skew(g)
+    return sg @ sg + _skew(gd)
+
+
+def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,
+                      gd2: np.ndarray, j1: np.ndarray, j2: np.ndarray) -> JointCentres:
+    """Joint-centre positions by Seel's Eq. 5 (Rhudy et al. 2024, Eq. 5), least squares with analytic Jacobian,
+    then shifted along the axes as in Eq. 5 (the cost is blind to sliding both along j). Inputs: a bounded sample set.
+    """
+    m1, m2 = gamma_matrices(g1, gd1), gamma_matrices(g2, gd2)
+
+    def split(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        v1 = a1 - np.einsum("nij,j->ni", m1, x[:3])
+        v2 = a2 - np.einsum("nij,j->ni", m2, x[3:])
+        return v1, v2
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        v1, v2 = split(x)
+        return np.linalg.norm(v1, axis=1) - np.linalg.norm(v2, axis=1)
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        v1, v2 = split(x)
+        n1 = np.maximum(np.linalg.norm(v1, axis=1), _EPS)[:, None]
+        n2 = np.maximum(np.linalg.norm(v2, axis=1), _EPS)[:, None]
+        return np.hstack([-np.einsum("ni,nij->nj", v1 / n1, m1), np.einsum("ni,nij->nj", v2 / n2, m2)])
+
+    sol = least_squares(resid, np.zeros(6), jac=jac, method="trf", loss="soft_l1", f_scale=1.0, max_nfev=100)
+    o1h, o2h = sol.x[:3], sol.x[3:]
+    shift = (o1h @ j1 + o2h @ j2) / 2.0
+    o1, o2 = o1h - j1 * shift, o2h - j2 * shift
+    r = resid(sol.x)
+    in_plane = min(np.linalg.norm(o1 - (o1 @ j1) * j1), np.linalg.norm(o2 - (o2 @ j2) * j2))
+    return JointCentres(o1=o1, o2=o2, rms_residual_mps2=float(np.sqrt(np.mean(r ** 2))),
+                        absolute=bool(in_plane > 0.03))
+
+
+def joint_plane_frames(centres: JointCentres, j1: np.ndarray, j2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """In-plane x axes for Eq. 7. Instead of Seel's arbitrary ``c`` (which leaves an unknown constant offset), x_i
+    points DISTALLY along each segment: thigh sensor -> knee (``-o1``), knee -> shank sensor (``+o2``), projected
+    onto the joint plane. With lateral sensors these are the segments' long axes, so 0 deg = straight knee. Falls
+    back to ``c = [1,0,0]`` (Seel's choice) when the joint centre lies too close to the axis."""
+    xs = []
+    for o, j, sign in ((centres.o1, j1, -1.0), (centres.o2, j2, 1.0)):
+        v = sign * (o - (o @ j) * j)
+        if centres.absolute and np.linalg.norm(v) > _EPS:
+            xs.append(v / np.linalg.norm(v))
+        else:
+            c = np.array([1.0, 0.0, 0.0]) if abs(j[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+            x = np.cross(j, c)
+            xs.append(x / np.linalg.norm(x))
+    return xs[0], xs[1]
+
+
+def accelerometer_angle_deg(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,
+                            gd2: np.ndarray, j1: np.ndarray, j2: np.ndarray, centres: JointCentres) -> np.ndarray:
+    """Knee flexion from accelerometers: lever-arm correction (Seel Eq. 6) then the signed angle between the two
+    corrected accelerations in the joint plane (Eq. 7). Both equal the knee-centre acceleration in each segment's
+    frame, so angle_in_shank - angle_in_thigh = thigh rotation - shank rotation about j = flexion (module sign
+    convention; frames x_i from :func:`joint_plane_frames`, y_i = j_i x x_i)."""
+    x1, x2 = joint_plane_frames(centres, j1, j2)
+    y1, y2 = np.cross(j1, x1), np.cross(j2, x2)
+    at1 = a1 - np.einsum("nij,j->ni", gamma_matrices(g1, gd1), centres.o1)
+    at2 = a2 - np.einsum("nij,j->ni", gamma_matrices(g2, gd2), centres.o2)
+    ang1 = np.arctan2(at1 @ y1, at1 @ x1)
+    ang2 = np.arctan2(at2 @ y2, at2 @ x2)
+    d = np.angle(np.exp(1j * (ang2 - ang1)))
+    return np.rad2deg(d)

@@ -1,0 +1,92 @@
+"""Gyroscope-only (GO) knee angle of Allseits et al., Sensors 2018 (Sect. 2.2, Fig. 3): low-pass the knee angular
+velocity g1.j1 - g2.j2 (Seel Eq. 4 integrand), integrate it, and apply one zero-angle update (ZAU) per stride.
+
+The ZAU sits at the knee-angle MINIMUM just before swing flexion: after mid-stance and before toe-off, where the
+flexion velocity crosses from negative (extension) to positive (flexion) - checked against the kinematics, not the
+paper's wording (their sign convention differs). Between consecutive updates the accumulated drift is distributed
+linearly (the integral is made to return to zero at each update), so the angle is continuous.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.estimators import LegData, register
+from pipeline.signal_utils import lowpass_runs, true_runs
+
+GO_CUTOFF_HZ = 10.0
+FIRST_ZAU_LOOKBACK_S = 0.6
+
+
+def integrate_runs(rate_dps: np.ndarray, fs_hz: float, valid: np.ndarray) -> np.ndarray:
+    """Cumulative trapezoid integral of the rate, restarted at zero on every valid run; NaN elsewhere."""
+    out = np.full(rate_dps.shape[0], np.nan)
+    for a, b in true_runs(valid):
+        r = rate_dps[a:b]
+        out[a:b] = np.concatenate(([0.0], np.cumsum(0.5 * (r[1:] + r[:-1])) / fs_hz))
+    return out
+
+
+def zau_points(rate_f: np.ndarray, integral: np.ndarray, data: LegData) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One ZAU per swing lobe that belongs to a bout: ``(index, bout_id, found_crossing)``.
+
+    Search window: from the preceding mid-stance (or FIRST_ZAU_LOOKBACK_S before toe-off for a bout's first swing)
+    to toe-off plus a few samples. Among the negative->positive crossings of the filtered rate in the window the one
+    with the lowest integral wins; without any crossing the window's integral minimum is used (flagged).
+    """
+    ev = data.events
+    fs = data.fs_hz
+    idx, bouts, found = [], [], []
+    for k in range(ev.ms.size):
+        if ev.bout[k] < 0 or ev.to[k] < 0:
+            continue
+        hi = min(int(ev.to[k]) + int(0.05 * fs) + 1, int(ev.ms[k]))
+        prev_ok = k > 0 and ev.bout[k - 1] == ev.bout[k] and ev.mst[k - 1] >= 0
+        lo = int(ev.mst[k - 1]) if prev_ok else max(int(ev.to[k] - FIRST_ZAU_LOOKBACK_S * fs), 0)
+        if hi - lo < 3 or not np.isfinite(integral[lo:hi]).all():
+            continue
+        r = rate_f[lo:hi]
+        cross = np.flatnonzero((r[:-1] < 0) & (r[1:] >= 0)) + lo + 1
+        if cross.size:
+            best = int(cross[np.argmin(integral[cross])])
+            found.append(True)
+        else:
+            best = lo + int(np.argmin(integral[lo:hi]))
+            found.append(False)
+        idx.append(best)
+        bouts.append(int(ev.bout[k]))
+    return np.array(idx, dtype=int), np.array(bouts, dtype=int), np.array(found, dtype=bool)
+
+
+def go_relative(data: LegData) -> tuple[np.ndarray, dict]:
+    """GO angle with the per-stride zero (Allseits), NaN outside the span of each bout's updates.
+
+    Returns the angle and diagnostics: ZAU indices, their bout, whether a zero crossing was found, and the drift
+    removed between consecutive updates [deg]."""
+    valid = data.prep.valid
+    rate_f = lowpass_runs(np.nan_to_num(data.rate_dps), valid, GO_CUTOFF_HZ, data.fs_hz)
+    integral = integrate_runs(np.nan_to_num(rate_f), data.fs_hz, valid)
+    zi, zb, zf = zau_points(rate_f, integral, data)
+    out = np.full(integral.shape[0], np.nan)
+    ev = data.events
+    for b in np.unique(zb):
+        pts = zi[zb == b]
+        if pts.size == 0:
+            continue
+        lobes = np.flatnonzero(ev.bout == b)
+        hs_last = ev.hs[lobes[-1]] if ev.hs[lobes[-1]] >= 0 else pts[-1]
+        lo, hi = int(min(pts[0], ev.hs[lobes[0]] if ev.hs[lobes[0]] >= 0 else pts[0])), int(max(pts[-1], hs_last))
+        seg = np.arange(lo, hi + 1)
+        out[seg] = integral[seg] - np.interp(seg, pts, integral[pts])
+    drift = np.diff(integral[zi]) if zi.size > 1 else np.zeros(0)
+    same_bout = np.diff(zb) == 0 if zb.size > 1 else np.zeros(0, dtype=bool)
+    diag = {"zau_idx": zi, "zau_bout": zb, "zau_found": zf,
+            "drift_deg": np.where(same_bout, drift, np.nan)}
+    return out, diag
+
+
+@register("go")
+def go_estimator(data: LegData) -> np.ndarray:
+    angle, diag = go_relative(data)
+    data.extras["go"] = diag
+    return angle

@@ -1,0 +1,200 @@
+"""The default ``auto`` policy: GO (Allseits et al. 2018) made ABSOLUTE per stride, with a complementary-filter
+(Seel et al. 2014, Rhudy et al. 2024 Eq. 17) fallback for strides where GO's assumptions fail.
+
+No paper does this part. GO's zero-angle update assumes the knee is straight at the minimum before swing, so a
+crouch or contracture knee that never extends would read 0 deg there. Each stride's GO curve is therefore shifted by
+the median of (accelerometer angle - GO) over the quiet samples of its stance (Seel Eq. 6-7 angle).
+
+The accelerometer angle's own zero is NOT taken from the joint-centre geometry: sensors sit a few cm anterior or
+posterior of the segment axis, which tilts the sensor->knee directions by 10-30 deg (seen on the real biomechZoo trial
+and in the simulator). Instead the zero is the quiet STANDING posture found in the session (both segments still,
+upright: gravity along the segments), assumed to be STANDING_KNEE_DEG of flexion (:func:`standing_reference`).
+Healthy standing is 0-6 deg, so absolute values carry that uncertainty; a crouch gait still reads its true crouch.
+The per-stride offsets are smoothed with a running median over neighbouring strides (the accelerometer angle is
+noisy, the true minimum flexion changes slowly) and interpolated between stride centres so the trace is continuous.
+Without standing in the session the offset stays 0 (Allseits' assumption) and the stride says so.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.axes import joint_plane_frames
+from pipeline.estimators import LegData
+from pipeline.signal_utils import true_runs
+
+CALM_DPS = 90.0  # both segments slower than this: accelerometer angle usable (little lever-arm acceleration)
+OFFSET_SMOOTH = 11
+# Relaxed quiet standing is not perfectly straight: a few degrees of flexion (healthy adults ~2-6 deg).
+STANDING_KNEE_DEG = 4.0
+DRIFT_MAX_DEG = 15.0
+MISMATCH_DEG = 8.0
+PENALTY = {"no_absolute_reference": 0.2, "no_zero_crossing": 0.3, "drift": 0.3, "saturation": 0.5,
+           "go_cf_mismatch": 0.3, "cf_fallback": 0.2, "no_go_estimate": 0.3, "few_quiet_samples": 0.1}
+
+
+@dataclass
+class StrideChoice:
+    estimator: str
+    quality: float
+    reasons: tuple[str, ...]
+
+
+@dataclass
+class FusionResult:
+    angle_deg: np.ndarray
+    estimator: np.ndarray  # per sample
+    choices: list[StrideChoice]
+    info: dict = field(default_factory=dict)
+
+
+def _running_median(x: np.ndarray, width: int) -> np.ndarray:
+    if x.size == 0:
+        return x
+    half = width // 2
+    padded = np.pad(x, half, mode="edge")
+    return np.median(np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1), axis=1)
+
+
+STAND_DPS = 15.0
+STAND_MIN_S = 1.0
+UPRIGHT_DEG = 45.0
+
+
+def standing_reference(data: LegData, acc_angle_deg: np.ndarray, x1: np.ndarray, x2: np.ndarray,
+                       exclude: np.ndarray) -> float | None:
+    """Accelerometer angle of quiet upright standing (median), or None when the session has none.
+
+    Quiet: both segments slower than STAND_DPS for at least STAND_MIN_S, specific force within 10 % of g. Upright:
+    in each joint plane the specific force (pointing up) is within UPRIGHT_DEG of the segment's proximal direction
+    ``-x_i`` (the joint-centre frames are accurate enough to tell standing from sitting, not for the zero itself).
+    """
+    prep = data.prep
+    fs = prep.fs_hz
+    speed = np.rad2deg(np.maximum(np.linalg.norm(prep.gyr_thigh_rps, axis=1),
+                                  np.linalg.norm(prep.gyr_shank_rps, axis=1)))
+    g = 9.80665
+    still = (speed < STAND_DPS) & prep.valid & ~exclude
+    for acc in (prep.acc_thigh_mps2, prep.acc_shank_mps2):
+        still &= np.abs(np.linalg.norm(acc, axis=1) - g) < 0.1 * g
+    j1, j2 = data.axes.j1, data.axes.j2
+    for acc, x, j in ((prep.acc_thigh_mps2, x1, j1), (prep.acc_shank_mps2, x2, j2)):
+        y = np.cross(j, x)
+        ang = np.degrees(np.arctan2(acc @ y, acc @ (-x)))
+        still &= np.abs(ang) < UPRIGHT_DEG
+    min_len = int(STAND_MIN_S * fs)
+    keep = np.zeros_like(still)
+    for a, b in true_runs(still):
+        if b - a >= min_len:
+            keep[a:b] = True
+    vals = acc_angle_deg[keep & np.isfinite(acc_angle_deg)]
+    return float(np.median(vals)) if vals.size >= min_len else None
+
+
+def stance_offsets(data: LegData, go_rel: np.ndarray, strides: list[tuple[int, int, int]]
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Median of (accelerometer angle - GO) over the quiet stance samples of each stride, and the quiet-sample
+    count. Quiet: both segments' angular speed below CALM_DPS (lever-arm terms of Eq. 6 small)."""
+    prep = data.prep
+    speed = np.rad2deg(np.maximum(np.linalg.norm(prep.gyr_thigh_rps, axis=1),
+                                  np.linalg.norm(prep.gyr_shank_rps, axis=1)))
+    diff = data.acc_angle_deg - go_rel
+    offs = np.full(len(strides), np.nan)
+    counts = np.zeros(len(strides), dtype=int)
+    for k, (a, t, _) in enumerate(strides):
+        d = diff[a:t + 1]
+        quiet = (speed[a:t + 1] < CALM_DPS) & np.isfinite(d)
+        if quiet.sum() < 5:
+            quiet = np.isfinite(d)
+        counts[k] = int(((speed[a:t + 1] < CALM_DPS) & np.isfinite(d)).sum())
+        if quiet.any():
+            offs[k] = float(np.median(d[quiet]))
+    return offs, counts
+
+
+def _in_bouts(data: LegData) -> np.ndarray:
+    ev = data.events
+    mask = np.zeros(data.prep.n, dtype=bool)
+    for b in np.unique(ev.bout[ev.bout >= 0]):
+        lobes = ev.ms[ev.bout == b]
+        mask[max(int(lobes[0] - data.fs_hz), 0):int(lobes[-1] + data.fs_hz)] = True
+    return mask
+
+
+def fuse(data: LegData, go_rel: np.ndarray, go_diag: dict, cf: np.ndarray) -> FusionResult:
+    """Per-sample fused angle, per-sample estimator names and one :class:`StrideChoice` per stride of
+    ``data.events.strides``. Outside strides (standing, sitting, turning without strides) the CF estimate is used."""
+    strides = data.events.strides
+    n = go_rel.shape[0]
+    ref = None
+    if data.centres is not None:
+        x1, x2 = joint_plane_frames(data.centres, data.axes.j1, data.axes.j2)
+        ref = standing_reference(data, data.acc_angle_deg, x1, x2, _in_bouts(data))
+    absolute_ok = ref is not None
+    # acc - ref reads 0 when standing; standing itself is STANDING_KNEE_DEG of flexion
+    ref_deg = ref - STANDING_KNEE_DEG if ref is not None else 0.0
+    offs, quiet_counts = stance_offsets(data, go_rel + ref_deg, strides)
+    finite = np.isfinite(offs)
+    raw_level = float(np.median(offs[finite])) if finite.any() else 0.0
+    if absolute_ok and finite.any():
+        filled = np.where(finite, offs, raw_level)
+        smooth = _running_median(filled, OFFSET_SMOOTH)
+        cf_shift = -ref_deg
+    else:
+        smooth = np.zeros(len(strides))
+        # keep CF consistent with GO's zero when there is no absolute reference
+        cf_shift = -raw_level - ref_deg
+    cf_used = cf + cf_shift
+    angle = cf_used.copy()
+    labels = np.where(np.isfinite(angle), "cf", "")
+    zi, zf, drift = go_diag["zau_idx"], go_diag["zau_found"], go_diag["drift_deg"]
+    sat = data.prep.saturated
+    centres = np.array([(a + b) / 2.0 for a, _, b in strides])
+    offset_t = np.interp(np.arange(n), centres, smooth) if len(strides) else np.zeros(n)
+    go_abs = go_rel + offset_t
+    choices = []
+    for k, (a, _t, b) in enumerate(strides):
+        reasons: list[str] = []
+        if not absolute_ok:
+            reasons.append("no_absolute_reference")
+        elif quiet_counts[k] < 5:
+            reasons.append("few_quiet_samples")
+        use_go = True
+        seg = go_abs[a:b + 1]
+        if not np.isfinite(seg).all():
+            reasons.append("no_go_estimate")
+            use_go = False
+        inside = np.flatnonzero((zi >= a) & (zi <= b))
+        if inside.size and not zf[inside].all():
+            reasons.append("no_zero_crossing")
+            use_go = False
+        # drift removed over the ZAU interval(s) touching this stride
+        j = np.searchsorted(zi, [a, b])
+        dr = drift[max(j[0] - 1, 0):min(j[1], drift.size)] if drift.size else np.zeros(0)
+        if dr.size and np.nanmax(np.abs(np.nan_to_num(dr))) > DRIFT_MAX_DEG:
+            reasons.append("drift")
+            use_go = False
+        if sat[a:b + 1].any():
+            reasons.append("saturation")
+            use_go = False
+        c = cf_used[a:b + 1]
+        if use_go and np.isfinite(c).all():
+            e = seg - c
+            if np.sqrt(np.mean((e - e.mean()) ** 2)) > MISMATCH_DEG:
+                reasons.append("go_cf_mismatch")
+        if use_go:
+            angle[a:b + 1] = seg
+            labels[a:b + 1] = "go"
+            name = "go"
+        else:
+            reasons.append("cf_fallback")
+            name = "cf"
+        quality = max(0.0, 1.0 - sum(PENALTY.get(r, 0.1) for r in reasons))
+        choices.append(StrideChoice(estimator=name, quality=round(quality, 3), reasons=tuple(reasons)))
+    labels = np.where(np.isfinite(angle), labels, "")
+    info = {"absolute_reference": bool(absolute_ok), "standing_ref_deg": None if ref is None else round(ref, 2),
+            "cf_shift_deg": round(cf_shift, 2),
+            "offset_median_deg": round(raw_level, 2)}
+    return FusionResult(angle_deg=angle, estimator=labels.astype(str), choices=choices, info=info)

@@ -1,0 +1,42 @@
+"""Per-stride knee metrics (heel strike to the next heel strike of the same leg), as reported by Allseits et al.
+2018 (peak swing flexion, Sect. 2.4.2) and Potter et al. 2022 (range of motion per stride), plus temporal
+parameters from the gait events."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Loading-response flexion peak is searched in the first part of stance (heel strike -> this share of stance).
+LOADING_SHARE = 0.6
+
+
+@dataclass(frozen=True)
+class StrideValues:
+    t_start_s: float
+    t_end_s: float
+    duration_s: float
+    t_toe_off_s: float
+    stance_time_s: float
+    swing_time_s: float
+    stance_pct: float
+    peak_swing_flexion_deg: float
+    min_flexion_deg: float
+    rom_deg: float
+    stance_flexion_deg: float
+
+
+def stride_values(angle_deg: np.ndarray, t_s: np.ndarray, hs: int, to: int, hs_next: int) -> StrideValues:
+    """Metrics of one stride ``[hs, hs_next]`` with toe-off ``to``; the angle must be finite on the stride."""
+    seg = angle_deg[hs:hs_next + 1]
+    swing = angle_deg[to:hs_next + 1]
+    load_end = hs + max(int(round(LOADING_SHARE * (to - hs))), 1)
+    t0, t1, tt = float(t_s[hs]), float(t_s[hs_next]), float(t_s[to])
+    peak = float(np.nanmax(swing))
+    low = float(np.nanmin(seg))
+    return StrideValues(
+        t_start_s=t0, t_end_s=t1, duration_s=t1 - t0, t_toe_off_s=tt, stance_time_s=tt - t0, swing_time_s=t1 - tt,
+        stance_pct=100.0 * (tt - t0) / (t1 - t0), peak_swing_flexion_deg=peak, min_flexion_deg=low,
+        rom_deg=float(np.nanmax(seg)) - low, stance_flexion_deg=float(np.nanmax(angle_deg[hs:load_end + 1])),
+    )

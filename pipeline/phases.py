@@ -1,0 +1,193 @@
+"""Gait events from the shank's sagittal angular velocity (positive = shank swinging forward, see
+:mod:`pipeline.axes`).
+
+Events follow Allseits et al. 2018 (Sect. 2.2 and Fig. 4: mid-swing peak, heel strike, mid-stance, toe-off from the
+shank angular velocity) with the Salarian-style rules they build on: the mid-swing (MS) peak is the maximum of a
+positive swing lobe; toe-off (TO) is the minimum just before the lobe starts, heel strike (HS) the first local
+minimum after it ends. Mid-stance (MSt) is taken half-way between HS and the next TO (the Allseits zero-angle update
+only needs a point after loading response and before push-off).
+
+Robustness to standing, sitting, sit-to-stand, turns and slow walking: lobes must exceed an adaptive height
+threshold, consecutive MS peaks must be separated by a clearly negative (stance) region, and only bouts of at least
+``MIN_BOUT_PEAKS`` peaks with consistent periods produce strides. No stride spans a masked sample.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.signal_utils import lowpass
+
+LOBE_CUTOFF_HZ = 4.0  # smooth version for lobes and MS peaks
+EVENT_CUTOFF_HZ = 15.0  # light smoothing for TO/HS minima
+MIN_PEAK_DPS = 50.0
+REL_PEAK = 0.35  # of the median swing peak of the session
+STANCE_NEG_DPS = 10.0  # the smoothed rate must drop below -this between two swings
+MIN_PERIOD_S, MAX_PERIOD_S = 0.5, 3.0
+PERIOD_TOL = 0.35
+MIN_BOUT_PEAKS = 3
+SEARCH_S = 0.3  # TO/HS search windows around the lobe edges
+STANCE_PCT_RANGE = (30.0, 85.0)
+
+
+@dataclass
+class GaitEvents:
+    """Per swing lobe (aligned arrays, index -1 when not found): ``ms`` mid-swing peak, ``to`` toe-off before it,
+    ``hs`` heel strike after it, ``mst`` mid-stance after ``hs`` (before the next lobe's ``to``), ``bout`` the walking
+    bout id (-1: not part of a consistent bout). ``strides`` are ``(hs_start, to, hs_end)`` sample triples."""
+
+    ms: np.ndarray
+    to: np.ndarray
+    hs: np.ndarray
+    mst: np.ndarray
+    bout: np.ndarray
+    strides: list[tuple[int, int, int]] = field(default_factory=list)
+
+
+def shank_sagittal_dps(gyr_dps: np.ndarray) -> np.ndarray:
+    """Shank-only sagittal rate for short windows without a thigh: principal rotation axis (McGrath et al. 2018),
+    signed so the largest excursions (mid-swing) are positive. Full sessions use the fitted knee axis instead."""
+    g = np.asarray(gyr_dps, dtype=float)
+    _, _, vt = np.linalg.svd(g, full_matrices=False)
+    w = g @ vt[0]
+    if -np.percentile(w, 0.5) > np.percentile(w, 99.5):
+        w = -w
+    return w
+
+
+def _falling_crossings(x: np.ndarray) -> np.ndarray:
+    return np.flatnonzero((x[:-1] > 0) & (x[1:] <= 0)) + 1
+
+
+def _rising_crossings(x: np.ndarray) -> np.ndarray:
+    return np.flatnonzero((x[:-1] <= 0) & (x[1:] > 0)) + 1
+
+
+def _swing_lobes(ws: np.ndarray) -> list[tuple[int, int, int]]:
+    """``(start, peak, stop)`` of each positive lobe of the smoothed rate (start/stop may be the signal edges)."""
+    pos = ws > 0
+    if not pos.any():
+        return []
+    edges = np.diff(np.concatenate(([0], pos.astype(np.int8), [0])))
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return [(int(a), int(a + np.argmax(ws[a:b])), int(b)) for a, b in zip(starts, stops, strict=True)]
+
+
+def _merge_lobes(ws: np.ndarray, lobes: list[tuple[int, int, int]], fs_hz: float) -> list[tuple[int, int, int]]:
+    """Merge lobes separated only by a shallow, short dip (noise inside one swing) - keep the higher peak."""
+    merged: list[tuple[int, int, int]] = []
+    for lobe in lobes:
+        if merged:
+            a, p, b = merged[-1]
+            dip = ws[b:lobe[0]]
+            if (dip.size == 0 or dip.min() > -STANCE_NEG_DPS) and (lobe[0] - b) < 0.15 * fs_hz:
+                peak = p if ws[p] >= ws[lobe[1]] else lobe[1]
+                merged[-1] = (a, peak, lobe[2])
+                continue
+        merged.append(lobe)
+    return merged
+
+
+def _first_local_min(x: np.ndarray, a: int, b: int) -> int:
+    """First local minimum of x in [a, b) below zero; the global minimum of the window if none."""
+    seg = x[a:b]
+    if seg.size < 3:
+        return a + int(np.argmin(seg)) if seg.size else -1
+    interior = np.flatnonzero((seg[1:-1] < seg[:-2]) & (seg[1:-1] <= seg[2:]) & (seg[1:-1] < 0)) + 1
+    if interior.size:
+        return a + int(interior[0])
+    return a + int(np.argmin(seg))
+
+
+def detect_gait_events(shank_sag_dps: np.ndarray, fs_hz: float, valid: np.ndarray | None = None,
+                       min_bout_peaks: int = MIN_BOUT_PEAKS) -> GaitEvents:
+    """Mid-swing, toe-off, heel-strike and mid-stance indices from a shank sagittal angular velocity [deg/s].
+
+    ``valid`` (default all True) marks usable samples: events are not searched inside masked samples (they are
+    treated as zero rate), and no stride spans one. ``min_bout_peaks=1`` accepts isolated swings (short windows).
+    """
+    w = np.asarray(shank_sag_dps, dtype=float)
+    n = w.shape[0]
+    valid = np.ones(n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    empty = np.zeros(0, dtype=int)
+    if n < 5:
+        return GaitEvents(empty, empty, empty, empty, empty)
+    w0 = np.where(valid, np.nan_to_num(w), 0.0)
+    ws = lowpass(w0, LOBE_CUTOFF_HZ, fs_hz)
+    we = lowpass(w0, EVENT_CUTOFF_HZ, fs_hz)
+    ws[~valid] = 0.0
+    lobes = _merge_lobes(ws, _swing_lobes(ws), fs_hz)
+    if not lobes:
+        return GaitEvents(empty, empty, empty, empty, empty)
+    heights = np.array([ws[p] for _, p, _ in lobes])
+    big = heights[heights >= MIN_PEAK_DPS]
+    thresh = max(MIN_PEAK_DPS, REL_PEAK * float(np.median(big))) if big.size else np.inf
+    lobes = [lb for lb, h in zip(lobes, heights, strict=True) if h >= thresh]
+    search = max(int(round(SEARCH_S * fs_hz)), 2)
+    ms, to, hs = [], [], []
+    for a, p, b in lobes:
+        ms.append(p)
+        to.append(int(max(a - search, 0) + np.argmin(we[max(a - search, 0):a + 1])) if a > 0 else -1)
+        hs.append(_first_local_min(we, b, min(b + search, n)) if b < n else -1)
+    ms_a, to_a, hs_a = np.array(ms), np.array(to), np.array(hs)
+    bout = _bouts(ms_a, ws, valid, fs_hz, min_bout_peaks)
+    mst = np.full(ms_a.size, -1)
+    for k in range(ms_a.size - 1):
+        if hs_a[k] >= 0 and to_a[k + 1] > hs_a[k]:
+            mst[k] = (hs_a[k] + to_a[k + 1]) // 2
+    strides = _strides(ms_a, to_a, hs_a, bout, valid)
+    return GaitEvents(ms=ms_a, to=to_a, hs=hs_a, mst=mst, bout=bout, strides=strides)
+
+
+def _bouts(ms: np.ndarray, ws: np.ndarray, valid: np.ndarray, fs_hz: float, min_peaks: int) -> np.ndarray:
+    """Bout id per MS peak: chains of peaks with plausible, consistent periods, a real stance dip between
+    consecutive peaks and no masked sample in between; chains shorter than ``min_peaks`` get -1."""
+    bout = np.full(ms.size, -1)
+    if ms.size == 0:
+        return bout
+    period = np.diff(ms) / fs_hz
+    link = (period >= MIN_PERIOD_S) & (period <= MAX_PERIOD_S)
+    inv_cum = np.concatenate(([0], np.cumsum(~valid)))
+    for k in range(ms.size - 1):
+        if link[k]:
+            seg = ws[ms[k]:ms[k + 1]]
+            link[k] = seg.min() < -STANCE_NEG_DPS and inv_cum[ms[k + 1]] == inv_cum[ms[k]]
+    # period consistency: compare each link with the median of its linked neighbourhood
+    if period.size >= 3:
+        padded = np.pad(np.where(link, period, np.nan), 2, constant_values=np.nan)
+        windows = np.lib.stride_tricks.sliding_window_view(padded, 5)
+        with np.errstate(all="ignore"):
+            local = np.nanmedian(np.where(np.isnan(windows).all(axis=1, keepdims=True), 1.0, windows), axis=1)
+        link &= np.abs(period - local) <= PERIOD_TOL * local
+    chain_id = 0
+    start = 0
+    for k in range(ms.size):
+        end_of_chain = k == ms.size - 1 or not link[k]
+        if end_of_chain:
+            if k - start + 1 >= min_peaks:
+                bout[start:k + 1] = chain_id
+                chain_id += 1
+            start = k + 1
+    return bout
+
+
+def _strides(ms: np.ndarray, to: np.ndarray, hs: np.ndarray, bout: np.ndarray,
+             valid: np.ndarray) -> list[tuple[int, int, int]]:
+    """Strides HS(k) -> TO(k+1) -> HS(k+1) for consecutive peaks of one bout, plausible stance share, no mask."""
+    inv_cum = np.concatenate(([0], np.cumsum(~valid)))
+    out = []
+    for k in range(ms.size - 1):
+        if bout[k] < 0 or bout[k] != bout[k + 1]:
+            continue
+        a, t, b = int(hs[k]), int(to[k + 1]), int(hs[k + 1])
+        if a < 0 or t < 0 or b < 0 or not (a < t < ms[k + 1] < b):
+            continue
+        stance_pct = 100.0 * (t - a) / (b - a)
+        if not (STANCE_PCT_RANGE[0] <= stance_pct <= STANCE_PCT_RANGE[1]):
+            continue
+        if inv_cum[b + 1] != inv_cum[a]:
+            continue
+        out.append((a, t, b))
+    return out

@@ -1,0 +1,167 @@
+"""Raw thigh + shank streams of one leg -> SI units on one uniform time grid, with packet-loss gaps marked.
+
+Thigh and shank IMUs are not sample-synchronous and may run at different rates, so both are linearly
+interpolated onto one grid at the faster of the two rates. A gap is a step between consecutive samples longer than
+``GAP_FACTOR`` nominal periods. Gaps up to ``MAX_BRIDGE_S`` (50 ms: shorter than the fastest knee event of interest,
+about 100 ms for swing flexion) are bridged by the interpolation; longer gaps are masked: no angle, no stride across.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.types import RawSensorStream
+
+G_MPS2 = 9.80665
+GAP_FACTOR = 1.75
+MAX_BRIDGE_S = 0.05
+# A gyro axis pinned at its extreme value for this many samples in a row counts as saturated.
+SATURATION_RUN = 3
+SATURATION_MIN_DPS = 250.0
+
+
+@dataclass
+class PreparedLeg:
+    """One leg on a uniform grid ``t_s = t0_s + i / fs_hz``. Segment 1 is the thigh, 2 the shank (Seel et al. 2014
+    numbering as used by the task; Rhudy et al. 2024 swap them)."""
+
+    leg: str
+    fs_hz: float
+    t0_s: float
+    t_s: np.ndarray
+    gyr_thigh_rps: np.ndarray
+    gyr_shank_rps: np.ndarray
+    acc_thigh_mps2: np.ndarray
+    acc_shank_mps2: np.ndarray
+    valid: np.ndarray  # False inside masked gaps
+    saturated: np.ndarray  # True where either gyro looks saturated
+    gaps_s: list[tuple[float, float]] = field(default_factory=list)
+    bridged_gaps: int = 0
+
+    @property
+    def n(self) -> int:
+        return int(self.t_s.shape[0])
+
+
+def to_si(stream: RawSensorStream) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(t_s, gyr_rps, acc_mps2)`` of a raw stream, sorted by time with duplicate time stamps dropped."""
+    t = np.asarray(stream.t_s, dtype=float)
+    gyr = np.asarray(stream.gyr, dtype=float).reshape(-1, 3)
+    acc = np.asarray(stream.acc, dtype=float).reshape(-1, 3)
+    if not (t.shape[0] == gyr.shape[0] == acc.shape[0]):
+        raise ValueError(f"sensor {stream.sensor_id}: t_s, gyr and acc have different lengths "
+                         f"({t.shape[0]}, {gyr.shape[0]}, {acc.shape[0]})")
+    if stream.gyro_unit == "deg/s":
+        gyr = np.deg2rad(gyr)
+    elif stream.gyro_unit != "rad/s":
+        raise ValueError(f"sensor {stream.sensor_id}: unknown gyro unit {stream.gyro_unit!r}")
+    if stream.acc_unit == "g":
+        acc = acc * G_MPS2
+    elif stream.acc_unit != "m/s2":
+        raise ValueError(f"sensor {stream.sensor_id}: unknown accelerometer unit {stream.acc_unit!r}")
+    finite = np.isfinite(t) & np.isfinite(gyr).all(axis=1) & np.isfinite(acc).all(axis=1)
+    t, gyr, acc = t[finite], gyr[finite], acc[finite]
+    order = np.argsort(t, kind="stable")
+    t, gyr, acc = t[order], gyr[order], acc[order]
+    keep = np.concatenate(([True], np.diff(t) > 0))
+    return t[keep], gyr[keep], acc[keep]
+
+
+def nominal_fs(stream: RawSensorStream, t_s: np.ndarray) -> float:
+    """The declared rate, unless the time stamps clearly disagree (then the median sample spacing wins)."""
+    declared = float(stream.fs_hz) if stream.fs_hz and stream.fs_hz > 0 else 0.0
+    if t_s.shape[0] < 2:
+        return declared or 100.0
+    measured = 1.0 / float(np.median(np.diff(t_s)))
+    if declared and abs(measured - declared) / declared < 0.2:
+        return declared
+    return measured
+
+
+def find_gaps(t_s: np.ndarray, fs_hz: float) -> tuple[list[tuple[float, float]], int]:
+    """Masked gaps ``(t_last_before, t_first_after)`` longer than MAX_BRIDGE_S, and the number bridged."""
+    dt = np.diff(t_s)
+    is_gap = dt > GAP_FACTOR / fs_hz
+    long_gap = is_gap & (dt > MAX_BRIDGE_S)
+    idx = np.flatnonzero(long_gap)
+    return [(float(t_s[i]), float(t_s[i + 1])) for i in idx], int(is_gap.sum() - long_gap.sum())
+
+
+def saturation_mask(gyr: np.ndarray) -> np.ndarray:
+    """Samples where some gyro axis sits at its extreme value for a run of samples (clipped sensor)."""
+    out = np.zeros(gyr.shape[0], dtype=bool)
+    for axis in range(3):
+        g = np.abs(gyr[:, axis])
+        peak = g.max(initial=0.0)
+        if np.rad2deg(peak) < SATURATION_MIN_DPS:
+            continue
+        at_peak = g >= peak * 0.999
+        # runs of at least SATURATION_RUN consecutive samples pinned at the extreme
+        run = np.convolve(at_peak.astype(int), np.ones(SATURATION_RUN, dtype=int), mode="same") >= SATURATION_RUN
+        if run.any():
+            out |= np.convolve(run.astype(int), np.ones(SATURATION_RUN, dtype=int), mode="same") > 0
+    return out
+
+
+def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray) -> np.ndarray:
+    return np.column_stack([np.interp(t_new, t, x[:, k]) for k in range(x.shape[1])])
+
+
+def _mask_intervals(t_grid: np.ndarray, gaps: list[tuple[float, float]]) -> np.ndarray:
+    """True for grid samples strictly inside any gap interval."""
+    bad = np.zeros(t_grid.shape[0], dtype=bool)
+    if not gaps:
+        return bad
+    starts = np.array([g[0] for g in gaps])
+    stops = np.array([g[1] for g in gaps])
+    lo = np.searchsorted(t_grid, starts, side="right")
+    hi = np.searchsorted(t_grid, stops, side="left")
+    delta = np.zeros(t_grid.shape[0] + 1, dtype=int)
+    np.add.at(delta, lo, 1)
+    np.add.at(delta, hi, -1)
+    return np.cumsum(delta)[:-1] > 0
+
+
+def prepare_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream) -> PreparedLeg:
+    """Convert both streams to SI, put them on one uniform grid over their common time span, mark gaps.
+
+    Raises ValueError when the two streams have no usable overlap.
+    """
+    t1, g1, a1 = to_si(thigh)
+    t2, g2, a2 = to_si(shank)
+    for name, t in (("thigh", t1), ("shank", t2)):
+        if t.shape[0] < 2:
+            raise ValueError(f"{leg} {name} sensor has fewer than 2 usable samples")
+    fs1, fs2 = nominal_fs(thigh, t1), nominal_fs(shank, t2)
+    fs_hz = float(max(fs1, fs2))
+    t_start, t_stop = max(t1[0], t2[0]), min(t1[-1], t2[-1])
+    if t_stop - t_start < 2.0 / fs_hz:
+        raise ValueError(f"{leg} leg: thigh and shank recordings do not overlap in time")
+    n = int(np.floor((t_stop - t_start) * fs_hz + 1e-9)) + 1
+    t_grid = t_start + np.arange(n) / fs_hz
+    gaps1, br1 = find_gaps(t1, fs1)
+    gaps2, br2 = find_gaps(t2, fs2)
+    gaps = sorted(gaps1 + gaps2)
+    valid = ~_mask_intervals(t_grid, gaps)
+    sat1 = saturation_mask(g1)
+    sat2 = saturation_mask(g2)
+    saturated = (np.interp(t_grid, t1, sat1.astype(float)) > 0) | (np.interp(t_grid, t2, sat2.astype(float)) > 0)
+    merged = _merge_intervals(gaps)
+    return PreparedLeg(
+        leg=leg, fs_hz=fs_hz, t0_s=float(t_start), t_s=t_grid,
+        gyr_thigh_rps=_interp_columns(t_grid, t1, g1), gyr_shank_rps=_interp_columns(t_grid, t2, g2),
+        acc_thigh_mps2=_interp_columns(t_grid, t1, a1), acc_shank_mps2=_interp_columns(t_grid, t2, a2),
+        valid=valid, saturated=saturated, gaps_s=merged, bridged_gaps=br1 + br2,
+    )
+
+
+def _merge_intervals(intervals: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    out: list[tuple[float, float]] = []
+    for a, b in sorted(intervals):
+        if out and a <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
+    return out

@@ -1,0 +1,161 @@
+"""One session in, knee flexion per leg and per stride out: the pipeline's single public entry point.
+
+prepare (units, common grid, gaps) -> joint axes (Seel Eq. 2) -> knee rate and shank sagittal rate -> gait events
+(Allseits) -> joint centres and accelerometer angle (Seel Eq. 5-7) -> estimator(s) -> per-stride metrics.
+"""
+
+from __future__ import annotations
+
+import warnings as _warnings
+from collections.abc import Sequence
+
+import numpy as np
+
+from pipeline import ALGORITHM_VERSION
+from pipeline.axes import (
+    JointCentres,
+    accelerometer_angle_deg,
+    angular_acceleration,
+    fit_joint_axes,
+    fit_joint_centres,
+    joint_plane_frames,
+    select_fit_samples,
+)
+from pipeline.estimators import LegData, get_estimator
+from pipeline.estimators.cf import complementary_filter
+from pipeline.estimators.go import go_relative
+from pipeline.fusion import fuse
+from pipeline.metrics import stride_values
+from pipeline.phases import detect_gait_events
+from pipeline.prepare import PreparedLeg, prepare_leg
+from pipeline.signal_utils import lowpass_runs
+from pipeline.types import LegResult, RawSensorStream, SessionResult, StrideMetrics
+
+FIT_CUTOFF_HZ = 10.0  # gyro/acc smoothing for the axis and joint-centre fits and the accelerometer angle
+CENTRE_STABLE_DEG = 10.0  # joint-plane x axes from the two halves of the session must agree this well
+
+
+def process_session(streams: Sequence[RawSensorStream], activity: str = "walking",
+                    estimator: str = "auto") -> SessionResult:
+    """Knee flexion of every leg that has both a thigh and a shank stream.
+
+    ``estimator``: ``"auto"`` (GO with absolute zero, CF fallback per stride, :mod:`pipeline.fusion`) or the name of
+    one registered estimator (``"go"``, ``"cf"``, ...) run alone on the same prepared data.
+    Raises ValueError only for unusable input (no streams, no samples, unknown estimator).
+    """
+    if estimator != "auto":
+        get_estimator(estimator)  # fail early on an unknown name
+    if not streams:
+        raise ValueError("the session has no sensor streams")
+    if all(np.asarray(s.t_s).size == 0 for s in streams):
+        raise ValueError("the session has no samples")
+    warnings: list[str] = []
+    by_leg: dict[str, dict[str, RawSensorStream]] = {}
+    for s in streams:
+        slot = by_leg.setdefault(s.leg, {})
+        if s.segment in slot:
+            keep = max(slot[s.segment], s, key=lambda x: np.asarray(x.t_s).size)
+            warnings.append(f"{s.leg} {s.segment}: several sensors ({slot[s.segment].sensor_id}, {s.sensor_id}); "
+                            f"using {keep.sensor_id}")
+            slot[s.segment] = keep
+        else:
+            slot[s.segment] = s
+    legs: dict[str, LegResult] = {}
+    for leg in sorted(by_leg):
+        segs = by_leg[leg]
+        if "thigh" not in segs or "shank" not in segs:
+            missing = "thigh" if "thigh" not in segs else "shank"
+            warnings.append(f"{leg} leg skipped: no {missing} sensor")
+            continue
+        try:
+            legs[leg] = process_leg(leg, segs["thigh"], segs["shank"], activity, estimator)
+        except ValueError as exc:
+            warnings.append(f"{leg} leg skipped: {exc}")
+    return SessionResult(algorithm_version=ALGORITHM_VERSION, activity=activity, legs=legs, warnings=warnings)
+
+
+def _dps(x: np.ndarray) -> np.ndarray:
+    return np.rad2deg(x)
+
+
+def _centres_fit(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, a1: np.ndarray, a2: np.ndarray,
+                 gd1: np.ndarray, gd2: np.ndarray, j1: np.ndarray, j2: np.ndarray) -> tuple[JointCentres, bool, float]:
+    """Joint centres on the bounded sample set, plus a stability check: the joint-plane frames fitted on the first
+    and second half of the set must agree within CENTRE_STABLE_DEG, otherwise the absolute level is not trusted."""
+    idx = select_fit_samples(g1, g2, prep.valid)
+    centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], j1, j2)
+    halves = [idx[: idx.size // 2], idx[idx.size // 2:]]
+    frames = []
+    for h in halves:
+        c = fit_joint_centres(a1[h], g1[h], gd1[h], a2[h], g2[h], gd2[h], j1, j2)
+        frames.append(joint_plane_frames(c, j1, j2) if c.absolute else None)
+    if frames[0] is None or frames[1] is None:
+        return centres, False, float("nan")
+    worst = max(float(np.degrees(np.arccos(np.clip(frames[0][i] @ frames[1][i], -1.0, 1.0)))) for i in range(2))
+    return centres, bool(centres.absolute and worst <= CENTRE_STABLE_DEG), worst
+
+
+def build_leg_data(prep: PreparedLeg, activity: str = "walking") -> tuple[LegData, bool, dict]:
+    """Axes, rates, events, joint centres and accelerometer angle of one prepared leg."""
+    valid = prep.valid
+    fs = prep.fs_hz
+    g1 = lowpass_runs(prep.gyr_thigh_rps, valid, FIT_CUTOFF_HZ, fs)
+    g2 = lowpass_runs(prep.gyr_shank_rps, valid, FIT_CUTOFF_HZ, fs)
+    g1, g2 = np.nan_to_num(g1), np.nan_to_num(g2)
+    axes = fit_joint_axes(g1, g2, valid)
+    rate = _dps(prep.gyr_thigh_rps @ axes.j1 - prep.gyr_shank_rps @ axes.j2)
+    shank_sag = _dps(prep.gyr_shank_rps @ axes.j2)
+    rate[~valid] = np.nan
+    shank_sag[~valid] = np.nan
+    events = detect_gait_events(shank_sag, fs, valid)
+    a1 = np.nan_to_num(lowpass_runs(prep.acc_thigh_mps2, valid, FIT_CUTOFF_HZ, fs))
+    a2 = np.nan_to_num(lowpass_runs(prep.acc_shank_mps2, valid, FIT_CUTOFF_HZ, fs))
+    gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)
+    centres, stable, disagreement = _centres_fit(prep, g1, g2, a1, a2, gd1, gd2, axes.j1, axes.j2)
+    acc_angle = accelerometer_angle_deg(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, centres)
+    acc_angle[~valid] = np.nan
+    data = LegData(prep=prep, axes=axes, centres=centres, rate_dps=rate, acc_angle_deg=acc_angle,
+                   shank_sag_dps=shank_sag, events=events, activity=activity)
+    info = {"j1": np.round(axes.j1, 4).tolist(), "j2": np.round(axes.j2, 4).tolist(),
+            "axis_rms_residual_dps": round(axes.rms_residual_dps, 2), "axis_fit_samples": axes.n_samples,
+            "o1_m": np.round(centres.o1, 4).tolist(), "o2_m": np.round(centres.o2, 4).tolist(),
+            "centre_rms_residual_mps2": round(centres.rms_residual_mps2, 3),
+            "centre_halves_disagreement_deg": None if np.isnan(disagreement) else round(disagreement, 1),
+            "centres_stable": stable,
+            "bouts": int(events.bout.max() + 1) if events.bout.size else 0,
+            "bridged_gaps": prep.bridged_gaps}
+    return data, stable, info
+
+
+def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str = "walking",
+                estimator: str = "auto") -> LegResult:
+    prep = prepare_leg(leg, thigh, shank)
+    if prep.valid.sum() < max(10, int(prep.fs_hz)):
+        raise ValueError("less than one second of usable samples")
+    with _warnings.catch_warnings():
+        _warnings.simplefilter("ignore", RuntimeWarning)
+        data, stable, info = build_leg_data(prep, activity)
+        strides = data.events.strides
+        if estimator == "auto":
+            go_rel, diag = go_relative(data)
+            data.extras["go"] = diag
+            cf = complementary_filter(data.rate_dps, data.acc_angle_deg, prep.fs_hz, prep.valid)
+            fused = fuse(data, go_rel, diag, cf)
+            angle, labels = fused.angle_deg, fused.estimator
+            choices = [(c.estimator, c.quality, c.reasons) for c in fused.choices]
+            info.update(fused.info)
+        else:
+            angle = np.asarray(get_estimator(estimator)(data), dtype=float)
+            labels = np.where(np.isfinite(angle), estimator, "").astype(str)
+            choices = [(estimator, 1.0, ()) for _ in strides]
+    out: list[StrideMetrics] = []
+    for (a, t, b), (name, quality, reasons) in zip(strides, choices, strict=True):
+        if not np.isfinite(angle[a:b + 1]).all():
+            continue
+        v = stride_values(angle, prep.t_s, a, t, b)
+        out.append(StrideMetrics(leg=leg, index=len(out), estimator=name, quality=float(quality),
+                                 quality_reasons=tuple(reasons), **v.__dict__))
+    walking_s = float(sum(s.duration_s for s in out))
+    info["n_strides"] = len(out)
+    return LegResult(leg=leg, fs_hz=prep.fs_hz, t_s=prep.t_s, angle_deg=angle, estimator=labels, strides=out,
+                     gaps_s=list(prep.gaps_s), walking_s=walking_s, info=info)

@@ -1,0 +1,74 @@
+"""pipeline.prepare: units, common grid, gap handling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.prepare import MAX_BRIDGE_S, prepare_leg
+from pipeline.types import RawSensorStream
+
+
+def _stream(seg: str, t: np.ndarray, gyr_dps: np.ndarray, acc_mps2: np.ndarray, fs: float,
+            gyro_unit: str = "deg/s", acc_unit: str = "m/s2") -> RawSensorStream:
+    gyr = np.deg2rad(gyr_dps) if gyro_unit == "rad/s" else gyr_dps
+    acc = acc_mps2 / 9.80665 if acc_unit == "g" else acc_mps2
+    return RawSensorStream(sensor_id=seg, leg="left", segment=seg, fs_hz=fs, t_s=t, gyr=gyr, acc=acc,
+                           gyro_unit=gyro_unit, acc_unit=acc_unit)
+
+
+def _signals(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    gyr = np.column_stack([100 * np.sin(2 * np.pi * t), 50 * np.cos(2 * np.pi * 0.5 * t), 10 * t])
+    acc = np.column_stack([np.sin(t), np.cos(t), 9.81 + 0 * t])
+    return gyr, acc
+
+
+def test_units_are_converted_to_si() -> None:
+    t = np.arange(0, 5, 0.01)
+    g, a = _signals(t)
+    p_deg = prepare_leg("left", _stream("thigh", t, g, a, 100), _stream("shank", t, g, a, 100))
+    p_rad = prepare_leg("left", _stream("thigh", t, g, a, 100, "rad/s", "g"),
+                        _stream("shank", t, g, a, 100, "rad/s", "g"))
+    np.testing.assert_allclose(p_deg.gyr_thigh_rps, np.deg2rad(g), atol=1e-9)
+    np.testing.assert_allclose(p_rad.gyr_shank_rps, p_deg.gyr_shank_rps, atol=1e-9)
+    np.testing.assert_allclose(p_rad.acc_shank_mps2, p_deg.acc_shank_mps2, atol=1e-9)
+
+
+def test_different_rates_and_offsets_share_one_uniform_grid() -> None:
+    t1 = 0.013 + np.arange(0, 6, 1 / 50)
+    t2 = 0.004 + np.arange(0, 6, 1 / 100)
+    g1, a1 = _signals(t1)
+    g2, a2 = _signals(t2)
+    p = prepare_leg("left", _stream("thigh", t1, g1, a1, 50), _stream("shank", t2, g2, a2, 100))
+    assert p.fs_hz == 100
+    np.testing.assert_allclose(np.diff(p.t_s), 0.01, atol=1e-12)
+    assert p.t_s[0] >= t1[0] and p.t_s[-1] <= t2[-1]
+    g_true, _ = _signals(p.t_s)
+    # linear interpolation of the 50 Hz thigh: small error on a 1 Hz, 100 dps sine
+    assert np.max(np.abs(np.rad2deg(p.gyr_thigh_rps[:, 0]) - g_true[:, 0])) < 1.0
+    assert p.valid.all()
+
+
+def test_short_gaps_are_bridged_and_long_gaps_masked() -> None:
+    t = np.arange(0, 10, 0.01)
+    drop = np.zeros(t.size, dtype=bool)
+    drop[200:203] = True  # 40 ms: bridged
+    drop[500:560] = True  # 0.6 s: masked
+    g, a = _signals(t)
+    thigh = _stream("thigh", t[~drop], g[~drop], a[~drop], 100)
+    p = prepare_leg("left", thigh, _stream("shank", t, g, a, 100))
+    assert MAX_BRIDGE_S > 3 * 0.01
+    assert len(p.gaps_s) == 1
+    a_s, b_s = p.gaps_s[0]
+    assert a_s == pytest.approx(t[499]) and b_s == pytest.approx(t[560])
+    inside = (p.t_s > a_s) & (p.t_s < b_s)
+    assert not p.valid[inside].any()
+    assert p.valid[~inside].all()
+    assert p.bridged_gaps == 1
+
+
+def test_no_overlap_is_an_error() -> None:
+    t = np.arange(0, 2, 0.01)
+    g, a = _signals(t)
+    with pytest.raises(ValueError, match="overlap"):
+        prepare_leg("left", _stream("thigh", t, g, a, 100), _stream("shank", t + 5, g, a, 100))

@@ -1,0 +1,128 @@
+"""process_session end to end on simulated sessions with ground truth (pipeline/simulate.py)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from pipeline.session import process_session
+from pipeline.simulate import SimConfig, SimSession, simulate_session
+from pipeline.types import RawSensorStream
+
+
+def _sim(pattern: str, seed: int, **kw) -> SimSession:
+    return simulate_session(SimConfig(pattern=pattern, seed=seed, n_strides=24, bout_strides=12,
+                                      activities=("standing",), **kw))
+
+
+def _matched(sim: SimSession, leg_result, tol_s: float = 0.15) -> list[tuple]:
+    truth = sim.truth[leg_result.leg].strides
+    starts = np.array([s.t_start_s for s in truth])
+    pairs = []
+    for s in leg_result.strides:
+        k = int(np.argmin(np.abs(starts - s.t_start_s)))
+        if abs(starts[k] - s.t_start_s) < tol_s:
+            pairs.append((s, truth[k]))
+    return pairs
+
+
+def _angle_rmse(sim: SimSession, lr) -> float:
+    inside = np.zeros(lr.t_s.size, dtype=bool)
+    for s in lr.strides:
+        inside |= (lr.t_s >= s.t_start_s) & (lr.t_s <= s.t_end_s)
+    err = lr.angle_deg[inside] - sim.truth[lr.leg].angle_at(lr.t_s[inside])
+    return float(np.sqrt(np.mean(err ** 2)))
+
+
+@pytest.mark.parametrize("pattern", ["normal", "crouch", "stiff-knee"])
+def test_simulated_walking_patterns(pattern: str) -> None:
+    """Achieved on tuning seeds (0-9) at the time of writing: recall 0.7-0.95 (packet-loss outages and bout edges
+    cost strides), peak swing flexion bias within ~3 deg (normal up to ~7 deg on single seeds), RMSE 1-4.5 deg."""
+    sim = _sim(pattern, seed=2)
+    res = process_session(sim.streams, activity=sim.activity)
+    assert set(res.legs) == {"left", "right"}
+    for lr in res.legs.values():
+        pairs = _matched(sim, lr)
+        n_true = len(sim.truth[lr.leg].strides)
+        assert len(pairs) >= 0.5 * n_true
+        assert len(pairs) >= 0.95 * len(lr.strides)  # precision: detected strides are real strides
+        peak_err = np.array([s.peak_swing_flexion_deg - t.peak_swing_flexion_deg for s, t in pairs])
+        assert abs(np.median(peak_err)) < 6.0
+        rom_err = np.array([s.rom_deg - t.rom_deg for s, t in pairs])
+        assert np.percentile(np.abs(rom_err), 90) < 6.0
+        assert _angle_rmse(sim, lr) < 6.0
+        # the trace is on a uniform grid, as the server stores it
+        np.testing.assert_allclose(np.diff(lr.t_s), 1.0 / lr.fs_hz, atol=1e-9)
+        assert set(np.unique(lr.estimator)) <= {"go", "cf", ""}
+        assert np.all(np.isnan(lr.angle_deg) == (lr.estimator == ""))
+        for s in lr.strides:
+            assert 0.0 <= s.quality <= 1.0
+            assert s.t_start_s < s.t_toe_off_s < s.t_end_s
+
+
+def test_crouch_reads_an_absolute_minimum_flexion() -> None:
+    sim = _sim("crouch", seed=4)
+    res = process_session(sim.streams, activity=sim.activity)
+    for lr in res.legs.values():
+        mins = np.array([s.min_flexion_deg for s in lr.strides])
+        truth = np.array([t.min_flexion_deg for _, t in _matched(sim, lr)])
+        assert np.median(mins) > 15.0  # GO alone would read ~0 here
+        assert abs(np.median(mins) - np.median(truth)) < 5.0
+
+
+def test_units_and_mirrored_mounting_give_the_same_angles() -> None:
+    base = _sim("normal", seed=3)
+    rad = simulate_session(dataclasses.replace(base.config, gyro_unit="rad/s", acc_unit="g"))
+    r1 = process_session(base.streams)
+    r2 = process_session(rad.streams)
+    for leg in ("left", "right"):
+        a, b = r1.legs[leg].angle_deg, r2.legs[leg].angle_deg
+        ok = np.isfinite(a) & np.isfinite(b)
+        assert ok.mean() > 0.8
+        assert np.max(np.abs(a[ok] - b[ok])) < 1e-3
+        # the right leg's sensors are mirrored: flexion must still be positive (swing peaks well above stance)
+        peaks = [s.peak_swing_flexion_deg for s in r1.legs[leg].strides]
+        mins = [s.min_flexion_deg for s in r1.legs[leg].strides]
+        assert np.median(peaks) - np.median(mins) > 40.0
+
+
+def test_estimators_run_alone() -> None:
+    sim = _sim("normal", seed=5)
+    for name in ("go", "cf"):
+        res = process_session(sim.streams, estimator=name)
+        for lr in res.legs.values():
+            assert lr.strides and all(s.estimator == name for s in lr.strides)
+            # alone, neither has an absolute zero (GO: Allseits' zero at the pre-swing minimum; CF: joint-plane
+            # frames from the joint centres), so compare shapes: ROM per stride
+            rom_err = [s.rom_deg - t.rom_deg for s, t in _matched(sim, lr)]
+            assert len(rom_err) >= 5
+            assert abs(float(np.median(rom_err))) < 8.0
+    with pytest.raises(ValueError, match="unknown estimator"):
+        process_session(sim.streams, estimator="nope")
+
+
+def test_standing_only_session_has_no_strides() -> None:
+    sim = _sim("normal", seed=6)
+    cut = []
+    for s in sim.streams:
+        keep = s.t_s < 2.5  # the simulator starts with a standing period before the first bout
+        cut.append(dataclasses.replace(s, t_s=s.t_s[keep], gyr=s.gyr[keep], acc=s.acc[keep]))
+    first_hs = min(sim.truth[leg].heel_strikes_s[0] for leg in sim.truth)
+    assert first_hs > 2.5
+    res = process_session(cut)
+    assert res.legs and all(len(lr.strides) == 0 for lr in res.legs.values())
+
+
+def test_missing_segment_and_empty_input() -> None:
+    sim = _sim("normal", seed=7)
+    no_right_shank = [s for s in sim.streams if not (s.leg == "right" and s.segment == "shank")]
+    res = process_session(no_right_shank)
+    assert set(res.legs) == {"left"}
+    assert any("right" in w and "shank" in w for w in res.warnings)
+    empty = [RawSensorStream("x", "left", "thigh", 100.0, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))]
+    with pytest.raises(ValueError, match="no samples"):
+        process_session(empty)
+    with pytest.raises(ValueError):
+        process_session([])
