@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from datetime import UTC
 
 from fastapi import APIRouter, Response
 from sqlalchemy import func, select
@@ -60,8 +61,9 @@ def create_session(body: SessionIn, response: Response, db: Db, caller: Caller) 
     if existing is not None:
         response.status_code = 200
         return session_out(db, _same_or_conflict(existing, body))
-    session = Session(patient_id=patient.id, client_session_id=body.client_session_id, started_at=body.started_at,
-                      activity=body.activity, status="receiving")
+    # Stored in UTC: SQLite drops the offset of an aware datetime instead of converting it.
+    session = Session(patient_id=patient.id, client_session_id=body.client_session_id,
+                      started_at=body.started_at.astimezone(UTC), activity=body.activity, status="receiving")
     session.sensors = [SessionSensor(sensor_id=x.sensor_id, leg=x.leg, segment=x.segment,
                                      sample_rate_hz=x.sample_rate_hz, gyro_unit=x.gyro_unit, acc_unit=x.acc_unit)
                        for x in body.sensors]
