@@ -103,6 +103,9 @@ def cmd_create_token(args: argparse.Namespace, settings: Settings) -> int:
     if args.role == "clinician" and not args.name:
         print("error: --name is required for --role clinician", file=sys.stderr)
         return 2
+    if auto_migrate_enabled():
+        # The first command on a fresh machine is often this one, before `serve` ever ran.
+        migrate_database(settings)
     with _sessionmaker(settings)() as db:
         if args.role == "clinician":
             clinician, token = create_clinician(db, args.name, email=args.email)

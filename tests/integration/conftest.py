@@ -1,0 +1,62 @@
+"""Fixtures of the real-server tests: a free port, the gaitmon command, an empty PostgreSQL database."""
+
+from __future__ import annotations
+
+import os
+import socket
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from sqlalchemy import create_engine, text
+from sqlalchemy.engine import make_url
+
+from tests.conftest import PG_URL, REQUIRE_PG
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def gaitmon_command() -> list[str]:
+    """The installed console script when present (``pip install -e .``), else the same entry point via -m."""
+    script = Path(sys.executable).with_name("gaitmon")
+    return [str(script)] if script.exists() else [sys.executable, "-m", "server.cli"]
+
+
+def server_env(tmp_path: Path, database_url: str | None) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GAITMON_")}
+    env["GAITMON_DATA_DIR"] = str(tmp_path / "data")
+    env["GAITMON_LOG_LEVEL"] = "INFO"
+    if database_url:
+        env["GAITMON_DATABASE_URL"] = database_url
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+@pytest.fixture
+def empty_pg_url() -> Iterator[str]:
+    """A database of its own with nothing in it, so `gaitmon serve` migrates it from scratch."""
+    admin = create_engine(PG_URL, isolation_level="AUTOCOMMIT")
+    try:
+        with admin.connect() as conn:
+            conn.execute(text("select 1"))
+    except Exception as exc:  # noqa: BLE001
+        admin.dispose()
+        reason = f"PostgreSQL not reachable at {PG_URL}: {type(exc).__name__}"
+        if REQUIRE_PG:
+            pytest.fail(reason)
+        pytest.skip(reason)
+    name = f"gaitmon_walk_{os.environ.get('PYTEST_XDIST_WORKER', 'main')}"
+    with admin.connect() as conn:
+        conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        conn.execute(text(f'CREATE DATABASE "{name}"'))
+    yield make_url(PG_URL).set(database=name).render_as_string(hide_password=False)
+    with admin.connect() as conn:
+        conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+    admin.dispose()
