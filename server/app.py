@@ -13,6 +13,7 @@ from server.api.body_limit import BodyLimitMiddleware
 from server.config import Settings, get_settings
 from server.db import make_engine, make_sessionmaker
 from server.errors import install_error_handlers
+from server.trends import router as trends_router
 
 log = logging.getLogger("gaitmon.api")
 
@@ -62,4 +63,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(sessions.router)
     app.include_router(results.router)
     # Routers of other modules are included below this line (one line each).
+    app.include_router(trends_router.router)
     return app

@@ -150,6 +150,28 @@ class Window:
     ci_basis: str  # "sessions" (between-session) or "observations" (within-session, fewer than 3 sessions)
 
 
+def _t_ci(mean: float, sd: float, n: int) -> tuple[float, float]:
+    half = float(sps.t.ppf(0.975, n - 1)) * sd / math.sqrt(n)
+    return mean - half, mean + half
+
+
+def window_from_moments(start_days: float, end_days: float, *, k: int, n: int, s1: float, s2: float, m1: float,
+                        m2: float) -> Window:
+    """A window from aggregated moments (so SQL can do the summing): ``k`` sessions, ``n`` observations,
+    s1 = sum n_i m_i, s2 = sum ((n_i - 1) s_i^2 + n_i m_i^2) (the observations' sum of squares),
+    m1 = sum m_i, m2 = sum m_i^2 over the session means. Same CI rule as :func:`window_summary`."""
+    if n <= 0 or k <= 0:
+        return Window(start_days, end_days, k, n, None, None, None, "observations")
+    mean = s1 / n
+    sd = math.sqrt(max(s2 - n * mean * mean, 0.0) / (n - 1)) if n >= 2 else None
+    if k >= 3:
+        sm = m1 / k
+        ssd = math.sqrt(max(m2 - k * sm * sm, 0.0) / (k - 1))
+        return Window(start_days, end_days, k, n, mean, sd, _t_ci(sm, ssd, k), "sessions")
+    ci = _t_ci(mean, sd, n) if sd is not None else None
+    return Window(start_days, end_days, k, n, mean, sd, ci, "observations")
+
+
 def window_summary(points: Sequence[Point], start_days: float, end_days: float) -> Window:
     """Mean of a window with a 95 % CI.
 
@@ -157,20 +179,12 @@ def window_summary(points: Sequence[Point], start_days: float, end_days: float) 
     measurement would see); with fewer it falls back to the pooled observations (mean -/+ t * sd / sqrt(n)), which is
     narrower and says so in ``ci_basis``.
     """
-    n, mean, sd = pool(points)
-    ci: tuple[float, float] | None = None
-    basis = "observations"
-    if len(points) >= 3:
-        means = np.array([p.mean for p in points])
-        se = float(means.std(ddof=1)) / math.sqrt(len(points))
-        tq = float(sps.t.ppf(0.975, len(points) - 1))
-        ci = (float(means.mean()) - tq * se, float(means.mean()) + tq * se)
-        basis = "sessions"
-    elif n >= 2 and sd is not None and mean is not None:
-        tq = float(sps.t.ppf(0.975, n - 1))
-        half = tq * sd / math.sqrt(n)
-        ci = (mean - half, mean + half)
-    return Window(start_days, end_days, len(points), n, mean, sd, ci, basis)
+    return window_from_moments(
+        start_days, end_days, k=len(points), n=sum(p.n for p in points),
+        s1=sum(p.n * p.mean for p in points),
+        s2=sum((p.n - 1) * (p.sd or 0.0) ** 2 + p.n * p.mean ** 2 for p in points),
+        m1=sum(p.mean for p in points), m2=sum(p.mean ** 2 for p in points),
+    )
 
 
 @dataclass(frozen=True)
@@ -203,8 +217,12 @@ def change(points: Sequence[Point], *, mdc: float, mdc_relative: bool = False, w
     w = min(window_days, span / 2.0)
     base = [p for p in pts if p.t_days < first + w]
     late = [p for p in pts if p.t_days > last - w]
-    bw = window_summary(base, first, first + w)
-    lw = window_summary(late, last - w, last)
+    return compare(window_summary(base, first, first + w), window_summary(late, last - w, last), mdc=mdc,
+                   mdc_relative=mdc_relative, min_n=min_n)
+
+
+def compare(bw: Window, lw: Window, *, mdc: float, mdc_relative: bool = False, min_n: int = 20) -> Change:
+    """Latest minus baseline with the significance rule of :func:`change`."""
     reasons: list[str] = []
     if bw.mean is None or lw.mean is None:
         return Change(bw, lw, None, None if mdc_relative else mdc, False, ["a window has no data"])

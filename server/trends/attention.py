@@ -1,0 +1,198 @@
+"""The attention list: which patients need the clinician this week, with the reason and the numbers behind it.
+
+Flags (severity 3 = act now ... 1 = review):
+- ``declining`` (3): peak swing flexion (or ``metric``) of the assessed leg got significantly worse: latest window
+  [now - window_days, now] vs the window before it, same significance rule as the trends ``change``
+  (|delta| > MDC, enough strides, non-overlapping 95 % CIs; :func:`server.trends.stats.compare`).
+- ``sensor_trouble`` (2): in the latest window, more than ``max_fallback_rate`` of the strides came from a fallback
+  estimator (complementary filter instead of the gyroscope-only estimator), or more than ``max_gaps_per_hour``
+  data gaps per walking hour; failed processing runs are reported alongside.
+- ``silent`` (2): no session for >= ``silent_days`` days (or none since enrolment that long ago).
+- ``stalled`` (1): monitored for ``stalled_weeks`` weeks but no significant improvement: the latest window vs the
+  window that starts ``stalled_weeks`` weeks ago.
+Assessed leg: the affected leg when it has data, otherwise every leg with data.
+
+All the heavy lifting is SQL aggregation over the summary tables (window moments per patient and leg), so the cost
+grows with the number of patients, not with their strides.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+from sqlalchemy import and_, case, func, select
+from sqlalchemy.orm import Session as DbSession
+
+from server.models import Patient, Session
+from server.trends import stats
+from server.trends.metrics import METRICS, MIN_STRIDES_PER_SESSION
+from server.trends.models import TrendMetricValues, TrendSessionLeg
+from server.trends.service import MIN_WINDOW_STRIDES
+from server.trends.timeutil import as_utc
+
+SEVERITY = {"declining": 3, "sensor_trouble": 2, "silent": 2, "stalled": 1}
+
+
+@dataclass(frozen=True)
+class AttentionParams:
+    metric: str = "peak_swing_flexion_deg"
+    window_days: float = 14.0
+    silent_days: float = 3.0
+    stalled_weeks: int = 4
+    max_fallback_rate: float = 0.3
+    max_gaps_per_hour: float = 12.0
+    min_strides_for_rates: int = 50  # fewer strides than this say nothing about a sensor
+
+
+def _r(x: float | None, nd: int = 3) -> float | None:
+    return None if x is None else round(float(x), nd)
+
+
+def _window_moments(m: type[TrendMetricValues], lo: datetime, hi: datetime) -> list[Any]:
+    inside = and_(m.started_at >= lo, m.started_at < hi)
+    sd2 = func.coalesce(m.sd, 0.0) * func.coalesce(m.sd, 0.0)
+
+    def s(expr: Any) -> Any:
+        return func.sum(case((inside, expr), else_=0.0))
+
+    return [func.sum(case((inside, 1), else_=0)), s(m.n_included), s(m.n_included * m.mean),
+            s((m.n_included - 1) * sd2 + m.n_included * m.mean * m.mean), s(m.mean), s(m.mean * m.mean)]
+
+
+def _window(row: Any, offset: int, start_days: float, end_days: float) -> stats.Window:
+    k, n, s1, s2, m1, m2 = (row[offset + i] for i in range(6))
+    return stats.window_from_moments(start_days, end_days, k=int(k or 0), n=int(n or 0), s1=float(s1 or 0),
+                                     s2=float(s2 or 0), m1=float(m1 or 0), m2=float(m2 or 0))
+
+
+def _win_json(w: stats.Window, now: datetime) -> dict[str, Any]:
+    return {"start": (now + timedelta(days=w.start_days)).isoformat(),
+            "end": (now + timedelta(days=w.end_days)).isoformat(), "n_sessions": w.n_sessions, "n_strides": w.n,
+            "mean": _r(w.mean), "ci95": None if w.ci95 is None else [_r(w.ci95[0]), _r(w.ci95[1])]}
+
+
+def attention_list(db: DbSession, *, clinician_id: str | None, params: AttentionParams | None = None,
+                   now: datetime | None = None, limit: int = 50, offset: int = 0) -> dict[str, Any]:
+    """Flagged patients, most severe first. ``clinician_id`` None = every patient (admin)."""
+    p = params or AttentionParams()
+    metric = METRICS[p.metric]
+    now = as_utc(now or datetime.now(UTC))
+    win = timedelta(days=p.window_days)
+    stall_start = now - timedelta(weeks=p.stalled_weeks)
+    owned = [Patient.clinician_id == clinician_id] if clinician_id is not None else []
+
+    patients = db.execute(
+        select(Patient.id, Patient.display_name, Patient.external_id, Patient.affected_leg, Patient.created_at)
+        .where(*owned).order_by(Patient.id)
+    ).all()
+    last_session = dict(db.execute(
+        select(Session.patient_id, func.max(Session.started_at)).join(Patient, Patient.id == Session.patient_id)
+        .where(*owned).group_by(Session.patient_id)
+    ).all())
+
+    # Window moments per patient and leg: [0] declining baseline, [6] latest, [12] stalled baseline.
+    m = TrendMetricValues
+    windows = [(now - 2 * win, now - win), (now - win, now + timedelta(seconds=1)),
+               (stall_start, stall_start + win)]
+    cols = [c for lo, hi in windows for c in _window_moments(m, lo, hi)]
+    moments: dict[str, dict[str, Any]] = {}
+    q = (select(m.patient_id, m.leg, *cols).join(Patient, Patient.id == m.patient_id)
+         .where(*owned, m.metric == metric.name, m.n_included >= MIN_STRIDES_PER_SESSION,
+                m.started_at >= min(now - 2 * win, stall_start))
+         .group_by(m.patient_id, m.leg))
+    for row in db.execute(q):
+        moments.setdefault(row[0], {})[row[1]] = row[2:]
+
+    s = TrendSessionLeg
+    sensor = {r[0]: r[1:] for r in db.execute(
+        select(s.patient_id, func.sum(s.n_strides), func.sum(s.n_fallback), func.sum(s.n_gaps),
+               func.sum(s.walking_s)).join(Patient, Patient.id == s.patient_id)
+        .where(*owned, s.started_at >= now - win).group_by(s.patient_id)
+    ).all()}
+    failed = dict(db.execute(
+        select(Session.patient_id, func.count()).join(Patient, Patient.id == Session.patient_id)
+        .where(*owned, Session.status == "failed", Session.started_at >= now - win).group_by(Session.patient_id)
+    ).all())
+
+    def days_ago(dt: datetime) -> float:
+        return (as_utc(dt) - now).total_seconds() / 86400.0
+
+    items = []
+    for pid, name, ext, affected, created in patients:
+        flags: list[dict[str, Any]] = []
+        last = last_session.get(pid)
+        quiet_since = last if last is not None else created
+        quiet_days = (now - as_utc(quiet_since)).total_seconds() / 86400.0
+        if quiet_days >= p.silent_days:
+            flags.append({"kind": "silent", "days_without_data": _r(quiet_days, 1),
+                          "last_session_at": as_utc(last).isoformat() if last else None,
+                          "reason": (f"no session for {quiet_days:.1f} days" if last else
+                                     f"no session since enrolment {quiet_days:.1f} days ago")})
+        per_leg = moments.get(pid, {})
+        legs = [affected] if affected in per_leg else sorted(per_leg)
+        declining_legs = set()
+        for leg in legs:
+            row = per_leg[leg]
+            base = _window(row, 0, -2 * p.window_days, -p.window_days)
+            latest = _window(row, 6, -p.window_days, 0.0)
+            ch = stats.compare(base, latest, mdc=metric.mdc, mdc_relative=metric.mdc_relative,
+                               min_n=MIN_WINDOW_STRIDES)
+            worse = ch.delta is not None and (ch.delta < 0) == (metric.better == "higher")
+            if ch.significant and worse and metric.better != "none":
+                declining_legs.add(leg)
+                flags.append({"kind": "declining", "leg": leg, "metric": metric.name, "delta": _r(ch.delta),
+                              "mdc": _r(ch.mdc), "baseline": _win_json(base, now), "latest": _win_json(latest, now),
+                              "reason": (f"{metric.name} of the {leg} leg fell by {abs(ch.delta):.1f} {metric.unit} "
+                                         f"(MDC {ch.mdc:g}) from {base.mean:.1f} to {latest.mean:.1f}")})
+        for leg in legs:
+            if leg in declining_legs:
+                continue
+            row = per_leg[leg]
+            sb = _window(row, 12, days_ago(stall_start), days_ago(stall_start + win))
+            latest = _window(row, 6, -p.window_days, 0.0)
+            if sb.n_sessions == 0 or latest.n_sessions == 0:
+                continue  # not monitored across the whole period
+            ch = stats.compare(sb, latest, mdc=metric.mdc, mdc_relative=metric.mdc_relative,
+                               min_n=MIN_WINDOW_STRIDES)
+            better = ch.delta is not None and (ch.delta > 0) == (metric.better == "higher")
+            if not (ch.significant and better):
+                flags.append({"kind": "stalled", "leg": leg, "metric": metric.name, "weeks": p.stalled_weeks,
+                              "delta": _r(ch.delta), "mdc": _r(ch.mdc), "baseline": _win_json(sb, now),
+                              "latest": _win_json(latest, now),
+                              "reason": (f"no significant improvement of {metric.name} ({leg}) over "
+                                         f"{p.stalled_weeks} weeks: change {ch.delta:+.1f} {metric.unit}, "
+                                         f"MDC {ch.mdc:g}")})
+        n_str, n_fb, n_gaps, walk_s = sensor.get(pid, (0, 0, 0, 0.0))
+        n_str, n_fb, n_gaps, walk_s = int(n_str or 0), int(n_fb or 0), int(n_gaps or 0), float(walk_s or 0.0)
+        fb_rate = n_fb / n_str if n_str else None
+        gaps_h = n_gaps / (walk_s / 3600.0) if walk_s >= 60.0 else None
+        trouble = []
+        if n_str >= p.min_strides_for_rates and fb_rate is not None and fb_rate > p.max_fallback_rate:
+            trouble.append(f"{100 * fb_rate:.0f} % of strides from the fallback estimator "
+                           f"(limit {100 * p.max_fallback_rate:.0f} %)")
+        if gaps_h is not None and n_str >= p.min_strides_for_rates and gaps_h > p.max_gaps_per_hour:
+            trouble.append(f"{gaps_h:.1f} data gaps per walking hour (limit {p.max_gaps_per_hour:g})")
+        if trouble:
+            flags.append({"kind": "sensor_trouble", "fallback_rate": _r(fb_rate), "gaps_per_walking_hour": _r(gaps_h),
+                          "n_strides": n_str, "n_fallback": n_fb, "n_gaps": n_gaps,
+                          "walking_min": _r(walk_s / 60.0, 1), "failed_sessions": int(failed.get(pid, 0)),
+                          "reason": "; ".join(trouble)})
+        if not flags:
+            continue
+        for f in flags:
+            f["severity"] = SEVERITY[f["kind"]]
+        flags.sort(key=lambda f: -f["severity"])
+        items.append({
+            "patient": {"id": pid, "display_name": name, "external_id": ext, "affected_leg": affected},
+            "severity": flags[0]["severity"], "flags": flags,
+            "last_session_at": as_utc(last).isoformat() if last else None,
+        })
+    items.sort(key=lambda it: (-it["severity"], -len(it["flags"]), it["last_session_at"] or "", it["patient"]["id"]))
+    page = items[offset:offset + limit]
+    return {
+        "items": page, "next_cursor": str(offset + limit) if offset + limit < len(items) else None,
+        "n_flagged": len(items), "n_patients": len(patients), "generated_at": now.isoformat(),
+        "params": asdict(p),
+    }

@@ -1,0 +1,192 @@
+"""Exports: every stride as CSV (for spreadsheets) and daily summaries as a FHIR R4 Bundle of Observations.
+
+FHIR coding choices (verified, not guessed):
+- bodySite: SNOMED CT 82169009 "Structure of left knee region" and 6757004 "Structure of right knee region"
+  (system http://snomed.info/sct).
+- valueQuantity in UCUM (http://unitsofmeasure.org): ``deg``, ``s``, ``%``, ``/min``.
+- category: ``activity`` of http://terminology.hl7.org/CodeSystem/observation-category.
+- code: no LOINC code describes per-stride knee kinematics from wearables (LOINC has only clinical range-of-motion
+  assessment codes), so the metrics use the service's own CodeSystem ``LOCAL_CODE_SYSTEM``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import uuid
+from collections import defaultdict
+from collections.abc import Iterator
+from datetime import UTC, date, datetime, timedelta
+from typing import Any
+
+import numpy as np
+from sqlalchemy import select
+from sqlalchemy.orm import Session as DbSession
+
+from server.models import Patient, Session, Stride
+from server.trends import stats
+from server.trends.metrics import METRICS, MIN_QUALITY, Metric
+from server.trends.models import TrendMetricValues, TrendSessionLeg
+from server.trends.summaries import decode_values
+from server.trends.timeutil import as_utc, local_date, local_midnight, zone
+
+LOCAL_CODE_SYSTEM = "urn:gaitmon:codesystem:gait-metric"
+SNOMED = "http://snomed.info/sct"
+UCUM = "http://unitsofmeasure.org"
+KNEE_SITE = {
+    "left": ("82169009", "Structure of left knee region"),
+    "right": ("6757004", "Structure of right knee region"),
+}
+FHIR_METRICS = ("peak_swing_flexion_deg", "rom_deg", "min_flexion_deg", "stance_flexion_deg", "stride_time_s",
+                "cadence_steps_per_min")
+_NS = uuid.UUID("1b7d7c3e-3f0e-4b8e-9d0a-6a1f3c2b9e55")  # namespace of the stable Observation ids
+
+CSV_COLUMNS = [
+    "session_id", "client_session_id", "leg", "index", "started_at", "local_date", "t_start_s", "t_end_s",
+    "duration_s", "t_toe_off_s", "stance_time_s", "swing_time_s", "stance_pct", "cadence_steps_per_min",
+    "peak_swing_flexion_deg", "min_flexion_deg", "rom_deg", "stance_flexion_deg", "estimator", "quality",
+    "quality_reasons", "included", "excluded_because",
+]
+
+
+def _num(x: float | None, nd: int = 4) -> str:
+    if x is None or not np.isfinite(x):
+        return ""
+    return f"{round(float(x), nd):.{nd}f}".rstrip("0").rstrip(".")
+
+
+def _exclusions(row: Any) -> list[str]:
+    """Why a stride does not count in the trends (same rules as :mod:`server.trends.summaries`)."""
+    q = row["quality"]
+    if q is None or not q >= MIN_QUALITY:
+        return [f"quality<{MIN_QUALITY:g}"]
+    out = []
+    for name, metric in METRICS.items():
+        if metric.column is None:
+            continue
+        v = metric.values(np.array([row[metric.column]], dtype=np.float64))
+        if not metric.plausible(v)[0]:
+            out.append(f"implausible:{name}")
+    return out
+
+
+def strides_csv(db: DbSession, patient: Patient, start: datetime | None, end: datetime | None,
+                chunk: int = 2000) -> Iterator[str]:
+    """Stream the patient's strides as RFC 4180 CSV (header first; times ISO 8601 in the patient's zone)."""
+    tz = zone(patient.timezone)
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(CSV_COLUMNS)
+    yield buf.getvalue()
+    # Core rows, not ORM objects: a year of strides is ~10^5-10^6 rows.
+    q = (select(*Stride.__table__.c, Session.client_session_id).join(Session, Session.id == Stride.session_id)
+         .where(Stride.patient_id == patient.id))
+    if start is not None:
+        q = q.where(Stride.started_at >= start.astimezone(UTC))
+    if end is not None:
+        q = q.where(Stride.started_at < end.astimezone(UTC))
+    q = q.order_by(Stride.started_at, Stride.leg, Stride.index).execution_options(yield_per=chunk)
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    for n, row in enumerate(db.execute(q), start=1):
+        s = row._mapping
+        local = as_utc(s["started_at"]).astimezone(tz)
+        excl = _exclusions(s)
+        cadence = 120.0 / s["duration_s"] if s["duration_s"] else None
+        w.writerow([
+            s["session_id"], s["client_session_id"], s["leg"], s["index"], local.isoformat(),
+            local.date().isoformat(), _num(s["t_start_s"]), _num(s["t_end_s"]), _num(s["duration_s"]),
+            _num(s["t_toe_off_s"]), _num(s["stance_time_s"]), _num(s["swing_time_s"]), _num(s["stance_pct"], 2),
+            _num(cadence, 2), _num(s["peak_swing_flexion_deg"], 2), _num(s["min_flexion_deg"], 2),
+            _num(s["rom_deg"], 2), _num(s["stance_flexion_deg"], 2), s["estimator"], _num(s["quality"], 3),
+            ";".join(s["quality_reasons"] or []), "0" if excl else "1", ";".join(excl),
+        ])
+        if n % chunk == 0:
+            yield buf.getvalue()
+            buf.seek(0)
+            buf.truncate()
+    if buf.tell():
+        yield buf.getvalue()
+
+
+def _quantity(metric: Metric, value: float) -> dict[str, Any]:
+    return {"value": round(float(value), 3), "unit": metric.unit, "system": UCUM, "code": metric.ucum}
+
+
+def _component(code: str, display: str, value: dict[str, Any] | int) -> dict[str, Any]:
+    out: dict[str, Any] = {"code": {"coding": [{"system": LOCAL_CODE_SYSTEM, "code": code, "display": display}]}}
+    if isinstance(value, int):
+        out["valueInteger"] = value
+    else:
+        out["valueQuantity"] = value
+    return out
+
+
+def daily_observations(db: DbSession, patient: Patient, start: datetime | None, end: datetime | None,
+                       metrics: tuple[str, ...] = FHIR_METRICS) -> list[dict[str, Any]]:
+    """One Observation per local day, leg and metric: the day's mean as value, median/sd/p10/p90/count as
+    components. Only included (quality-passing, plausible) strides count."""
+    tz = zone(patient.timezone)
+    m, s = TrendMetricValues, TrendSessionLeg
+    q = (select(m.metric, m.leg, m.started_at, m.session_id, m.n_included, m.n_implausible, m.values,
+                s.n_low_quality, s.algorithm_version)
+         .join(s, (s.session_id == m.session_id) & (s.leg == m.leg))
+         .where(m.patient_id == patient.id, m.metric.in_(metrics)))
+    if start is not None:
+        q = q.where(m.started_at >= start.astimezone(UTC))
+    if end is not None:
+        q = q.where(m.started_at < end.astimezone(UTC))
+    groups: dict[tuple[str, str, date], list[Any]] = defaultdict(list)
+    for r in db.execute(q.order_by(m.started_at)):
+        groups[(r.metric, r.leg, local_date(r.started_at, tz))].append(r)
+    issued = datetime.now(UTC).replace(microsecond=0).isoformat()
+    out = []
+    for (name, leg, day), rows in sorted(groups.items(), key=lambda kv: (kv[0][2], kv[0][1], kv[0][0])):
+        metric = METRICS[name]
+        values = np.concatenate([decode_values(r.values) for r in rows]).astype(np.float64)
+        d = stats.describe(values)
+        if d.n == 0 or leg not in KNEE_SITE:
+            continue
+        oid = str(uuid.uuid5(_NS, f"{patient.id}/{leg}/{name}/{day.isoformat()}"))
+        code, site = KNEE_SITE[leg]
+        versions = sorted({r.algorithm_version for r in rows if r.algorithm_version})
+        n_excluded = sum(r.n_implausible + (r.n_low_quality or 0) for r in rows)
+        components = [_component("n-strides", "Included strides", int(d.n)),
+                      _component("n-excluded", "Excluded strides", int(n_excluded)),
+                      _component("n-sessions", "Sessions", len({r.session_id for r in rows})),
+                      _component("median", "Median", _quantity(metric, d.median))]
+        for key, label, val in (("sd", "Standard deviation", d.sd), ("p10", "10th percentile", d.p10),
+                                ("p90", "90th percentile", d.p90)):
+            if val is not None:
+                components.append(_component(key, label, _quantity(metric, val)))
+        out.append({
+            "fullUrl": f"urn:uuid:{oid}",
+            "resource": {
+                "resourceType": "Observation", "id": oid, "status": "final",
+                "category": [{"coding": [{
+                    "system": "http://terminology.hl7.org/CodeSystem/observation-category", "code": "activity",
+                    "display": "Activity"}]}],
+                "code": {"coding": [{"system": LOCAL_CODE_SYSTEM, "code": name, "display": metric.title}],
+                         "text": f"{metric.title}, daily mean ({leg} leg)"},
+                "subject": {"reference": f"Patient/{patient.id}",
+                            **({"display": patient.display_name} if patient.display_name else {})},
+                "effectivePeriod": {"start": local_midnight(day, tz).isoformat(),
+                                    "end": local_midnight(day + timedelta(days=1), tz).isoformat()},
+                "issued": issued,
+                "valueQuantity": _quantity(metric, d.mean),
+                "bodySite": {"coding": [{"system": SNOMED, "code": code, "display": site}],
+                             "text": f"{leg.capitalize()} knee"},
+                "method": {"text": "Thigh and shank IMUs; gaitmon stride analysis"
+                                   + (f" (algorithm {', '.join(versions)})" if versions else "")},
+                "component": components,
+            },
+        })
+    return out
+
+
+def fhir_bundle(db: DbSession, patient: Patient, start: datetime | None, end: datetime | None,
+                metrics: tuple[str, ...] = FHIR_METRICS) -> dict[str, Any]:
+    entries = daily_observations(db, patient, start, end, metrics)
+    return {"resourceType": "Bundle", "id": str(uuid.uuid4()), "type": "collection",
+            "timestamp": datetime.now(UTC).replace(microsecond=0).isoformat(), "entry": entries}
+
