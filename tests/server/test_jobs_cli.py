@@ -1,0 +1,109 @@
+"""The `gaitmon` command's job and token subcommands, run as real subprocesses on an SQLite file."""
+
+from __future__ import annotations
+
+import hashlib
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sqlalchemy import select
+
+from pipeline.simulate import SimConfig, simulate_session
+from server.db import make_engine, make_sessionmaker
+from server.models import Batch, Patient, Session, SessionSensor, Stride, Token
+from server.rawdata import content_sha256, encode_samples
+from tests.integration.conftest import gaitmon_command, server_env
+
+
+def run(args: list[str], env: dict[str, str], cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(gaitmon_command() + args, env=env, cwd=cwd, capture_output=True, text=True, timeout=120)
+
+
+@pytest.fixture
+def env(tmp_path: Path) -> dict[str, str]:
+    return server_env(tmp_path, None)
+
+
+def db_url(tmp_path: Path) -> str:
+    return f"sqlite:///{tmp_path / 'data' / 'gaitmon.sqlite'}"
+
+
+def insert_simulated_session(url: str) -> str:
+    """A completed (queued) session holding a simulated recording, as the upload endpoint would leave it."""
+    from datetime import UTC, datetime
+
+    sim = simulate_session(SimConfig(n_strides=16, seed=4))
+    sm = make_sessionmaker(make_engine(url))
+    with sm() as db:
+        patient = Patient(display_name="cli")
+        db.add(patient)
+        db.flush()
+        sess = Session(patient_id=patient.id, client_session_id="cli", started_at=datetime.now(UTC),
+                       activity="walking", status="queued", completed_at=datetime.now(UTC))
+        db.add(sess)
+        db.flush()
+        for s in sim.streams:
+            db.add(SessionSensor(session_id=sess.id, sensor_id=s.sensor_id, leg=s.leg, segment=s.segment,
+                                 sample_rate_hz=s.fs_hz, gyro_unit=s.gyro_unit, acc_unit=s.acc_unit))
+            for seq, part in enumerate(np.array_split(np.arange(len(s.t_s)), 8)):
+                t_ms, g, a = s.t_s[part] * 1000.0, s.gyr[part], s.acc[part]
+                tb, gb, ab = encode_samples(t_ms, g, a)
+                db.add(Batch(session_id=sess.id, sensor_id=s.sensor_id, seq=seq, t0_ms=float(t_ms[0]),
+                             n_samples=len(part), t_first_ms=float(t_ms[0]), t_last_ms=float(t_ms[-1]),
+                             content_sha256=content_sha256(t_ms, g, a), t_ms=tb, gyro=gb, acc=ab))
+        db.commit()
+        sid = sess.id
+    sm.kw["bind"].dispose()
+    return sid
+
+
+def test_tokens_from_the_command_line(tmp_path: Path, env: dict[str, str]) -> None:
+    res = run(["create-token", "--role", "clinician", "--name", "Dr Who", "--email", "who@example.org"], env,
+              tmp_path)
+    assert res.returncode == 0, res.stderr
+    token = res.stdout.strip().splitlines()[-1]
+    sm = make_sessionmaker(make_engine(db_url(tmp_path)))  # create-token migrated the fresh database itself
+    with sm() as db:
+        row = db.scalars(select(Token).where(Token.token_hash == hashlib.sha256(token.encode()).hexdigest())).one()
+        assert row.role == "clinician" and row.clinician_id and row.revoked_at is None
+        token_id = row.id
+    assert token not in res.stderr  # shown once, on stdout only
+    assert run(["revoke-token", token_id], env, tmp_path).returncode == 0
+    with sm() as db:
+        assert db.get(Token, token_id).revoked_at is not None
+    assert run(["revoke-token", "0" * 32], env, tmp_path).returncode == 1
+    assert run(["create-token", "--role", "clinician"], env, tmp_path).returncode == 2  # needs --name
+    sm.kw["bind"].dispose()
+
+
+def test_sqlite_worker_processes_queue_and_stops_on_sigterm(tmp_path: Path, env: dict[str, str]) -> None:
+    assert run(["migrate"], env, tmp_path).returncode == 0
+    sid = insert_simulated_session(db_url(tmp_path))
+    log_path = tmp_path / "worker.log"
+    with log_path.open("wb") as log:
+        proc = subprocess.Popen(gaitmon_command() + ["worker"], env=env, cwd=tmp_path, stdout=log,
+                                stderr=subprocess.STDOUT)
+        try:
+            sm = make_sessionmaker(make_engine(db_url(tmp_path)))
+            deadline = time.monotonic() + 90
+            status = "queued"
+            while time.monotonic() < deadline and status in ("queued", "processing"):
+                time.sleep(0.2)
+                with sm() as db:
+                    status = db.get(Session, sid).status
+            assert status == "done", log_path.read_text()
+            with sm() as db:
+                assert db.scalars(select(Stride).where(Stride.session_id == sid)).first() is not None
+                assert db.get(Session, sid).worker_id.startswith("worker@")
+            sm.kw["bind"].dispose()
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(30) == 0
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+    assert "stopping after the current session" in log_path.read_text()
