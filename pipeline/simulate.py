@@ -107,11 +107,11 @@ class SimConfig:
     impact_level: float = 1.0
     wobble_level: float = 1.0
     variability: float = 1.0  # stride-to-stride variability multiplier
-    packet_loss: float = 0.005  # probability of dropping one BLE packet
+    packet_loss: float = 0.002  # probability of dropping one BLE packet
     packet_samples: int = 6
-    outages_per_min: float = 0.2  # longer runs of lost samples (0.3-2 s)
-    sync_offset_ms: float = 10.0  # SD of each sensor's timestamp error
-    clock_drift_ppm: float = 50.0  # SD of each sensor's clock rate error
+    outages_per_min: float = 0.1  # longer runs of lost samples (0.3-2 s)
+    sync_offset_ms: float = 5.0  # SD of each sensor's timestamp error (app-side mapping of the sensor clock)
+    clock_drift_ppm: float = 20.0  # SD of each sensor's clock rate error (crystal tolerance)
     gyro_unit: Literal["deg/s", "rad/s"] = "deg/s"
     acc_unit: Literal["m/s2", "g"] = "m/s2"
 
@@ -427,7 +427,8 @@ def _leg_truth(leg: str, tl: _Timeline, knee: np.ndarray, phase: np.ndarray, sta
         i0, i1 = np.searchsorted(t, [a, b])
         ito = int(np.searchsorted(t, tos[0]))
         seg = knee[i0:i1 + 1]
-        stance = knee[i0: i0 + max(1, (ito - i0) // 2) + 1]
+        # loading-response peak: first 60 % of stance, as pipeline.metrics.LOADING_SHARE
+        stance = knee[i0: i0 + max(1, round(0.6 * (ito - i0))) + 1]
         steady = bool(np.all(tl.env[i0:i1 + 1] >= 1.0 - 1e-9))
         turning = bool(np.ptp(tl.heading_rad[i0:i1 + 1]) > np.radians(5))
         strides.append(TruthStride(
@@ -585,10 +586,14 @@ def simulate_session(cfg: SimConfig) -> SimSession:
                 rot_amp, rot_f, rot_tau = np.radians(0.8) * cfg.wobble_level, 11.0, 0.06
                 tr_amp, imp_g = 0.0015 * cfg.wobble_level, 0.3 * spec.impact_g * cfg.impact_level
             else:
-                rot_amp, rot_f, rot_tau = np.radians(0.3) * cfg.impact_level, 18.0, 0.03
+                # Heel contact arrests the shank's forward swing: a sharp backward rotation in the sagittal plane
+                # right at heel strike, then a rebound (real shank gyro: local minimum ~10 ms after HS).
+                rot_amp, rot_f, rot_tau = np.radians(0.5 * spec.impact_g) * cfg.impact_level, 12.0, 0.03
                 tr_amp, imp_g = 0.0, spec.impact_g * cfg.impact_level
             axis = rng.standard_normal(3)
             axis /= np.linalg.norm(axis)
+            if seg == "shank":
+                axis = r_mount.T @ np.array([0.0, 1.0, 0.0])
             if rot_amp > 0 and len(hs):
                 ang = _transient(t_true, hs, rot_amp, rot_f, rot_tau)
                 dang = _transient(t_true, hs, rot_amp, rot_f, rot_tau, deriv=1)

@@ -1,0 +1,140 @@
+"""Scoring a pipeline result against simulator ground truth: stride matching and agreement statistics.
+
+Agreement follows Bland and Altman (Lancet 1986): bias = mean difference, 95 % limits of agreement = bias +- 1.96 SD.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.simulate import LegTruth, SimSession, TruthStride
+from pipeline.types import LegResult, StrideMetrics
+
+try:  # the pipeline's own bridging limit: longer gaps are masked and no stride may span them
+    from pipeline.prepare import MAX_BRIDGE_S
+except ImportError:  # pragma: no cover - only while the pipeline is not there yet
+    MAX_BRIDGE_S = 0.05
+
+MATCH_TOL_S = 0.15  # both heel strikes of a detected stride within this of the true ones (and < 25 % of a stride)
+
+
+@dataclass
+class LegScore:
+    """Raw material of one leg of one case; pooled over cases before any statistic is taken."""
+
+    n_expected: int = 0  # steady true strides with complete data
+    n_steady: int = 0  # steady true strides (incl. those lost to data gaps)
+    tp: int = 0
+    fp: int = 0
+    peak_err: list[float] = field(default_factory=list)
+    rom_err: list[float] = field(default_factory=list)
+    min_err: list[float] = field(default_factory=list)
+    hs_err_s: list[float] = field(default_factory=list)
+    to_err_s: list[float] = field(default_factory=list)
+    sq_err_sum: float = 0.0
+    n_samples: int = 0
+
+    def add(self, other: LegScore) -> None:
+        for name in ("n_expected", "n_steady", "tp", "fp", "sq_err_sum", "n_samples"):
+            setattr(self, name, getattr(self, name) + getattr(other, name))
+        for name in ("peak_err", "rom_err", "min_err", "hs_err_s", "to_err_s"):
+            getattr(self, name).extend(getattr(other, name))
+
+
+def data_gaps(sim: SimSession, leg: str) -> list[tuple[float, float]]:
+    """Intervals without data on either sensor of the leg that the pipeline cannot bridge."""
+    out = []
+    for s in sim.streams:
+        if s.leg != leg:
+            continue
+        dt = np.diff(s.t_s)
+        idx = np.flatnonzero((dt > 1.75 / s.fs_hz) & (dt > MAX_BRIDGE_S))
+        out += [(float(s.t_s[i]), float(s.t_s[i + 1])) for i in idx]
+    return out
+
+
+def _overlaps(a: float, b: float, gaps: list[tuple[float, float]], margin: float = 0.05) -> bool:
+    return any(g0 < b + margin and g1 > a - margin for g0, g1 in gaps)
+
+
+def match_strides(detected: list[StrideMetrics], truth: list[TruthStride]) -> list[tuple[int, int]]:
+    """One-to-one pairs (detected index, true index) whose start and end heel strikes both agree within the
+    tolerance; the closest pairs are taken first."""
+    if not detected or not truth:
+        return []
+    ts = np.array([t.t_start_s for t in truth])
+    te = np.array([t.t_end_s for t in truth])
+    tol = np.minimum(MATCH_TOL_S, 0.25 * (te - ts))
+    cands = []
+    for i, d in enumerate(detected):
+        ds, de = np.abs(ts - d.t_start_s), np.abs(te - d.t_end_s)
+        for j in np.flatnonzero((ds <= tol) & (de <= tol)):
+            cands.append((float(ds[j] + de[j]), i, int(j)))
+    cands.sort()
+    used_d: set[int] = set()
+    used_t: set[int] = set()
+    pairs = []
+    for _, i, j in cands:
+        if i not in used_d and j not in used_t:
+            used_d.add(i)
+            used_t.add(j)
+            pairs.append((i, j))
+    return pairs
+
+
+def score_leg(res: LegResult | None, truth: LegTruth, gaps: list[tuple[float, float]]) -> LegScore:
+    sc = LegScore()
+    expected = [s.steady and not _overlaps(s.t_start_s, s.t_end_s, gaps) for s in truth.strides]
+    sc.n_expected = int(sum(expected))
+    sc.n_steady = sum(1 for s in truth.strides if s.steady)
+    if res is None:
+        return sc
+    pairs = match_strides(res.strides, truth.strides)
+    matched_d = {i for i, _ in pairs}
+    for i, j in pairs:
+        if not expected[j]:
+            continue  # gait initiation/termination or across a gap: neither a hit nor a false alarm
+        d, t = res.strides[i], truth.strides[j]
+        sc.tp += 1
+        sc.peak_err.append(d.peak_swing_flexion_deg - t.peak_swing_flexion_deg)
+        sc.rom_err.append(d.rom_deg - t.rom_deg)
+        sc.min_err.append(d.min_flexion_deg - t.min_flexion_deg)
+        sc.hs_err_s.append(d.t_start_s - t.t_start_s)
+        sc.to_err_s.append(d.t_toe_off_s - t.t_toe_off_s)
+    sc.fp = len(res.strides) - len(matched_d)
+    angle = np.asarray(res.angle_deg, dtype=float)
+    ok = np.isfinite(angle)
+    if ok.any():
+        err = angle[ok] - truth.angle_at(np.asarray(res.t_s)[ok])
+        sc.sq_err_sum = float(np.sum(err**2))
+        sc.n_samples = int(ok.sum())
+    return sc
+
+
+def bland_altman(err: list[float] | np.ndarray) -> tuple[float, float, float]:
+    """(bias, lower, upper) 95 % limits of agreement; NaN when fewer than two values."""
+    e = np.asarray(err, dtype=float)
+    if e.size < 2:
+        return float("nan"), float("nan"), float("nan")
+    bias, sd = float(e.mean()), float(e.std(ddof=1))
+    return bias, bias - 1.96 * sd, bias + 1.96 * sd
+
+
+def summarise(sc: LegScore) -> dict[str, float]:
+    """The figures of one table row."""
+    peak = bland_altman(sc.peak_err)
+    rom = bland_altman(sc.rom_err)
+    nan = float("nan")
+    return {
+        "n_true": float(sc.n_expected),
+        "recall": sc.tp / sc.n_expected if sc.n_expected else nan,
+        "precision": sc.tp / (sc.tp + sc.fp) if sc.tp + sc.fp else nan,
+        "coverage": sc.tp / sc.n_steady if sc.n_steady else nan,
+        "peak_bias": peak[0], "peak_lo": peak[1], "peak_hi": peak[2],
+        "rom_bias": rom[0], "rom_lo": rom[1], "rom_hi": rom[2],
+        "rmse": float(np.sqrt(sc.sq_err_sum / sc.n_samples)) if sc.n_samples else nan,
+        "hs_ms": 1000 * float(np.mean(np.abs(sc.hs_err_s))) if sc.hs_err_s else nan,
+        "to_ms": 1000 * float(np.mean(np.abs(sc.to_err_s))) if sc.to_err_s else nan,
+    }
