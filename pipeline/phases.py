@@ -3,9 +3,14 @@
 
 Events follow Allseits et al. 2018 (Sect. 2.2 and Fig. 4: mid-swing peak, heel strike, mid-stance, toe-off from the
 shank angular velocity) with the Salarian-style rules they build on: the mid-swing (MS) peak is the maximum of a
-positive swing lobe; toe-off (TO) is the minimum just before the lobe starts, heel strike (HS) the first local
-minimum after it ends. Mid-stance (MSt) is taken half-way between HS and the next TO (the Allseits zero-angle update
-only needs a point after loading response and before push-off).
+positive swing lobe; toe-off (TO) is the minimum just before the lobe starts, heel strike (HS) follows the end of
+the lobe (the shank stops swinging forward). Mid-stance (MSt) is taken half-way between HS and the next TO (the
+Allseits zero-angle update only needs a point after loading response and before push-off).
+
+Timing against the force plate of the Tan et al. 2022 treadmill steps (real data, ``bench/real_data.py``): the shank
+minimum precedes toe-off by ~40 ms (``TO_DELAY_S`` added) and heel strike comes ~10-30 ms after the smoothed zero
+crossing. When the shank accelerometer is given, HS is the heel-strike impact: the largest jump of the specific force
+within -30..+120 ms of the zero crossing (if it stands out of the window), otherwise the zero crossing + ``HS_DELAY_S``.
 
 Robustness to standing, sitting, sit-to-stand, turns and slow walking: lobes must exceed an adaptive height
 threshold, consecutive MS peaks must be separated by a clearly negative (stance) region, and only bouts of at least
@@ -30,6 +35,10 @@ PERIOD_TOL = 0.35
 MIN_BOUT_PEAKS = 3
 SEARCH_S = 0.3  # TO/HS search windows around the lobe edges
 STANCE_PCT_RANGE = (30.0, 85.0)
+TO_DELAY_S = 0.04
+HS_DELAY_S = 0.02
+IMPACT_WINDOW_S = (-0.03, 0.12)
+IMPACT_PROMINENCE = 3.0  # largest jump / median jump in the window
 
 
 @dataclass
@@ -90,23 +99,28 @@ def _merge_lobes(ws: np.ndarray, lobes: list[tuple[int, int, int]], fs_hz: float
     return merged
 
 
-def _first_local_min(x: np.ndarray, a: int, b: int) -> int:
-    """First local minimum of x in [a, b) below zero; the global minimum of the window if none."""
-    seg = x[a:b]
-    if seg.size < 3:
-        return a + int(np.argmin(seg)) if seg.size else -1
-    interior = np.flatnonzero((seg[1:-1] < seg[:-2]) & (seg[1:-1] <= seg[2:]) & (seg[1:-1] < 0)) + 1
-    if interior.size:
-        return a + int(interior[0])
-    return a + int(np.argmin(seg))
+def _heel_strike(zc: int, n: int, fs_hz: float, jerk: np.ndarray | None) -> int:
+    """HS after the end of a swing lobe at ``zc``: the impact if one stands out, else a fixed delay."""
+    if jerk is not None:
+        a = max(zc + int(round(IMPACT_WINDOW_S[0] * fs_hz)), 1)
+        b = min(zc + int(round(IMPACT_WINDOW_S[1] * fs_hz)) + 1, n)
+        if b - a >= 3:
+            win = jerk[a:b]
+            k = int(np.argmax(win))
+            if win[k] > IMPACT_PROMINENCE * max(float(np.median(win)), 1e-9):
+                # onset of the impact: the last sample before the first jump of at least half the largest
+                first = int(np.flatnonzero(win[:k + 1] >= 0.5 * win[k])[0])
+                return a + first - 1
+    return min(zc + int(round(HS_DELAY_S * fs_hz)), n - 1)
 
 
 def detect_gait_events(shank_sag_dps: np.ndarray, fs_hz: float, valid: np.ndarray | None = None,
-                       min_bout_peaks: int = MIN_BOUT_PEAKS) -> GaitEvents:
+                       min_bout_peaks: int = MIN_BOUT_PEAKS, shank_acc_mps2: np.ndarray | None = None) -> GaitEvents:
     """Mid-swing, toe-off, heel-strike and mid-stance indices from a shank sagittal angular velocity [deg/s].
 
     ``valid`` (default all True) marks usable samples: events are not searched inside masked samples (they are
     treated as zero rate), and no stride spans one. ``min_bout_peaks=1`` accepts isolated swings (short windows).
+    ``shank_acc_mps2`` (N, 3), optional: refines heel strike to the impact.
     """
     w = np.asarray(shank_sag_dps, dtype=float)
     n = w.shape[0]
@@ -126,11 +140,18 @@ def detect_gait_events(shank_sag_dps: np.ndarray, fs_hz: float, valid: np.ndarra
     thresh = max(MIN_PEAK_DPS, REL_PEAK * float(np.median(big))) if big.size else np.inf
     lobes = [lb for lb, h in zip(lobes, heights, strict=True) if h >= thresh]
     search = max(int(round(SEARCH_S * fs_hz)), 2)
+    to_delay = int(round(TO_DELAY_S * fs_hz))
+    jerk = None
+    if shank_acc_mps2 is not None:
+        acc = np.asarray(shank_acc_mps2, dtype=float)
+        jerk = np.concatenate(([0.0], np.linalg.norm(np.diff(acc, axis=0), axis=1)))
+        jerk[~valid | ~np.isfinite(jerk)] = 0.0
     ms, to, hs = [], [], []
     for a, p, b in lobes:
         ms.append(p)
-        to.append(int(max(a - search, 0) + np.argmin(we[max(a - search, 0):a + 1])) if a > 0 else -1)
-        hs.append(_first_local_min(we, b, min(b + search, n)) if b < n else -1)
+        to.append(min(int(max(a - search, 0) + np.argmin(we[max(a - search, 0):a + 1])) + to_delay, p - 1)
+                  if a > 0 else -1)
+        hs.append(_heel_strike(b, n, fs_hz, jerk) if b < n else -1)
     ms_a, to_a, hs_a = np.array(ms), np.array(to), np.array(hs)
     bout = _bouts(ms_a, ws, valid, fs_hz, min_bout_peaks)
     mst = np.full(ms_a.size, -1)

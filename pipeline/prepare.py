@@ -1,9 +1,11 @@
 """Raw thigh + shank streams of one leg -> SI units on one uniform time grid, with packet-loss gaps marked.
 
 Thigh and shank IMUs are not sample-synchronous and may run at different rates, so both are linearly
-interpolated onto one grid at the faster of the two rates. A gap is a step between consecutive samples longer than
-``GAP_FACTOR`` nominal periods. Gaps up to ``MAX_BRIDGE_S`` (50 ms: shorter than the fastest knee event of interest,
-about 100 ms for swing flexion) are bridged by the interpolation; longer gaps are masked: no angle, no stride across.
+interpolated onto one grid at the faster of the two rates (cubic spline: gait signals are smooth at 50-200 Hz and a
+spline keeps swing peaks that straight lines would cut). A gap is a step between consecutive samples longer than
+``GAP_FACTOR`` nominal periods. Gaps up to ``MAX_BRIDGE_S`` (150 ms: one or two lost BLE packets; shorter than the
+swing-flexion phase, ~250 ms, so the spline still sees both sides of any knee event) are bridged by the spline and
+reported (``bridged_s``, strides touching one get a quality note); longer gaps are masked: no angle, no stride across.
 """
 
 from __future__ import annotations
@@ -11,12 +13,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.interpolate import CubicSpline
 
 from pipeline.types import RawSensorStream
 
 G_MPS2 = 9.80665
 GAP_FACTOR = 1.75
-MAX_BRIDGE_S = 0.05
+MAX_BRIDGE_S = 0.15
 # A gyro axis pinned at its extreme value for this many samples in a row counts as saturated.
 SATURATION_RUN = 3
 SATURATION_MIN_DPS = 250.0
@@ -39,6 +42,7 @@ class PreparedLeg:
     saturated: np.ndarray  # True where either gyro looks saturated
     gaps_s: list[tuple[float, float]] = field(default_factory=list)
     bridged_gaps: int = 0
+    bridged_s: list[tuple[float, float]] = field(default_factory=list)  # bridged gaps longer than 50 ms
 
     @property
     def n(self) -> int:
@@ -80,13 +84,16 @@ def nominal_fs(stream: RawSensorStream, t_s: np.ndarray) -> float:
     return measured
 
 
-def find_gaps(t_s: np.ndarray, fs_hz: float) -> tuple[list[tuple[float, float]], int]:
-    """Masked gaps ``(t_last_before, t_first_after)`` longer than MAX_BRIDGE_S, and the number bridged."""
+def find_gaps(t_s: np.ndarray, fs_hz: float) -> tuple[list[tuple[float, float]], int, list[tuple[float, float]]]:
+    """Masked gaps ``(t_last_before, t_first_after)`` longer than MAX_BRIDGE_S, the number of bridged gaps, and the
+    bridged gaps longer than 50 ms (worth a note on the strides they touch)."""
     dt = np.diff(t_s)
     is_gap = dt > GAP_FACTOR / fs_hz
     long_gap = is_gap & (dt > MAX_BRIDGE_S)
+    noted = np.flatnonzero(is_gap & ~long_gap & (dt > 0.05))
     idx = np.flatnonzero(long_gap)
-    return [(float(t_s[i]), float(t_s[i + 1])) for i in idx], int(is_gap.sum() - long_gap.sum())
+    return ([(float(t_s[i]), float(t_s[i + 1])) for i in idx], int(is_gap.sum() - long_gap.sum()),
+            [(float(t_s[i]), float(t_s[i + 1])) for i in noted])
 
 
 def saturation_mask(gyr: np.ndarray) -> np.ndarray:
@@ -106,7 +113,17 @@ def saturation_mask(gyr: np.ndarray) -> np.ndarray:
 
 
 def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray) -> np.ndarray:
-    return np.column_stack([np.interp(t_new, t, x[:, k]) for k in range(x.shape[1])])
+    """Cubic spline through the samples; straight lines across long gaps (masked anyway, but no overshoot)."""
+    if t.shape[0] < 4:
+        return np.column_stack([np.interp(t_new, t, x[:, k]) for k in range(x.shape[1])])
+    out = CubicSpline(t, x, axis=0)(t_new)
+    gap = np.flatnonzero(np.diff(t) > MAX_BRIDGE_S)
+    if gap.size:
+        pos = np.searchsorted(t, t_new, side="right") - 1
+        in_gap = np.isin(pos, gap)
+        if in_gap.any():
+            out[in_gap] = np.column_stack([np.interp(t_new[in_gap], t, x[:, k]) for k in range(x.shape[1])])
+    return out
 
 
 def _mask_intervals(t_grid: np.ndarray, gaps: list[tuple[float, float]]) -> np.ndarray:
@@ -141,8 +158,8 @@ def prepare_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream) -> Pre
         raise ValueError(f"{leg} leg: thigh and shank recordings do not overlap in time")
     n = int(np.floor((t_stop - t_start) * fs_hz + 1e-9)) + 1
     t_grid = t_start + np.arange(n) / fs_hz
-    gaps1, br1 = find_gaps(t1, fs1)
-    gaps2, br2 = find_gaps(t2, fs2)
+    gaps1, br1, noted1 = find_gaps(t1, fs1)
+    gaps2, br2, noted2 = find_gaps(t2, fs2)
     gaps = sorted(gaps1 + gaps2)
     valid = ~_mask_intervals(t_grid, gaps)
     sat1 = saturation_mask(g1)
@@ -154,6 +171,7 @@ def prepare_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream) -> Pre
         gyr_thigh_rps=_interp_columns(t_grid, t1, g1), gyr_shank_rps=_interp_columns(t_grid, t2, g2),
         acc_thigh_mps2=_interp_columns(t_grid, t1, a1), acc_shank_mps2=_interp_columns(t_grid, t2, a2),
         valid=valid, saturated=saturated, gaps_s=merged, bridged_gaps=br1 + br2,
+        bridged_s=_merge_intervals(noted1 + noted2),
     )
 
 

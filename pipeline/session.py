@@ -13,12 +13,10 @@ import numpy as np
 
 from pipeline import ALGORITHM_VERSION
 from pipeline.axes import (
-    JointCentres,
     accelerometer_angle_deg,
     angular_acceleration,
     fit_joint_axes,
     fit_joint_centres,
-    joint_plane_frames,
     select_fit_samples,
 )
 from pipeline.estimators import LegData, get_estimator
@@ -32,7 +30,6 @@ from pipeline.signal_utils import lowpass_runs
 from pipeline.types import LegResult, RawSensorStream, SessionResult, StrideMetrics
 
 FIT_CUTOFF_HZ = 10.0  # gyro/acc smoothing for the axis and joint-centre fits and the accelerometer angle
-CENTRE_STABLE_DEG = 10.0  # joint-plane x axes from the two halves of the session must agree this well
 
 
 def process_session(streams: Sequence[RawSensorStream], activity: str = "walking",
@@ -78,24 +75,7 @@ def _dps(x: np.ndarray) -> np.ndarray:
     return np.rad2deg(x)
 
 
-def _centres_fit(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, a1: np.ndarray, a2: np.ndarray,
-                 gd1: np.ndarray, gd2: np.ndarray, j1: np.ndarray, j2: np.ndarray) -> tuple[JointCentres, bool, float]:
-    """Joint centres on the bounded sample set, plus a stability check: the joint-plane frames fitted on the first
-    and second half of the set must agree within CENTRE_STABLE_DEG, otherwise the absolute level is not trusted."""
-    idx = select_fit_samples(g1, g2, prep.valid)
-    centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], j1, j2)
-    halves = [idx[: idx.size // 2], idx[idx.size // 2:]]
-    frames = []
-    for h in halves:
-        c = fit_joint_centres(a1[h], g1[h], gd1[h], a2[h], g2[h], gd2[h], j1, j2)
-        frames.append(joint_plane_frames(c, j1, j2) if c.absolute else None)
-    if frames[0] is None or frames[1] is None:
-        return centres, False, float("nan")
-    worst = max(float(np.degrees(np.arccos(np.clip(frames[0][i] @ frames[1][i], -1.0, 1.0)))) for i in range(2))
-    return centres, bool(centres.absolute and worst <= CENTRE_STABLE_DEG), worst
-
-
-def build_leg_data(prep: PreparedLeg, activity: str = "walking") -> tuple[LegData, bool, dict]:
+def build_leg_data(prep: PreparedLeg, activity: str = "walking") -> tuple[LegData, dict]:
     """Axes, rates, events, joint centres and accelerometer angle of one prepared leg."""
     valid = prep.valid
     fs = prep.fs_hz
@@ -107,11 +87,14 @@ def build_leg_data(prep: PreparedLeg, activity: str = "walking") -> tuple[LegDat
     shank_sag = _dps(prep.gyr_shank_rps @ axes.j2)
     rate[~valid] = np.nan
     shank_sag[~valid] = np.nan
-    events = detect_gait_events(shank_sag, fs, valid)
+    events = detect_gait_events(shank_sag, fs, valid, shank_acc_mps2=prep.acc_shank_mps2)
     a1 = np.nan_to_num(lowpass_runs(prep.acc_thigh_mps2, valid, FIT_CUTOFF_HZ, fs))
     a2 = np.nan_to_num(lowpass_runs(prep.acc_shank_mps2, valid, FIT_CUTOFF_HZ, fs))
     gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)
-    centres, stable, disagreement = _centres_fit(prep, g1, g2, a1, a2, gd1, gd2, axes.j1, axes.j2)
+    # joint centres only tell standing from sitting (upright test of the standing reference, pipeline.fusion):
+    # their in-plane directions are too uncertain for the absolute zero itself
+    idx = select_fit_samples(g1, g2, valid)
+    centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], axes.j1, axes.j2)
     acc_angle = accelerometer_angle_deg(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, centres)
     acc_angle[~valid] = np.nan
     data = LegData(prep=prep, axes=axes, centres=centres, rate_dps=rate, acc_angle_deg=acc_angle,
@@ -120,11 +103,9 @@ def build_leg_data(prep: PreparedLeg, activity: str = "walking") -> tuple[LegDat
             "axis_rms_residual_dps": round(axes.rms_residual_dps, 2), "axis_fit_samples": axes.n_samples,
             "o1_m": np.round(centres.o1, 4).tolist(), "o2_m": np.round(centres.o2, 4).tolist(),
             "centre_rms_residual_mps2": round(centres.rms_residual_mps2, 3),
-            "centre_halves_disagreement_deg": None if np.isnan(disagreement) else round(disagreement, 1),
-            "centres_stable": stable,
             "bouts": int(events.bout.max() + 1) if events.bout.size else 0,
             "bridged_gaps": prep.bridged_gaps}
-    return data, stable, info
+    return data, info
 
 
 def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str = "walking",
@@ -134,7 +115,7 @@ def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activi
         raise ValueError("less than one second of usable samples")
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore", RuntimeWarning)
-        data, stable, info = build_leg_data(prep, activity)
+        data, info = build_leg_data(prep, activity)
         strides = data.events.strides
         if estimator == "auto":
             go_rel, diag = go_relative(data)

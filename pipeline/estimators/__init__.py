@@ -60,5 +60,10 @@ def available() -> list[str]:
 
 
 def _load_builtin() -> None:
-    # imported lazily so the submodules can import LegData/register from here without a cycle
-    from pipeline.estimators import cf, go  # noqa: F401
+    """Import every module of this package once, so each registers its estimators (``cf``, ``go``, ``kf``, ...).
+    Lazy, so the submodules can import LegData/register from here without a cycle."""
+    import importlib
+    import pkgutil
+
+    for mod in pkgutil.iter_modules(__path__):
+        importlib.import_module(f"{__name__}.{mod.name}")
