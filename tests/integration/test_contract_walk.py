@@ -14,6 +14,7 @@ import subprocess
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any
 
@@ -23,9 +24,10 @@ import pytest
 from sqlalchemy import create_engine, text
 
 from pipeline.session import process_session
-from pipeline.simulate import SimConfig, SimSession, simulate_session
+from pipeline.simulate import SimConfig, simulate_session
 from pipeline.types import RawSensorStream
 from server.db import all_metadata
+from server.simulate_cli import session_to_requests
 from tests.integration.conftest import free_port, gaitmon_command, server_env
 
 BATCH_SAMPLES = 40
@@ -100,33 +102,21 @@ def assert_problem(resp: httpx.Response, status: int | tuple[int, ...]) -> dict[
     return body
 
 
-def session_request(sim: SimSession) -> dict[str, Any]:
-    return {
-        "client_session_id": f"walk-{sim.config.seed}", "started_at": "2026-11-21T09:30:00+01:00",
-        "activity": sim.activity,
-        "sensors": [{"sensor_id": s.sensor_id, "leg": s.leg, "segment": s.segment, "sample_rate_hz": s.fs_hz,
-                     "gyro_unit": s.gyro_unit, "acc_unit": s.acc_unit} for s in sim.streams],
-    }
-
-
-def batch_requests(stream: RawSensorStream) -> list[dict[str, Any]]:
-    """What an app sends: consecutive BLE batches with their measured timestamps."""
-    t_ms = stream.t_s * 1000.0
+def streams_from_requests(create: dict[str, Any], batches: list[dict[str, Any]]) -> list[RawSensorStream]:
+    """What the server must have assembled from these bodies (float32 samples), to predict its results exactly."""
     out = []
-    for seq, start in enumerate(range(0, len(t_ms), BATCH_SAMPLES)):
-        part = slice(start, start + BATCH_SAMPLES)
-        out.append({"sensor_id": stream.sensor_id, "seq": seq, "t0_ms": float(t_ms[start]),
-                    "timestamps_ms": t_ms[part].tolist(), "gyro": stream.gyr[part].tolist(),
-                    "acc": stream.acc[part].tolist()})
+    for sensor in create["sensors"]:
+        mine = sorted((b for b in batches if b["sensor_id"] == sensor["sensor_id"]), key=lambda b: b["seq"])
+        t_ms = np.concatenate([b.get("timestamps_ms") or
+                               b["t0_ms"] + np.arange(len(b["gyro"])) * 1000.0 / sensor["sample_rate_hz"]
+                               for b in mine])
+        gyro = np.concatenate([b["gyro"] for b in mine]).astype(np.float32).astype(np.float64)
+        acc = np.concatenate([b["acc"] for b in mine]).astype(np.float32).astype(np.float64)
+        order = np.argsort(t_ms, kind="stable")
+        out.append(RawSensorStream(sensor["sensor_id"], sensor["leg"], sensor["segment"],
+                                   float(sensor["sample_rate_hz"]), t_ms[order] / 1000.0, gyro[order], acc[order],
+                                   sensor["gyro_unit"], sensor["acc_unit"]))
     return out
-
-
-def as_stored(stream: RawSensorStream) -> RawSensorStream:
-    """The stream as the server keeps it (float32 samples, time via ms), to predict its results exactly."""
-    f32 = lambda a: a.astype(np.float32).astype(np.float64)  # noqa: E731
-    return RawSensorStream(stream.sensor_id, stream.leg, stream.segment, stream.fs_hz,
-                           (stream.t_s * 1000.0) / 1000.0, f32(stream.gyr), f32(stream.acc),
-                           stream.gyro_unit, stream.acc_unit)
 
 
 def post_gzip(client: httpx.Client, url: str, body: Any, token: str) -> httpx.Response:
@@ -198,7 +188,8 @@ def walk(base_url: str, env: dict[str, str], cwd: Path, db_url: str, procs: list
     device = r.json()["token"]
 
     sim = simulate_session(SimConfig(n_strides=36, seed=11))
-    body = {"patient_id": pid, **session_request(sim)}
+    body, batches = session_to_requests(sim, batch_size=BATCH_SAMPLES, patient_id=pid,
+                                        started_at=datetime(2026, 11, 21, 9, 30, tzinfo=timezone(timedelta(hours=1))))
     r = c.post("/v1/sessions", json=body, headers=auth(device))
     assert r.status_code == 201 and r.json()["status"] == "receiving", r.text
     sid = r.json()["id"]
@@ -206,8 +197,6 @@ def walk(base_url: str, env: dict[str, str], cwd: Path, db_url: str, procs: list
     assert r.status_code == 200 and r.json()["id"] == sid
 
     # Upload: every batch, shuffled, 15 % of them twice, all gzip'd.
-    per_sensor = {s.sensor_id: batch_requests(s) for s in sim.streams}
-    batches = [b for bs in per_sensor.values() for b in bs]
     rng = np.random.default_rng(5)
     order = [*range(len(batches)), *rng.choice(len(batches), size=len(batches) * 15 // 100, replace=False)]
     rng.shuffle(order)
@@ -234,9 +223,10 @@ def walk(base_url: str, env: dict[str, str], cwd: Path, db_url: str, procs: list
 
     state = c.get(f"/v1/sessions/{sid}", headers=auth(device)).json()
     assert state["status"] == "receiving"
-    for s in sim.streams:
+    sent = streams_from_requests(body, batches)
+    for s in sent:
         assert state["received"][s.sensor_id]["samples"] == len(s.t_s)
-        assert state["received"][s.sensor_id]["batches"] == len(per_sensor[s.sensor_id])
+        assert state["received"][s.sensor_id]["batches"] == sum(b["sensor_id"] == s.sensor_id for b in batches)
 
     r = c.post(f"/v1/sessions/{sid}/complete", headers=auth(device))
     assert r.status_code == 202, r.text
@@ -248,7 +238,7 @@ def walk(base_url: str, env: dict[str, str], cwd: Path, db_url: str, procs: list
     assert db_worker_id(db_url, sid).startswith(worker_prefix)
 
     # What the server computed equals the pipeline on the uploaded data: nothing lost, duplicated or reordered.
-    expected = process_session([as_stored(s) for s in sim.streams], activity=sim.activity)
+    expected = process_session(sent, activity=sim.activity)
     strides: dict[str, list[dict]] = {}
     for leg in ("left", "right"):
         r = c.get(f"/v1/sessions/{sid}/strides", params={"leg": leg}, headers=auth(clin))
