@@ -330,9 +330,13 @@ def main(argv: list[str] | None = None) -> int:
     ]
     if len(fs_list) > 1:
         lines += ["By sample rate (walking patterns pooled):", "", *fs_table(pooled_fs, estimators[0], fs_list), ""]
+    print("\n".join(lines), flush=True)  # before the real recordings: a failure there must not lose this
     if not args.no_real:
-        lines += ["## Real recordings", "", *real_tables(estimators), ""]
-    print("\n".join(lines))
+        try:
+            real = real_tables(estimators)
+        except Exception as exc:  # noqa: BLE001 - report, do not lose the simulated tables
+            real = [f"_Real recordings failed: {type(exc).__name__}: {exc}_"]
+        print("\n".join(["## Real recordings", "", *real, ""]))
     _log(f"done in {time.perf_counter() - t0:.0f} s")
     return 0
 
