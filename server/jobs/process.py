@@ -24,6 +24,7 @@ from sqlalchemy.orm import sessionmaker
 
 from server.jobs.traces import encode_trace
 from server.models import KneeAngleTrace, Session, Stride
+from server.trends.summaries import refresh_session
 
 log = logging.getLogger("gaitmon.jobs")
 
@@ -106,12 +107,8 @@ def readable_error(exc: BaseException) -> str:
 
 
 def _refresh_trends(db: DbSession, session_id: str) -> None:
-    # --- trends hook (owned by the trends engineer): keep per-session summaries in step with the strides. ---
+    # --- trends hook (server.trends): keep per-session trend summaries in step with the strides. ---
     # Runs inside the transaction that writes the results, so trends never disagree with the strides.
-    try:
-        from server.trends.summaries import refresh_session
-    except ImportError:
-        return
     refresh_session(db, session_id)
 
 

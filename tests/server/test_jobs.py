@@ -157,6 +157,24 @@ def test_process_stores_strides_and_trace(sm) -> None:  # noqa: ANN001
     assert np.nanmax(angle) == pytest.approx(max(s.peak_swing_flexion_deg for s in strides), abs=0.5)
 
 
+def test_trend_summaries_follow_the_results(sm) -> None:  # noqa: ANN001
+    from server.trends.models import TrendSessionLeg
+
+    def legs(sid: str) -> list[tuple[str, int]]:
+        with sm() as db:
+            rows = db.scalars(select(TrendSessionLeg).where(TrendSessionLeg.session_id == sid)).all()
+            return [(r.leg, r.n_strides) for r in rows]
+
+    sid = make_session(sm)
+    process.run_queued(sm, processor=data_processor())
+    assert legs(sid) == [("left", 5)]
+    with sm() as db:
+        db.execute(update(Session).where(Session.id == sid).values(status="queued"))
+        db.commit()
+    process.run_queued(sm, processor=failing_processor)
+    assert legs(sid) == []  # a failed run leaves nothing in the trends
+
+
 def test_reprocess_replaces_results(sm) -> None:  # noqa: ANN001
     sid = make_session(sm, seconds=6.0)
     process.run_queued(sm, processor=data_processor(stride_s=1.0))
