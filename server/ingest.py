@@ -10,7 +10,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from sqlalchemy import select
+from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session as DbSession
 
@@ -55,6 +55,19 @@ def validate_times(t_ms: np.ndarray, t0_ms: float, sample_rate_hz: float) -> Non
                                f"{float(t_ms[0])})")
 
 
+def still_in_status(db: DbSession, session_id: str, statuses: tuple[str, ...]) -> bool:
+    """Lock the session row for writing if its status is one of ``statuses``; False if it is not.
+
+    A no-op UPDATE is the portable way to lock: SQLite has no SELECT ... FOR UPDATE, and pysqlite starts the
+    transaction only at the first write.
+    """
+    result = db.execute(
+        update(Session).where(Session.id == session_id, Session.status.in_(statuses))
+        .values(status=Session.status).execution_options(synchronize_session=False)
+    )
+    return result.rowcount == 1
+
+
 def _find_batch(db: DbSession, session_id: str, sensor_id: str, seq: int) -> Batch | None:
     return db.scalar(select(Batch).where(Batch.session_id == session_id, Batch.sensor_id == sensor_id,
                                          Batch.seq == seq))
@@ -89,8 +102,15 @@ def ingest_batch(db: DbSession, session: Session, body: BatchIn, *, max_samples:
     acc = np.asarray(body.acc, dtype=np.float64)
     digest = content_sha256(t_ms, gyro, acc)
 
+    # Re-check the status with a write in this transaction: on SQLite this takes the write lock (a SELECT does
+    # not), on PostgreSQL the row lock, so a /complete either commits before (-> 409) or waits for this batch.
+    if not still_in_status(db, session.id, ("receiving",)):
+        db.rollback()
+        raise conflict("Session was completed; uploads are accepted only while it is receiving",
+                       slug="session-not-receiving")
     existing = _find_batch(db, session.id, sensor.sensor_id, body.seq)
     if existing is not None:
+        db.rollback()
         return _replay_outcome(existing, digest)
 
     t_b, g_b, a_b = encode_samples(t_ms, gyro, acc)

@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session as DbSession
 from server.api.common import AppSettings, Caller, Db, aware
 from server.auth import get_patient_for, get_session_for, require_role
 from server.errors import ProblemError, conflict
-from server.ingest import ingest_batch, received_summary
+from server.ingest import ingest_batch, received_summary, still_in_status
 from server.jobs.queue import enqueue
 from server.models import Batch, Session, SessionSensor, utcnow
 from server.schemas import BatchIn, BatchOut, SensorOut, SessionIn, SessionOut
@@ -115,10 +115,13 @@ def upload_batch(session_id: str, body: BatchIn, response: Response, db: Db, cal
              summary="No more uploads: queue the session for processing (idempotent)")
 def complete_session(session_id: str, db: Db, caller: Caller, settings: AppSettings) -> SessionOut:
     session = get_session_for(db, caller, session_id, for_update=True)
-    if session.status != "receiving":
-        return session_out(db, session)
+    if session.status != "receiving" or not still_in_status(db, session.id, ("receiving",)):
+        # Already completed (idempotent): 202 with the current state.
+        db.rollback()
+        return session_out(db, db.get(Session, session_id, populate_existing=True) or session)
     n_batches = db.scalar(select(func.count()).select_from(Batch).where(Batch.session_id == session.id))
     if not n_batches:
+        db.rollback()
         raise ProblemError(422, "The session has no batches: upload data before completing it",
                            title="Nothing to process", slug="session-empty")
     session.status = "queued"
@@ -135,10 +138,12 @@ def complete_session(session_id: str, db: Db, caller: Caller, settings: AppSetti
 def reprocess_session(session_id: str, db: Db, caller: Caller, settings: AppSettings) -> SessionOut:
     require_role(caller, "admin", "clinician", action="reprocess sessions")
     session = get_session_for(db, caller, session_id, for_update=True)
-    if session.status in ("queued", "processing"):
-        return session_out(db, session)
     if session.status == "receiving":
         raise conflict("The session is still receiving; complete it first", slug="session-not-completed")
+    if session.status not in ("done", "failed") or not still_in_status(db, session.id, ("done", "failed")):
+        # Queued or being processed already: 202 with the current state.
+        db.rollback()
+        return session_out(db, db.get(Session, session_id, populate_existing=True) or session)
     session.status = "queued"
     session.error = None
     session.attempts = 0
@@ -146,4 +151,3 @@ def reprocess_session(session_id: str, db: Db, caller: Caller, settings: AppSett
     enqueue(settings, session.id)
     log.info("session %s queued for reprocessing by token %s", session.id, caller.token_id)
     return session_out(db, session)
-

@@ -14,8 +14,10 @@ from sqlalchemy import func, select
 from server import ingest
 from server.api.body_limit import _GzipInflater, _Reject
 from server.config import Settings
-from server.models import Batch
+from server.errors import ProblemError
+from server.models import Batch, Session
 from server.rawdata import load_streams
+from server.schemas import BatchIn
 from tests.server.helpers import Api, batch_body, bearer, count_rows, open_api
 
 
@@ -240,4 +242,22 @@ def test_concurrent_identical_insert_rereads(api: Api, monkeypatch: pytest.Monke
     calls["n"] = 0
     changed = dict(body, acc=[[0.0, 0.0, 0.0]] * 10)
     assert api.upload(dev, sess["id"], changed).status_code == 409 and calls["n"] == 2
+    assert _batches(api) == 1
+
+
+def test_batch_racing_complete_is_refused_not_stored(api: Api) -> None:
+    """A batch whose status check saw "receiving" just before /complete committed must not be stored."""
+    _, dev, sess = api.setup_device_session()
+    assert api.upload(dev, sess["id"], batch_body("L-thigh", 0)).status_code == 201
+    sm = api.client.app.state.sessionmaker  # type: ignore[attr-defined]
+    with sm() as db:
+        stale = db.get(Session, sess["id"])
+        assert stale is not None and stale.status == "receiving"
+        _ = stale.sensors
+        db.expunge(stale)  # keeps its loaded, soon stale, state
+        db.rollback()
+        assert api.client.post(f"/v1/sessions/{sess['id']}/complete", headers=bearer(dev)).status_code == 202
+        with pytest.raises(ProblemError) as exc:
+            ingest.ingest_batch(db, stale, BatchIn(**batch_body("L-thigh", 1)), max_samples=1000)
+    assert exc.value.status == 409
     assert _batches(api) == 1
