@@ -11,6 +11,7 @@ so a worker that was presumed dead and came back cannot overwrite the work of th
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 import traceback
@@ -18,6 +19,7 @@ import uuid
 from collections.abc import Callable
 from datetime import UTC, datetime, timedelta
 
+import numpy as np
 from sqlalchemy import delete, or_, select, update
 from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
@@ -112,33 +114,55 @@ def _refresh_trends(db: DbSession, session_id: str) -> None:
     refresh_session(db, session_id)
 
 
+def json_safe(value: object) -> object:
+    """Non-finite floats become None: PostgreSQL's JSON rejects NaN, and API clients cannot parse it either."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    if isinstance(value, float | np.floating):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
 def _clear_results(db: DbSession, session_id: str) -> None:
     db.execute(delete(Stride).where(Stride.session_id == session_id))
     db.execute(delete(KneeAngleTrace).where(KneeAngleTrace.session_id == session_id))
 
 
-def _store_results(db: DbSession, sess_row: tuple[str, datetime], session_id: str, result) -> int:  # noqa: ANN001
+_STRIDE_FLOATS = ("t_start_s", "t_end_s", "duration_s", "t_toe_off_s", "stance_time_s", "swing_time_s",
+                  "stance_pct", "peak_swing_flexion_deg", "min_flexion_deg", "rom_deg", "stance_flexion_deg",
+                  "quality")
+
+
+def _store_results(db: DbSession, sess_row: tuple[str, datetime], session_id: str,
+                   result) -> tuple[int, int]:  # noqa: ANN001
+    """Insert strides and traces; returns (stored, skipped). A stride with a non-finite metric is skipped: the
+    columns are NOT NULL and SQLite would turn NaN into NULL (PostgreSQL would keep it), so keeping it would make
+    the two databases disagree and the API emit invalid JSON."""
     patient_id, started_at = sess_row
     started_at = _aware(started_at)
-    n = 0
+    stored = skipped = 0
     for leg, res in result.legs.items():
         for s in res.strides:
+            values = {name: float(getattr(s, name)) for name in _STRIDE_FLOATS}
+            if not all(math.isfinite(v) for v in values.values()):
+                skipped += 1
+                continue
             db.add(Stride(
                 session_id=session_id, patient_id=patient_id, leg=s.leg, index=s.index,
-                started_at=started_at + timedelta(seconds=float(s.t_start_s)),
-                t_start_s=s.t_start_s, t_end_s=s.t_end_s, duration_s=s.duration_s, t_toe_off_s=s.t_toe_off_s,
-                stance_time_s=s.stance_time_s, swing_time_s=s.swing_time_s, stance_pct=s.stance_pct,
-                peak_swing_flexion_deg=s.peak_swing_flexion_deg, min_flexion_deg=s.min_flexion_deg,
-                rom_deg=s.rom_deg, stance_flexion_deg=s.stance_flexion_deg, estimator=s.estimator,
-                quality=s.quality, quality_reasons=list(s.quality_reasons),
+                started_at=started_at + timedelta(seconds=values["t_start_s"]), estimator=s.estimator,
+                quality_reasons=list(s.quality_reasons), **values,
             ))
-            n += 1
+            stored += 1
         enc = encode_trace(res.t_s, res.angle_deg, res.estimator, res.fs_hz)
         db.add(KneeAngleTrace(
             session_id=session_id, leg=leg, t0_s=enc.t0_s, fs_hz=enc.fs_hz, n=enc.n, angle_deg=enc.angle_deg,
             estimator_codes=enc.estimator_codes, estimator_names=enc.estimator_names,
         ))
-    return n
+    return stored, skipped
 
 
 def _default_processor(streams, activity: str):  # noqa: ANN001, ANN202
@@ -170,16 +194,22 @@ def process_claimed(sm: sessionmaker[DbSession], session_id: str, token: str, *,
             n_samples = sum(len(s.t_s) for s in streams)
             result = processor(streams, activity=activity)
             with sm() as db:
+                # The conditional update comes first: it locks the row, so a recovery cannot interleave.
                 changed = _update(db, session_id, Session.worker_id == token, Session.status == "processing",
-                                  status="done", error=None, summary=result.summary(),
-                                  algorithm_version=result.algorithm_version, processed_at=utcnow(),
-                                  heartbeat_at=None)
+                                  status="done", error=None, algorithm_version=result.algorithm_version,
+                                  processed_at=utcnow(), heartbeat_at=None)
                 if changed != 1:
                     db.rollback()
                     log.warning("session %s: claim %s lost before storing results; discarded", session_id, token)
                     return "lost"
                 _clear_results(db, session_id)
-                n_strides = _store_results(db, sess_row, session_id, result)
+                n_strides, n_skipped = _store_results(db, sess_row, session_id, result)
+                summary = result.summary()
+                if n_skipped:
+                    summary.setdefault("warnings", []).append(
+                        f"{n_skipped} stride(s) without finite metrics were not stored")
+                    log.warning("session %s: %d stride(s) with non-finite metrics skipped", session_id, n_skipped)
+                _update(db, session_id, summary=json_safe(summary))
                 _refresh_trends(db, session_id)
                 db.commit()
         except Exception as exc:  # noqa: BLE001 - any failure of one session must end as "failed", never crash

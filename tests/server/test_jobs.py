@@ -65,7 +65,8 @@ def make_session(sm, *, status: str = "queued", seconds: float = 6.0, seed: int 
         return sess.id
 
 
-def data_processor(stride_s: float = 1.0, version: str = "test-1") -> Callable[..., SessionResult]:
+def data_processor(stride_s: float = 1.0, version: str = "test-1",
+                   nan_peaks: bool = False) -> Callable[..., SessionResult]:
     """Strides of ``stride_s`` over the shank data; the angle is |shank gyro x| (data-derived, not canned)."""
 
     def run(streams, activity: str) -> SessionResult:  # noqa: ANN001
@@ -79,7 +80,8 @@ def data_processor(stride_s: float = 1.0, version: str = "test-1") -> Callable[.
             strides.append(StrideMetrics(
                 leg="left", index=i, t_start_s=float(t0), t_end_s=float(t0 + stride_s), duration_s=stride_s,
                 t_toe_off_s=float(t0 + 0.6 * stride_s), stance_time_s=0.6 * stride_s,
-                swing_time_s=0.4 * stride_s, stance_pct=60.0, peak_swing_flexion_deg=float(angle[win].max()),
+                swing_time_s=0.4 * stride_s, stance_pct=60.0,
+                peak_swing_flexion_deg=float("nan") if nan_peaks and i == 1 else float(angle[win].max()),
                 min_flexion_deg=float(angle[win].min()), rom_deg=float(np.ptp(angle[win])),
                 stance_flexion_deg=float(angle[win][0]), estimator="go", quality=1.0, quality_reasons=("ok",),
             ))
@@ -173,6 +175,20 @@ def test_trend_summaries_follow_the_results(sm) -> None:  # noqa: ANN001
         db.commit()
     process.run_queued(sm, processor=failing_processor)
     assert legs(sid) == []  # a failed run leaves nothing in the trends
+
+
+def test_non_finite_values_never_reach_the_database(sm) -> None:  # noqa: ANN001
+    sid = make_session(sm)
+    process.run_queued(sm, processor=data_processor(nan_peaks=True))
+    row = get(sm, sid)
+    assert row.status == "done", row.error
+    # The pipeline's own summary has a NaN median; stored JSON has null, the same on SQLite and PostgreSQL.
+    assert row.summary["legs"]["left"]["peak_swing_flexion_deg_median"] is None
+    assert row.summary["legs"]["left"]["rom_deg_median"] > 0
+    assert "1 stride(s) without finite metrics were not stored" in row.summary["warnings"]
+    with sm() as db:
+        indices = db.scalars(select(Stride.index).where(Stride.session_id == sid).order_by(Stride.index)).all()
+    assert indices == [0, 2, 3, 4]
 
 
 def test_reprocess_replaces_results(sm) -> None:  # noqa: ANN001
