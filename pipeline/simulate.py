@@ -56,7 +56,7 @@ class _PatternSpec:
 # Keypoints of normative curves; 0 % = heel strike. Shapes after Perry & Burnfield (walking), crouch after
 # Rodda & Graham 2004 (CP crouch gait), stiff-knee after Goldberg et al. 2003, running after Novacheck 1998.
 # Pre-swing timing checked against the Tan et al. treadmill recordings: the shank angular-velocity minimum
-# precedes the force-plate toe-off by 30-50 ms (here 45-55 ms in walking).
+# precedes the force-plate toe-off by 30-50 ms (here 35-55 ms in walking; in running it follows by ~25 ms).
 _SPECS: dict[str, _PatternSpec] = {
     "normal": _PatternSpec(
         ((0, 4), (13, 17), (25, 12), (40, 4), (50, 8), (62, 40), (72, 61), (85, 37), (95, 6)),
@@ -71,16 +71,16 @@ _SPECS: dict[str, _PatternSpec] = {
         ((0, 30), (15, 24), (35, 5), (53, -13), (61, -8), (72, 14), (84, 33), (91, 34)),
         0.95, 1.75, 0.58, 0.035, 3.0),
     "stiff-knee": _PatternSpec(
-        ((0, 5), (13, 11), (28, 8), (42, 4), (52, 7), (63, 20), (73, 37), (85, 22), (95, 7)),
-        ((0, 26), (15, 21), (35, 5), (55, -8), (63, -4), (74, 13), (85, 29), (92, 30)),
+        ((0, 5), (13, 11), (28, 8), (45, 4), (55, 8), (64, 21), (74, 37), (86, 22), (95, 7)),
+        ((0, 26), (15, 21), (35, 5), (57, -8), (64, -5), (75, 13), (86, 29), (92, 30)),
         1.30, 0.90, 0.62, 0.02, 1.5),
     "crouch": _PatternSpec(
         ((0, 30), (12, 37), (28, 31), (44, 25), (52, 28), (63, 44), (73, 57), (85, 45), (95, 33)),
         ((0, 40), (15, 35), (35, 22), (55, 12), (63, 16), (74, 28), (85, 43), (92, 44)),
         1.20, 0.80, 0.62, 0.02, 1.2),
     "running": _PatternSpec(
-        ((0, 16), (14, 40), (28, 30), (35, 24), (50, 62), (70, 104), (85, 60), (94, 20)),
-        ((0, 35), (20, 20), (38, -10), (48, -4), (65, 25), (80, 45), (90, 42)),
+        ((0, 16), (14, 40), (28, 30), (34, 24), (46, 55), (70, 104), (85, 60), (94, 20)),
+        ((0, 35), (20, 20), (37, -10), (46, -5), (65, 25), (80, 45), (90, 42)),
         0.72, 3.0, 0.38, 0.07, 6.0),
 }
 
