@@ -130,35 +130,45 @@ def ingest_batch(db: DbSession, session: Session, body: BatchIn, *, max_samples:
 
 
 def _sensor_received(rows: list, fs_hz: float) -> dict:
-    """Counts and gaps of one sensor from its batches' (seq, n_samples, t_first_ms, t_last_ms, t_ms) rows."""
+    """Counts and gaps of one sensor from its batches' (seq, n_samples, t_first_ms, t_last_ms, t_ms) rows.
+
+    Vectorised over all samples: an hour at 100 Hz in 50-sample batches is 7 200 rows per sensor.
+    """
     if not rows:
         return {"batches": 0, "samples": 0, "gaps": 0, "gap_s": 0.0, "first_t_s": None, "last_t_s": None,
                 "missing_seq": []}
     rows = sorted(rows, key=lambda r: r.seq)
     period_ms = 1000.0 / fs_hz
-    gaps = 0
-    gap_ms = 0.0
-    for r in rows:
-        steps = np.diff(np.frombuffer(r.t_ms, dtype="<f8"))
-        jumps = steps[steps > GAP_PERIODS * period_ms]
-        gaps += int(jumps.size)
-        gap_ms += float(np.sum(jumps - period_ms))
-    for prev, nxt in zip(rows, rows[1:], strict=False):
-        dt = nxt.t_first_ms - prev.t_last_ms
-        # One gap per boundary, whether it shows as a missing seq, a time jump, or both.
-        if nxt.seq - prev.seq > 1 or dt > GAP_PERIODS * period_ms:
-            gaps += 1
-            gap_ms += max(0.0, dt - period_ms)
-    seqs = {r.seq for r in rows}
-    missing = [s for s in range(rows[0].seq, rows[-1].seq + 1) if s not in seqs] \
-        if rows[-1].seq - rows[0].seq < 1_000_000 else []
+    limit = GAP_PERIODS * period_ms
+    # Steps between consecutive samples inside each batch (the steps across batch boundaries are masked out).
+    t = np.frombuffer(b"".join(r.t_ms for r in rows), dtype="<f8")
+    steps = np.diff(t)
+    inside = np.ones(len(steps), dtype=bool)
+    ends = np.cumsum([r.n_samples for r in rows])[:-1] - 1
+    inside[ends] = False
+    jumps = steps[inside & (steps > limit)]
+    gaps = int(jumps.size)
+    gap_ms = float(np.sum(jumps - period_ms))
+    # Boundaries in seq order: one gap per boundary, whether a missing seq, a time jump, or both.
+    seq = np.array([r.seq for r in rows], dtype=np.int64)
+    first = np.array([r.t_first_ms for r in rows])
+    last = np.array([r.t_last_ms for r in rows])
+    dt = first[1:] - last[:-1]
+    boundary = (np.diff(seq) > 1) | (dt > limit)
+    gaps += int(np.count_nonzero(boundary))
+    gap_ms += float(np.sum(np.maximum(0.0, dt[boundary] - period_ms)))
+    missing: list[int] = []
+    for i in np.flatnonzero(np.diff(seq) > 1):
+        missing.extend(range(int(seq[i]) + 1, min(int(seq[i + 1]), int(seq[i]) + 1 + MAX_LISTED_MISSING_SEQ)))
+        if len(missing) >= MAX_LISTED_MISSING_SEQ:
+            break
     return {
         "batches": len(rows),
         "samples": int(sum(r.n_samples for r in rows)),
         "gaps": gaps,
         "gap_s": round(gap_ms / 1000.0, 3),
-        "first_t_s": min(r.t_first_ms for r in rows) / 1000.0,
-        "last_t_s": max(r.t_last_ms for r in rows) / 1000.0,
+        "first_t_s": float(first.min()) / 1000.0,
+        "last_t_s": float(last.max()) / 1000.0,
         "missing_seq": missing[:MAX_LISTED_MISSING_SEQ],
     }
 

@@ -5,7 +5,10 @@ from __future__ import annotations
 import logging
 from datetime import UTC
 
-from fastapi import APIRouter, Response
+import anyio
+from fastapi import APIRouter, Depends, Request, Response
+from fastapi.exceptions import RequestValidationError
+from pydantic import ValidationError
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session as DbSession
@@ -20,6 +23,20 @@ from server.schemas import BatchIn, BatchOut, SensorOut, SessionIn, SessionOut
 
 log = logging.getLogger("gaitmon.api")
 router = APIRouter(prefix="/v1/sessions", tags=["sessions and upload"])
+
+
+async def parse_batch(request: Request) -> BatchIn:
+    """The batch body, parsed and validated by pydantic-core straight from the bytes.
+
+    About 3x faster than FastAPI's json.loads + validation for a 20 000-sample batch; NaN/Infinity literals
+    parse and are then rejected by the finite-number check. Runs in a thread so the event loop stays free.
+    """
+    raw = await request.body()
+    try:
+        return await anyio.to_thread.run_sync(BatchIn.model_validate_json, raw)
+    except ValidationError as exc:
+        errors = exc.errors(include_url=False, include_context=False, include_input=False)
+        raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in errors]) from None
 
 
 def session_out(db: DbSession, s: Session) -> SessionOut:
@@ -93,9 +110,11 @@ def get_session(session_id: str, db: Db, caller: Caller) -> SessionOut:
                               "model": BatchOut},
                         409: {"description": "Same (sensor_id, seq) with different content, or session completed"},
                         413: {"description": "Body larger than the limit (after gzip decompression)"}},
+             openapi_extra={"requestBody": {"required": True, "content": {
+                 "application/json": {"schema": BatchIn.model_json_schema()}}}},
              summary="Upload one batch of one sensor (idempotent per sensor_id and seq; gzip accepted)")
-def upload_batch(session_id: str, body: BatchIn, response: Response, db: Db, caller: Caller,
-                 settings: AppSettings) -> BatchOut:
+def upload_batch(session_id: str, response: Response, db: Db, caller: Caller, settings: AppSettings,
+                 body: BatchIn = Depends(parse_batch)) -> BatchOut:
     # Row lock: a concurrent /complete waits until this batch is committed (or sees it is not).
     session = get_session_for(db, caller, session_id, for_update=True)
     try:
