@@ -112,6 +112,9 @@ class SimConfig:
     outages_per_min: float = 0.1  # longer runs of lost samples (0.3-2 s)
     sync_offset_ms: float = 5.0  # SD of each sensor's timestamp error (app-side mapping of the sensor clock)
     clock_drift_ppm: float = 20.0  # SD of each sensor's clock rate error (crystal tolerance)
+    shank_fs_hz: float | None = None  # a shank sensor running at another rate than the thigh's (default: same)
+    gyro_range_dps: float | None = None  # full-scale range: readings clip there (None: no saturation)
+    acc_range_g: float | None = None
     gyro_unit: Literal["deg/s", "rad/s"] = "deg/s"
     acc_unit: Literal["m/s2", "g"] = "m/s2"
 
@@ -448,9 +451,9 @@ def _leg_truth(leg: str, tl: _Timeline, knee: np.ndarray, phase: np.ndarray, sta
 # Sensors
 
 
-def _sample_times(rng: np.random.Generator, cfg: SimConfig, t_end: float) -> tuple[np.ndarray, np.ndarray, dict]:
+def _sample_times(rng: np.random.Generator, cfg: SimConfig, fs: float, t_end: float
+                  ) -> tuple[np.ndarray, np.ndarray, dict]:
     """True sample instants and reported timestamps of one sensor (before packet loss)."""
-    fs = cfg.fs_hz
     drift = cfg.clock_drift_ppm * 1e-6 * rng.standard_normal()
     start = rng.uniform(0.0, 1.0 / fs) + rng.uniform(0.0, 0.05)
     n = int((t_end - 0.1 - start) * fs * (1 + drift))
@@ -463,17 +466,17 @@ def _sample_times(rng: np.random.Generator, cfg: SimConfig, t_end: float) -> tup
     return t_true, t_rep, {"drift_ppm": drift * 1e6, "sync_offset_ms": sync * 1e3, "start_s": start}
 
 
-def _keep_mask(rng: np.random.Generator, cfg: SimConfig, n: int) -> np.ndarray:
+def _keep_mask(rng: np.random.Generator, cfg: SimConfig, fs: float, n: int) -> np.ndarray:
     keep = np.ones(n, dtype=bool)
     ps = max(1, cfg.packet_samples)
     n_packets = -(-n // ps)
     lost = np.nonzero(rng.random(n_packets) < cfg.packet_loss)[0]
     for p in lost:
         keep[p * ps:(p + 1) * ps] = False
-    dur_min = n / cfg.fs_hz / 60
+    dur_min = n / fs / 60
     for _ in range(rng.poisson(cfg.outages_per_min * dur_min)):
         i0 = int(rng.integers(0, n))
-        keep[i0: i0 + int(rng.uniform(0.3, 2.0) * cfg.fs_hz)] = False
+        keep[i0: i0 + int(rng.uniform(0.3, 2.0) * fs)] = False
     keep[:ps] = True  # the first packet always arrives: it anchors the stream
     return keep
 
@@ -564,7 +567,8 @@ def simulate_session(cfg: SimConfig) -> SimSession:
             else:
                 lever = np.array([rng.uniform(-0.02, 0.05), side * rng.uniform(0.04, 0.07),
                                   -rng.uniform(0.08, 0.22)])
-            t_true, t_rep, clock = _sample_times(rng, cfg, t[-1])
+            fs = cfg.shank_fs_hz if seg == "shank" and cfg.shank_fs_hz else cfg.fs_hz
+            t_true, t_rep, clock = _sample_times(rng, cfg, fs, t[-1])
             m = len(t_true)
             rot_t, om_t, al_t = _segment_motion(body, legs[leg].thigh, t_true)
             acc_w = _hip_acc(body, t_true, side, half_width)
@@ -616,10 +620,14 @@ def simulate_session(cfg: SimConfig) -> SimSession:
             abias = cfg.acc_bias_ms2 * rng.standard_normal(3)
             acc = acc + abias + cfg.acc_noise_ms2 * rng.standard_normal((m, 3))
 
-            keep = _keep_mask(rng_loss, cfg, m)
+            if cfg.gyro_range_dps:  # saturation of the sensor's full-scale range
+                gyr = np.clip(gyr, -np.radians(cfg.gyro_range_dps), np.radians(cfg.gyro_range_dps))
+            if cfg.acc_range_g:
+                acc = np.clip(acc, -cfg.acc_range_g * GRAVITY_MS2, cfg.acc_range_g * GRAVITY_MS2)
+            keep = _keep_mask(rng_loss, cfg, fs, m)
             sid = f"{leg[0].upper()}-{seg}"
             streams.append(RawSensorStream(
-                sensor_id=sid, leg=leg, segment=seg, fs_hz=float(cfg.fs_hz), t_s=t_rep[keep],
+                sensor_id=sid, leg=leg, segment=seg, fs_hz=float(fs), t_s=t_rep[keep],
                 gyr=np.degrees(gyr[keep]) * gyro_scale, acc=acc[keep] * acc_scale,
                 gyro_unit=cfg.gyro_unit, acc_unit=cfg.acc_unit))
             info["sensors"][sid] = {"mounting": r_mount.tolist(), "lever_arm_m": lever.tolist(),

@@ -209,3 +209,16 @@ def test_accelerations_agree_at_the_knee_joint_centre() -> None:
     raw = np.linalg.norm(_stream(sim, "L-thigh").acc, axis=1) - np.interp(
         t, _stream(sim, "L-shank").t_s, np.linalg.norm(_stream(sim, "L-shank").acc, axis=1))
     assert np.sqrt(np.mean(raw[inner] ** 2)) > 5 * np.sqrt(np.mean(diff**2))
+
+
+def test_saturation_and_a_shank_at_another_rate() -> None:
+    base = SimConfig(pattern="fast", seed=15, n_strides=8)
+    free = simulate_session(base)
+    sim = simulate_session(dataclasses.replace(base, gyro_range_dps=250.0, acc_range_g=2.0, shank_fs_hz=60.0))
+    for s in sim.streams:
+        assert np.abs(s.gyr).max() <= 250.0 + 1e-9 and np.abs(s.acc).max() <= 2 * GRAVITY_MS2 + 1e-9
+        expected_fs = 60.0 if s.segment == "shank" else 100.0
+        assert s.fs_hz == expected_fs
+        assert np.median(np.diff(s.t_s)) == pytest.approx(1 / expected_fs, rel=1e-3)
+    assert np.abs(_stream(free, "L-shank").gyr).max() > 300.0  # so the clip did something
+    assert np.mean(np.abs(_stream(sim, "L-shank").gyr) >= 250.0 - 1e-9) > 0.001
