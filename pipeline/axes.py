@@ -21,6 +21,7 @@ from scipy.optimize import least_squares
 MAX_FIT_SAMPLES = 2000
 FIT_CHUNKS = 20
 N_RESTARTS = 4
+N_CENTRE_STARTS = 6
 _EPS = 1e-9
 
 
@@ -170,34 +171,45 @@ def gamma_matrices(g: np.ndarray, gd: np.ndarray) -> np.ndarray:
     return sg @ sg + _skew(gd)
 
 
+def _centre_split(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray,
+                  m2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return a1 - np.einsum("nij,j->ni", m1, x[:3]), a2 - np.einsum("nij,j->ni", m2, x[3:])
+
+
+def _centre_resid(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray) -> np.ndarray:
+    """Seel Eq. 5 residual: ||a1 - Gamma1(o1)|| - ||a2 - Gamma2(o2)|| per sample."""
+    v1, v2 = _centre_split(x, a1, m1, a2, m2)
+    return np.linalg.norm(v1, axis=1) - np.linalg.norm(v2, axis=1)
+
+
+def _centre_jac(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray) -> np.ndarray:
+    """d||a - M o||/do = -(v/||v||)^T M."""
+    v1, v2 = _centre_split(x, a1, m1, a2, m2)
+    n1 = np.maximum(np.linalg.norm(v1, axis=1), _EPS)[:, None]
+    n2 = np.maximum(np.linalg.norm(v2, axis=1), _EPS)[:, None]
+    return np.hstack([-np.einsum("ni,nij->nj", v1 / n1, m1), np.einsum("ni,nij->nj", v2 / n2, m2)])
+
+
 def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,
                       gd2: np.ndarray, j1: np.ndarray, j2: np.ndarray) -> JointCentres:
     """Joint-centre positions by Seel's Eq. 5 (Rhudy et al. 2024, Eq. 5), least squares with analytic Jacobian,
     then shifted along the axes as in Eq. 5 (the cost is blind to sliding both along j). Inputs: a bounded sample set.
     """
     m1, m2 = gamma_matrices(g1, gd1), gamma_matrices(g2, gd2)
-
-    def split(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        v1 = a1 - np.einsum("nij,j->ni", m1, x[:3])
-        v2 = a2 - np.einsum("nij,j->ni", m2, x[3:])
-        return v1, v2
-
-    def resid(x: np.ndarray) -> np.ndarray:
-        v1, v2 = split(x)
-        return np.linalg.norm(v1, axis=1) - np.linalg.norm(v2, axis=1)
-
-    def jac(x: np.ndarray) -> np.ndarray:
-        v1, v2 = split(x)
-        n1 = np.maximum(np.linalg.norm(v1, axis=1), _EPS)[:, None]
-        n2 = np.maximum(np.linalg.norm(v2, axis=1), _EPS)[:, None]
-        return np.hstack([-np.einsum("ni,nij->nj", v1 / n1, m1), np.einsum("ni,nij->nj", v2 / n2, m2)])
-
-    # MINPACK Levenberg-Marquardt: a 6-parameter problem; the trust-region solver's SVDs cost far more here
-    sol = least_squares(resid, np.full(6, 1e-3), jac=jac, method="lm", max_nfev=200)
+    # MINPACK Levenberg-Marquardt (a 6-parameter problem; the trust-region solver's SVDs cost far more here).
+    # The cost has mirrored local minima (a sensor->knee direction flipped), so a few seeded starts on a quarter of
+    # the samples, then the best one refined on all of them.
+    rng = np.random.default_rng(1)
+    starts = [np.full(6, 1e-3)] + [rng.uniform(-0.25, 0.25, 6) for _ in range(N_CENTRE_STARTS)]
+    sub = slice(None, None, 4) if a1.shape[0] >= 400 else slice(None)
+    args_sub = (a1[sub], m1[sub], a2[sub], m2[sub])
+    best = min((least_squares(_centre_resid, x0, jac=_centre_jac, args=args_sub, method="lm", max_nfev=200)
+                for x0 in starts), key=lambda r: r.cost)
+    sol = least_squares(_centre_resid, best.x, jac=_centre_jac, args=(a1, m1, a2, m2), method="lm", max_nfev=200)
     o1h, o2h = sol.x[:3], sol.x[3:]
     shift = (o1h @ j1 + o2h @ j2) / 2.0
     o1, o2 = o1h - j1 * shift, o2h - j2 * shift
-    r = resid(sol.x)
+    r = _centre_resid(sol.x, a1, m1, a2, m2)
     in_plane = min(np.linalg.norm(o1 - (o1 @ j1) * j1), np.linalg.norm(o2 - (o2 @ j2) * j2))
     return JointCentres(o1=o1, o2=o2, rms_residual_mps2=float(np.sqrt(np.mean(r ** 2))),
                         absolute=bool(in_plane > 0.03))
@@ -237,5 +249,8 @@ def accelerometer_angle_deg(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2:
     at2 = a2 - gamma_apply(g2, gd2, centres.o2)
     ang1 = np.arctan2(at1 @ y1, at1 @ x1)
     ang2 = np.arctan2(at2 @ y2, at2 @ x2)
-    d = np.angle(np.exp(1j * (ang2 - ang1)))
-    return np.rad2deg(d)
+    z = np.exp(1j * (ang2 - ang1))
+    # unwrapped around the circular mean so the angle never jumps by 360 deg whatever the frames' offset
+    ok = np.isfinite(z)
+    centre = float(np.angle(np.mean(z[ok]))) if ok.any() else 0.0
+    return np.rad2deg(centre + np.angle(z * np.exp(-1j * centre)))

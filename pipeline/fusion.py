@@ -8,7 +8,8 @@ the median of (accelerometer angle - GO) over the quiet samples of its stance (S
 The accelerometer angle's own zero is NOT taken from the joint-centre geometry: sensors sit a few cm anterior or
 posterior of the segment axis, which tilts the sensor->knee directions by 10-30 deg (seen on the real biomechZoo trial
 and in the simulator). Instead the zero is the quiet STANDING posture found in the session (both segments still,
-upright: gravity along the segments), assumed to be STANDING_KNEE_DEG of flexion (:func:`standing_reference`).
+upright: gravity along the segments as in walking stance), assumed to be STANDING_KNEE_DEG of flexion
+(:func:`standing_reference`).
 Healthy standing is 0-6 deg, so absolute values carry that uncertainty; a crouch gait still reads its true crouch.
 The per-stride offsets are smoothed with a running median over neighbouring strides (the accelerometer angle is
 noisy, the true minimum flexion changes slowly) and interpolated between stride centres so the trace is continuous.
@@ -21,7 +22,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.axes import joint_plane_frames
 from pipeline.estimators import LegData
 from pipeline.signal_utils import true_runs
 
@@ -63,26 +63,44 @@ STAND_MIN_S = 1.0
 UPRIGHT_DEG = 45.0
 
 
-def standing_reference(data: LegData, acc_angle_deg: np.ndarray, x1: np.ndarray, x2: np.ndarray,
-                       exclude: np.ndarray) -> float | None:
+def _stance_up_directions(data: LegData) -> list[np.ndarray] | None:
+    """Per segment, the mean direction of the specific force (pointing up) in the joint plane over the stance phases
+    of all strides: roughly the segment's proximal direction, since thigh and shank swing about the vertical in
+    stance. Needs no joint-centre geometry (whose sensor->knee directions can be off by tens of degrees)."""
+    strides = data.events.strides
+    if not strides:
+        return None
+    idx = np.concatenate([np.arange(a, t + 1) for a, t, _ in strides])
+    out = []
+    for acc, j in ((data.prep.acc_thigh_mps2, data.axes.j1), (data.prep.acc_shank_mps2, data.axes.j2)):
+        f = acc[idx] - np.outer(acc[idx] @ j, j)
+        f /= np.maximum(np.linalg.norm(f, axis=1, keepdims=True), 1e-9)
+        m = f.mean(axis=0)
+        if np.linalg.norm(m) < 0.5:  # no consistent direction: not gait-like stance
+            return None
+        out.append(m / np.linalg.norm(m))
+    return out
+
+
+def standing_reference(data: LegData, acc_angle_deg: np.ndarray, exclude: np.ndarray) -> float | None:
     """Accelerometer angle of quiet upright standing (median), or None when the session has none.
 
     Quiet: both segments slower than STAND_DPS for at least STAND_MIN_S, specific force within 10 % of g. Upright:
-    in each joint plane the specific force (pointing up) is within UPRIGHT_DEG of the segment's proximal direction
-    ``-x_i`` (the joint-centre frames are accurate enough to tell standing from sitting, not for the zero itself).
-    """
+    in each joint plane the specific force is within UPRIGHT_DEG of its mean stance direction during the session's
+    strides (:func:`_stance_up_directions`); sitting fails on the thigh (horizontal)."""
     prep = data.prep
+    ups = _stance_up_directions(data)
+    if ups is None:
+        return None
     fs = prep.fs_hz
     speed = np.rad2deg(np.maximum(np.linalg.norm(prep.gyr_thigh_rps, axis=1),
                                   np.linalg.norm(prep.gyr_shank_rps, axis=1)))
     g = 9.80665
     still = (speed < STAND_DPS) & prep.valid & ~exclude
-    for acc in (prep.acc_thigh_mps2, prep.acc_shank_mps2):
+    for acc, up, j in ((prep.acc_thigh_mps2, ups[0], data.axes.j1), (prep.acc_shank_mps2, ups[1], data.axes.j2)):
         still &= np.abs(np.linalg.norm(acc, axis=1) - g) < 0.1 * g
-    j1, j2 = data.axes.j1, data.axes.j2
-    for acc, x, j in ((prep.acc_thigh_mps2, x1, j1), (prep.acc_shank_mps2, x2, j2)):
-        y = np.cross(j, x)
-        ang = np.degrees(np.arctan2(acc @ y, acc @ (-x)))
+        y = np.cross(j, up)
+        ang = np.degrees(np.arctan2(acc @ y, acc @ up))
         still &= np.abs(ang) < UPRIGHT_DEG
     min_len = int(STAND_MIN_S * fs)
     keep = np.zeros_like(still)
@@ -128,10 +146,7 @@ def fuse(data: LegData, go_rel: np.ndarray, go_diag: dict, cf: np.ndarray) -> Fu
     ``data.events.strides``. Outside strides (standing, sitting, turning without strides) the CF estimate is used."""
     strides = data.events.strides
     n = go_rel.shape[0]
-    ref = None
-    if data.centres is not None:
-        x1, x2 = joint_plane_frames(data.centres, data.axes.j1, data.axes.j2)
-        ref = standing_reference(data, data.acc_angle_deg, x1, x2, _in_bouts(data))
+    ref = standing_reference(data, data.acc_angle_deg, _in_bouts(data))
     absolute_ok = ref is not None
     # acc - ref reads 0 when standing; standing itself is STANDING_KNEE_DEG of flexion
     ref_deg = ref - STANDING_KNEE_DEG if ref is not None else 0.0

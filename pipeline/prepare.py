@@ -22,7 +22,7 @@ GAP_FACTOR = 1.75
 MAX_BRIDGE_S = 0.15
 # A gyro axis pinned at its extreme value for this many samples in a row counts as saturated.
 SATURATION_RUN = 3
-SATURATION_MIN_DPS = 250.0
+SATURATION_MIN_DPS = 200.0
 
 
 @dataclass
