@@ -13,8 +13,10 @@ import pytest
 from sqlalchemy import select
 
 from pipeline.simulate import SimConfig, simulate_session
+from server import cli
+from server.config import Settings
 from server.db import make_engine, make_sessionmaker
-from server.models import Batch, Patient, Session, SessionSensor, Stride, Token
+from server.models import Batch, Clinician, Patient, Session, SessionSensor, Stride, Token
 from server.rawdata import content_sha256, encode_samples
 from tests.integration.conftest import gaitmon_command, server_env
 
@@ -61,22 +63,29 @@ def insert_simulated_session(url: str) -> str:
     return sid
 
 
-def test_tokens_from_the_command_line(tmp_path: Path, env: dict[str, str]) -> None:
-    res = run(["create-token", "--role", "clinician", "--name", "Dr Who", "--email", "who@example.org"], env,
-              tmp_path)
-    assert res.returncode == 0, res.stderr
-    token = res.stdout.strip().splitlines()[-1]
+def test_tokens_from_the_command_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    # In-process (the real-server walk runs these as subprocesses); the settings are the ones of a fresh machine.
+    settings = Settings(data_dir=tmp_path / "data")
+    monkeypatch.setattr(cli, "get_settings", lambda: settings)
+    assert cli.main(["create-token", "--role", "clinician", "--name", "Dr Who", "--email", "who@example.org"]) == 0
+    out, err = capsys.readouterr()
+    token = out.strip().splitlines()[-1]
     sm = make_sessionmaker(make_engine(db_url(tmp_path)))  # create-token migrated the fresh database itself
     with sm() as db:
         row = db.scalars(select(Token).where(Token.token_hash == hashlib.sha256(token.encode()).hexdigest())).one()
         assert row.role == "clinician" and row.clinician_id and row.revoked_at is None
+        assert db.get(Clinician, row.clinician_id).email == "who@example.org"
         token_id = row.id
-    assert token not in res.stderr  # shown once, on stdout only
-    assert run(["revoke-token", token_id], env, tmp_path).returncode == 0
+    assert token not in err and token_id in err  # the secret on stdout only; the id to revoke it on stderr
+    assert cli.main(["revoke-token", token_id]) == 0
     with sm() as db:
         assert db.get(Token, token_id).revoked_at is not None
-    assert run(["revoke-token", "0" * 32], env, tmp_path).returncode == 1
-    assert run(["create-token", "--role", "clinician"], env, tmp_path).returncode == 2  # needs --name
+    assert cli.main(["revoke-token", "0" * 32]) == 1
+    assert cli.main(["create-token", "--role", "clinician"]) == 2  # needs --name
+    assert cli.main(["create-token", "--role", "admin"]) == 0
+    with sm() as db:
+        assert db.scalars(select(Token.role).order_by(Token.created_at)).all() == ["clinician", "admin"]
     sm.kw["bind"].dispose()
 
 
