@@ -11,18 +11,33 @@
 * Once the axes are known, gyroscope and accelerometer signals are low-passed with a 4th-order zero-lag 7 Hz
   Butterworth.
 * Accelerometer measurement updates are skipped within +-5 % of the gait cycle around each foot strike (the filters
-  run on the gyroscope alone there).
+  run on the gyroscope alone there). Going further than the paper, the updates are limited to the same 40-80 %
+  windows (plus quiet standing): the joint centres are fitted there, so that is where the lever-arm correction and
+  hence the accelerometer angle are accurate; measured on the simulator, stance and terminal-swing updates pull the
+  level of the estimate by 3-10 deg (see bench/accuracy.py).
 
 Pure functions over arrays (sample indices on the leg's uniform grid).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.signal import butter, find_peaks, sosfiltfilt
 
+from pipeline.axes import (
+    accelerometer_angle_deg,
+    angular_acceleration,
+    fit_joint_axes,
+    fit_joint_centres,
+    orient_axes,
+    select_fit_samples,
+)
+from pipeline.estimators import LegData
+from pipeline.estimators.kf import quiet_mask
+from pipeline.phases import detect_gait_events
+from pipeline.prepare import PreparedLeg
 from pipeline.signal_utils import true_runs
 
 G_MPS2 = 9.80665
@@ -191,3 +206,128 @@ def lowpass_7hz(x: np.ndarray, fs_hz: float, valid: np.ndarray | None = None,
         if b - a > 3 * (2 * sos.shape[0] + 1):
             out[a:b] = sosfiltfilt(sos, x[a:b], axis=0)
     return out
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# One running leg, prepared for the estimators (called by pipeline.session instead of its walking path).
+
+SWING_PEAK_PHASE = (0.55, 0.9)  # running knee flexion peaks at ~70 % of the cycle (Novacheck 1998)
+
+
+def mean_cycle(x: np.ndarray, cycles: list[tuple[int, int]], n_points: int = 100) -> np.ndarray:
+    """Average of ``x`` over the gait cycles, each resampled to ``n_points`` and with its linear trend removed (so a
+    gyroscope integral's drift does not matter)."""
+    grid = np.linspace(0.0, 1.0, n_points)
+    rows = []
+    for a, b in cycles:
+        seg = x[a:b + 1]
+        if not np.isfinite(seg).all():
+            continue
+        seg = seg - np.linspace(seg[0], seg[-1], seg.size)
+        rows.append(np.interp(grid, np.linspace(0.0, 1.0, seg.size), seg))
+    return np.mean(rows, axis=0) if rows else np.full(n_points, np.nan)
+
+
+def thigh_axis_sign(j1: np.ndarray, j2: np.ndarray, g1_rps: np.ndarray, g2_rps: np.ndarray,
+                    cycles: list[tuple[int, int]], fs_hz: float) -> np.ndarray:
+    """The sign of ``j1`` for running, from the timing of the knee's flexion peak within the foot-strike cycle.
+
+    Eq. 2 fixes each axis only up to sign. With ``j2`` oriented (shank swing positive), the wrong ``j1`` turns the
+    knee angle ``theta_thigh - theta_shank`` into ``-(theta_thigh + theta_shank)``, which peaks at toe-off (~40 %,
+    both segments furthest back) instead of mid-swing (~70 %). The walking rule (thigh and shank rates correlated)
+    is unreliable in running, where the shank whips forward while the thigh is already braking."""
+    if len(cycles) < 3:
+        return j1
+    best, best_dist = j1, np.inf
+    for cand in (j1, -j1):
+        angle = np.cumsum(np.rad2deg(g1_rps @ cand - g2_rps @ j2)) / fs_hz
+        m = mean_cycle(angle, cycles)
+        if not np.isfinite(m).all():
+            return j1
+        phase = float(np.argmax(m)) / (m.size - 1)
+        inside = SWING_PEAK_PHASE[0] <= phase <= SWING_PEAK_PHASE[1]
+        dist = abs(phase - 0.7) - (1.0 if inside else 0.0)
+        if dist < best_dist:
+            best, best_dist = cand, dist
+    return best
+
+
+def filtered_leg(prep: PreparedLeg) -> PreparedLeg:
+    """The leg with gyroscopes and accelerometers through the 7 Hz zero-lag low-pass (Rhudy et al., Sect. 2.2.2)."""
+    def f(x: np.ndarray) -> np.ndarray:
+        return lowpass_7hz(x, prep.fs_hz, prep.valid)
+
+    return replace(prep, gyr_thigh_rps=f(prep.gyr_thigh_rps), gyr_shank_rps=f(prep.gyr_shank_rps),
+                   acc_thigh_mps2=f(prep.acc_thigh_mps2), acc_shank_mps2=f(prep.acc_shank_mps2))
+
+
+def build_running_leg_data(prep: PreparedLeg, cycles: RunningCycles | None = None) -> tuple[LegData, dict]:
+    """Rhudy et al.'s running flow (Fig. 3) for one leg: foot strikes from the unfiltered shank accelerometer ->
+    joint axes (Eq. 2) on 40-80 % of each gait cycle -> 7 Hz low-pass -> joint centres (Eq. 5) on the same windows ->
+    accelerometer angle (Eq. 6-7) -> impact mask for the filters' measurement updates.
+
+    Same outputs as :func:`pipeline.session.build_leg_data`; ``extras`` carries ``running_cycles`` and
+    ``acc_update_mask`` (True on the 40-80 % windows and quiet periods, never within +-5 % of a foot strike).
+    Falls back to the whole valid recording for the fits when fewer than 3 cycles are found."""
+    fs, valid, n = prep.fs_hz, prep.valid, prep.n
+    if cycles is None:
+        cycles = find_cycles(prep.acc_shank_mps2, fs, valid)
+    fit_mask = cycle_window_mask(cycles.cycles, n) & valid
+    if fit_mask.sum() < 3 * fs or cycles.n_cycles < 3:
+        fit_mask = valid.copy()
+    axes = fit_joint_axes(prep.gyr_thigh_rps, prep.gyr_shank_rps, fit_mask)
+    # the sign convention needs whole strides (within 40-80 % thigh and shank may rotate in opposite senses)
+    axes.j1, axes.j2 = orient_axes(axes.j1, axes.j2, prep.gyr_thigh_rps[valid], prep.gyr_shank_rps[valid])
+    axes.j1 = thigh_axis_sign(axes.j1, axes.j2, prep.gyr_thigh_rps, prep.gyr_shank_rps, cycles.cycles, fs)
+    filt = filtered_leg(prep)
+    g1, g2 = filt.gyr_thigh_rps, filt.gyr_shank_rps
+    rate = np.rad2deg(g1 @ axes.j1 - g2 @ axes.j2)
+    shank_sag = np.rad2deg(g2 @ axes.j2)
+    rate[~valid] = np.nan
+    shank_sag[~valid] = np.nan
+    events = detect_gait_events(shank_sag, fs, valid, shank_acc_mps2=prep.acc_shank_mps2)
+    a1, a2 = filt.acc_thigh_mps2, filt.acc_shank_mps2
+    gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)
+    idx = select_fit_samples(g1, g2, fit_mask)
+    centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], axes.j1, axes.j2)
+    acc_angle = accelerometer_angle_deg(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, centres)
+    acc_angle[~valid] = np.nan
+    impacts = impact_mask(cycles.strikes, n, fs, stride_s=cycles.stride_s)
+    update = (fit_mask | quiet_mask(prep)) & ~impacts
+    data = LegData(prep=filt, axes=axes, centres=centres, rate_dps=rate, acc_angle_deg=acc_angle,
+                   shank_sag_dps=shank_sag, events=events, activity="running",
+                   extras={"acc_update_mask": update, "running_cycles": cycles.cycles})
+    info = {"j1": np.round(axes.j1, 4).tolist(), "j2": np.round(axes.j2, 4).tolist(),
+            "axis_rms_residual_dps": round(axes.rms_residual_dps, 2), "axis_fit_samples": axes.n_samples,
+            "o1_m": np.round(centres.o1, 4).tolist(), "o2_m": np.round(centres.o2, 4).tolist(),
+            "centre_rms_residual_mps2": round(centres.rms_residual_mps2, 3),
+            "bouts": int(events.bout.max() + 1) if events.bout.size else 0, "bridged_gaps": prep.bridged_gaps,
+            "running": {"foot_strikes": int(cycles.strikes.size), "cycles": cycles.n_cycles,
+                        "stride_s": None if np.isnan(cycles.stride_s) else round(cycles.stride_s, 3),
+                        "impact_g": round(cycles.impact_g, 2),
+                        "impact_masked_pct": round(100 * float(impacts.mean()), 1),
+                        "acc_update_pct": round(100 * float(update.mean()), 1)}}
+    return data, info
+
+
+def detect_running(prep: PreparedLeg) -> RunningCycles | None:
+    """The leg's gait cycles when the recording looks like running (cadence and impacts), else None: for sessions
+    declared ``unknown``."""
+    cycles = find_cycles(prep.acc_shank_mps2, prep.fs_hz, prep.valid)
+    return cycles if looks_like_running(cycles) else None
+
+
+def running_auto(data: LegData) -> tuple[np.ndarray, np.ndarray, list[tuple[str, float, tuple[str, ...]]], dict]:
+    """The ``auto`` policy for running legs: the KF (Rhudy et al. 2024 found KF and CF best, 2.7-3.6 deg; here the KF
+    gets the impact-free 40-80 % updates, quiet-standing anchoring and automatic tuning of
+    :mod:`pipeline.estimators.kf`). GO's zero-angle update does not apply: a running knee never straightens
+    (minimum ~15-25 deg). Returns angle, per-sample estimator names, one ``(estimator, quality, reasons)`` per
+    gait-event stride, and diagnostics."""
+    from pipeline.estimators.kf import acc_zero_deg, kf_leg
+
+    angle = kf_leg(data)
+    labels = np.where(np.isfinite(angle), "kf", "").astype(str)
+    reasons: tuple[str, ...] = () if acc_zero_deg(data) != 0.0 else ("no_absolute_reference",)
+    quality = 0.8 if reasons else 1.0
+    choices = [("kf", quality, reasons) for _ in data.events.strides]
+    return angle, labels, choices, {"kf_tuning": data.extras.get("kf_tuning")}

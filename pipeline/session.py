@@ -26,6 +26,7 @@ from pipeline.fusion import fuse
 from pipeline.metrics import stride_values
 from pipeline.phases import detect_gait_events
 from pipeline.prepare import PreparedLeg, prepare_leg
+from pipeline.running import build_running_leg_data, detect_running, running_auto
 from pipeline.signal_utils import lowpass_runs
 from pipeline.types import LegResult, RawSensorStream, SessionResult, StrideMetrics
 
@@ -115,9 +116,16 @@ def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activi
         raise ValueError("less than one second of usable samples")
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore", RuntimeWarning)
-        data, info = build_leg_data(prep, activity)
+        cycles = detect_running(prep) if activity == "unknown" else None
+        if activity == "running" or cycles is not None:
+            data, info = build_running_leg_data(prep, cycles)
+        else:
+            data, info = build_leg_data(prep, activity)
         strides = data.events.strides
-        if estimator == "auto":
+        if estimator == "auto" and data.activity == "running":
+            angle, labels, choices, auto_info = running_auto(data)
+            info.update(auto_info)
+        elif estimator == "auto":
             go_rel, diag = go_relative(data)
             data.extras["go"] = diag
             cf = complementary_filter(data.rate_dps, data.acc_angle_deg, prep.fs_hz, prep.valid)

@@ -21,7 +21,21 @@ import math
 
 import numpy as np
 
-from pipeline.estimators.kf import DEFAULT_R_DEG2, DEFAULT_TAU_S, interval_rate, q_for_time_constant
+from pipeline.axes import angular_acceleration, gamma_apply, joint_plane_frames
+from pipeline.estimators import LegData, register
+from pipeline.estimators.kf import (
+    DEFAULT_R_DEG2,
+    DEFAULT_TAU_S,
+    QUIET_R_SCALE,
+    acc_zero_deg,
+    debiased_rate,
+    interval_rate,
+    leg_update_mask,
+    q_for_time_constant,
+    quiet_mask,
+    run_per_segment,
+)
+from pipeline.signal_utils import lowpass_runs
 
 G_MPS2 = 9.80665
 DEG2_TO_RAD2 = math.radians(1.0) ** 2
@@ -31,14 +45,15 @@ DEFAULT_R_MPS2_SQ = DEFAULT_R_DEG2 * DEG2_TO_RAD2 * G_MPS2**2
 def ekf_angle(rate_dps: np.ndarray, acc_a_plane_mps2: np.ndarray, acc_b_plane_mps2: np.ndarray,
               fs_hz: float, *, tau_s: float = DEFAULT_TAU_S, r_x_mps2_sq: float = DEFAULT_R_MPS2_SQ,
               r_y_mps2_sq: float | None = None, update_mask: np.ndarray | None = None,
-              x0_deg: float | None = None, p0_deg2: float | None = None) -> np.ndarray:
+              x0_deg: float | None = None, p0_deg2: float | None = None,
+              r_scale: np.ndarray | None = None) -> np.ndarray:
     """Knee flexion (deg) by the EKF of Rhudy et al. Eq. 22-24.
 
     ``acc_*_plane_mps2`` are (N, 2): the lever-arm-corrected accelerations projected on each segment's joint-plane
     axes ``(x_i, y_i)`` of Eq. 7, with ``b = Rot(alpha) a``. ``tau_s`` sets Q as in the KF, with R's angle
     equivalent ``r_x / g^2``. ``update_mask`` False skips the measurement update (impacts, NaN samples).
     Without ``x0_deg`` the state starts at the accelerometer angle of the first usable sample (variance
-    ``DEFAULT_R_DEG2``)."""
+    ``DEFAULT_R_DEG2``). ``r_scale`` (per sample) multiplies R, as in :func:`pipeline.estimators.kf.kf_angle`."""
     rate = interval_rate(np.asarray(rate_dps, dtype=float))
     a1 = np.asarray(acc_a_plane_mps2, dtype=float).reshape(-1, 2)
     a2 = np.asarray(acc_b_plane_mps2, dtype=float).reshape(-1, 2)
@@ -66,6 +81,7 @@ def ekf_angle(rate_dps: np.ndarray, acc_a_plane_mps2: np.ndarray, acc_b_plane_mp
     p = DEG2_TO_RAD2 * (DEFAULT_R_DEG2 if p0_deg2 is None else p0_deg2)
     du = (np.radians(rate) * dt).tolist()
     mask_l = mask.tolist()
+    scale_l = np.ones(n).tolist() if r_scale is None else np.broadcast_to(np.asarray(r_scale, float), (n,)).tolist()
     s1x, s1y = a1[:, 0].tolist(), a1[:, 1].tolist()
     t2x, t2y = a2[:, 0].tolist(), a2[:, 1].tolist()
     out = [0.0] * n
@@ -81,7 +97,8 @@ def ekf_angle(rate_dps: np.ndarray, acc_a_plane_mps2: np.ndarray, acc_b_plane_mp
             hx, hy = c * ax - s * ay, s * ax + c * ay
             jx, jy = -s * ax - c * ay, c * ax - s * ay
             # S = H P H^T + R (2x2), K = P H^T S^-1 (1x2)
-            s11, s12, s22 = p * jx * jx + rx, p * jx * jy, p * jy * jy + ry
+            sc = scale_l[k]
+            s11, s12, s22 = p * jx * jx + rx * sc, p * jx * jy, p * jy * jy + ry * sc
             det = s11 * s22 - s12 * s12
             kx = p * (jx * s22 - jy * s12) / det
             ky = p * (jy * s11 - jx * s12) / det
@@ -89,3 +106,54 @@ def ekf_angle(rate_dps: np.ndarray, acc_a_plane_mps2: np.ndarray, acc_b_plane_mp
             p *= 1.0 - (kx * jx + ky * jy)
         out[k] = x
     return np.degrees(np.asarray(out))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The registered estimator.
+
+def plane_accelerations(data: LegData) -> tuple[np.ndarray, np.ndarray]:
+    """Lever-arm-corrected accelerations (Eq. 6) of thigh and shank in their joint-plane frames (Eq. 7), (N, 2)
+    each, filtered as for the leg's accelerometer angle (running legs come already 7 Hz filtered)."""
+    from pipeline.session import FIT_CUTOFF_HZ  # lazy: the session module imports the registry
+
+    prep, fs = data.prep, data.fs_hz
+    if data.extras.get("running_cycles") is not None:
+        g1, g2, a1, a2 = prep.gyr_thigh_rps, prep.gyr_shank_rps, prep.acc_thigh_mps2, prep.acc_shank_mps2
+    else:
+        g1, g2, a1, a2 = (np.nan_to_num(lowpass_runs(x, prep.valid, FIT_CUTOFF_HZ, fs)) for x in (
+            prep.gyr_thigh_rps, prep.gyr_shank_rps, prep.acc_thigh_mps2, prep.acc_shank_mps2))
+    centres = data.centres
+    if centres is None:
+        raise ValueError("the EKF needs joint centres")
+    j1, j2 = data.axes.j1, data.axes.j2
+    x1, x2 = joint_plane_frames(centres, j1, j2)
+    y1, y2 = np.cross(j1, x1), np.cross(j2, x2)
+    at1 = a1 - gamma_apply(g1, angular_acceleration(g1, fs), centres.o1)
+    at2 = a2 - gamma_apply(g2, angular_acceleration(g2, fs), centres.o2)
+    return np.column_stack([at1 @ x1, at1 @ y1]), np.column_stack([at2 @ x2, at2 @ y2])
+
+
+def ekf_leg(data: LegData, tau_s: float | None = None) -> np.ndarray:
+    """EKF knee angle of one leg, with the KF's inputs (de-biased rate, update mask, quiet-standing weighting, zero
+    from standing) and its automatically tuned time constant unless ``tau_s`` is given."""
+    from pipeline.tuning import tune_time_constant
+
+    rate = debiased_rate(data)
+    mask = leg_update_mask(data)
+    r_scale = np.where(quiet_mask(data.prep), QUIET_R_SCALE, 1.0)
+    zero = math.radians(acc_zero_deg(data))
+    thigh, shank = plane_accelerations(data)
+    # b = Rot(alpha + zero) a  ->  b = Rot(alpha) (Rot(zero) a): the standing zero moves into the thigh vector
+    c, s = math.cos(zero), math.sin(zero)
+    thigh = np.column_stack([c * thigh[:, 0] - s * thigh[:, 1], s * thigh[:, 0] + c * thigh[:, 1]])
+    fs = data.fs_hz
+    if tau_s is None:
+        tau_s, diag = tune_time_constant(data)
+        data.extras["ekf_tuning"] = diag
+    return run_per_segment(data, lambda a, b: ekf_angle(rate[a:b], thigh[a:b], shank[a:b], fs, tau_s=float(tau_s),
+                                                        update_mask=mask[a:b], r_scale=r_scale[a:b]))
+
+
+@register("ekf")
+def ekf_estimator(data: LegData) -> np.ndarray:
+    return ekf_leg(data)

@@ -17,9 +17,12 @@ Eq. 10-12 loop, kept as the reference the tests compare against.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
+from pipeline.estimators import LegData, register
+from pipeline.prepare import G_MPS2, PreparedLeg
 from pipeline.signal_utils import true_runs
 
 # Defaults: the steady-state fusion time constant is 2 s: long against a stride (~0.7 s running, ~1.1 s walking),
@@ -107,20 +110,26 @@ def _update_run_gains(p_pred0: float, n: int, q: float, r: float) -> tuple[np.nd
     return gains, float(p_pred[-1] * r / (p_pred[-1] + r))
 
 
-def kf_gains(update_mask: np.ndarray, q: float, r: float, p0: float) -> np.ndarray:
+def kf_gains(update_mask: np.ndarray, q: float, r: float | np.ndarray, p0: float) -> np.ndarray:
     """Kalman gain per sample (0 where no update) for the scalar random-walk model, Eq. 10-12 with F = H = 1.
 
-    ``p0`` is the variance of the initial state before the first update; each sample after the first adds ``q``."""
+    ``r`` may vary per sample (piecewise constant: each run of equal ``r`` is solved in closed form). ``p0`` is the
+    variance of the initial state before the first update; each sample after the first adds ``q``."""
     mask = np.asarray(update_mask, dtype=bool)
-    gains = np.zeros(mask.shape[0])
-    p_post = p0 - q  # so that the first prediction yields p0
-    prev_stop = 0
-    for start, stop in true_runs(mask):
-        p_pred = p_post + q * (start - prev_stop + 1)  # predictions through the skipped samples
-        if start == 0:
-            p_pred = p0
-        gains[start:stop], p_post = _update_run_gains(p_pred, stop - start, q, r)
-        prev_stop = stop
+    n = mask.shape[0]
+    r_arr = np.broadcast_to(np.asarray(r, dtype=float), (n,))
+    gains = np.zeros(n)
+    if n == 0:
+        return gains
+    change = np.flatnonzero((mask[1:] != mask[:-1]) | (r_arr[1:] != r_arr[:-1])) + 1
+    bounds = np.concatenate(([0], change, [n])).tolist()
+    p_pred = float(p0)  # predicted variance at the first sample of the current run
+    for start, stop in zip(bounds[:-1], bounds[1:], strict=True):
+        if mask[start]:
+            gains[start:stop], p_post = _update_run_gains(p_pred, stop - start, q, float(r_arr[start]))
+            p_pred = p_post + q
+        else:
+            p_pred += q * (stop - start)
     return gains
 
 
@@ -136,14 +145,15 @@ def _start_from_measurement(z: np.ndarray, mask: np.ndarray, rate_dps: np.ndarra
 def kf_angle(rate_dps: np.ndarray, acc_angle_deg: np.ndarray, fs_hz: float, *,
              tau_s: float = DEFAULT_TAU_S, r_deg2: float = DEFAULT_R_DEG2,
              update_mask: np.ndarray | None = None, x0_deg: float | None = None,
-             p0_deg2: float | None = None) -> np.ndarray:
+             p0_deg2: float | None = None, r_scale: np.ndarray | None = None) -> np.ndarray:
     """Knee flexion (deg) by the KF of Rhudy et al. Eq. 18-21.
 
     ``rate_dps``: relative angular rate about the joint axis (``g1.j1 - g2.j2``), ``acc_angle_deg``: the
     accelerometer angle (Eq. 7), ``update_mask``: where the accelerometer angle may update the state (False around
     foot strikes and where it is NaN). Initialisation needs no motion capture: ``x0_deg`` (e.g. the angle of a
     standing period) with variance ``p0_deg2``; without it the filter starts from the first usable accelerometer
-    angle with variance R."""
+    angle with variance R. ``r_scale`` (per sample, default 1) multiplies R: the accelerometer angle is far more
+    trustworthy while the leg is still (no segment accelerations) than in motion; Q stays set by ``tau_s``."""
     rate = np.asarray(rate_dps, dtype=float)
     z = np.asarray(acc_angle_deg, dtype=float)
     n = rate.shape[0]
@@ -157,7 +167,7 @@ def kf_angle(rate_dps: np.ndarray, acc_angle_deg: np.ndarray, fs_hz: float, *,
     if x0_deg is None:
         x0_deg, p0_deg2 = _start_from_measurement(z, mask, rate, dt), r
     p0 = r if p0_deg2 is None else float(p0_deg2)
-    gains = kf_gains(mask, q, r, p0)
+    gains = kf_gains(mask, q, r if r_scale is None else r * np.asarray(r_scale, dtype=float), p0)
     u = interval_rate(rate)
     # x_k = (1-K_k) (x_{k-1} + dt u_{k-1}) + K_k z_k ; the sample-0 "prediction" is the initial state itself.
     drive = np.empty(n)
@@ -172,7 +182,7 @@ def kf_angle(rate_dps: np.ndarray, acc_angle_deg: np.ndarray, fs_hz: float, *,
 def kf_angle_loop(rate_dps: np.ndarray, acc_angle_deg: np.ndarray, fs_hz: float, *,
                   tau_s: float = DEFAULT_TAU_S, r_deg2: float = DEFAULT_R_DEG2,
                   update_mask: np.ndarray | None = None, x0_deg: float | None = None,
-                  p0_deg2: float | None = None) -> np.ndarray:
+                  p0_deg2: float | None = None, r_scale: np.ndarray | None = None) -> np.ndarray:
     """The same filter written literally as Eq. 10-12 (slow; the reference for :func:`kf_angle`)."""
     rate = np.asarray(rate_dps, dtype=float)
     z = np.asarray(acc_angle_deg, dtype=float)
@@ -183,6 +193,7 @@ def kf_angle_loop(rate_dps: np.ndarray, acc_angle_deg: np.ndarray, fs_hz: float,
     if x0_deg is None:
         x0_deg, p0_deg2 = _start_from_measurement(z, mask, rate, dt), r
     u = interval_rate(rate)
+    r_k = np.broadcast_to(r if r_scale is None else r * np.asarray(r_scale, dtype=float), (n,))
     x, p = float(x0_deg), (r if p0_deg2 is None else float(p0_deg2))
     out = np.empty(n)
     for k in range(n):
@@ -190,8 +201,170 @@ def kf_angle_loop(rate_dps: np.ndarray, acc_angle_deg: np.ndarray, fs_hz: float,
             x = x + dt * u[k - 1]  # Eq. 10 with F = 1, G = dt
             p = p + q
         if mask[k]:
-            gain = p / (p + r)  # Eq. 11, H = 1
+            gain = p / (p + r_k[k])  # Eq. 11, H = 1
             x = x + gain * (z[k] - x)  # Eq. 12
             p = (1.0 - gain) * p
         out[k] = x
     return out
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The registered estimator: one prepared leg in, knee flexion out.
+
+def stride_bias_dps(rate_dps: np.ndarray, strides: list[tuple[int, int]], smooth: int = 15) -> np.ndarray | None:
+    """Gyroscope bias of the knee rate per sample, from the periodicity of gait: over one stride the knee returns to
+    its starting angle, so ``integral(rate) / duration`` of a stride is the bias (plus the small stride-to-stride
+    change of the angle). Strides far from the session median (gait initiation and termination, where the knee does
+    change its angle over the stride) are dropped; the rest are smoothed by a running median over ``smooth`` strides
+    and interpolated, held constant beyond the first and last. None without strides.
+
+    The KF's random-walk model assumes zero-mean gyro errors; a bias would otherwise leave a steady offset of
+    ``bias * tau`` (several degrees at 1 deg/s)."""
+    vals, centres = [], []
+    for a, b in strides:
+        r = rate_dps[a:b + 1]
+        if b - a < 2 or not np.isfinite(r).all():
+            continue
+        vals.append(float(np.trapezoid(r) / (b - a)))
+        centres.append(0.5 * (a + b))
+    if not vals:
+        return None
+    v, c = np.asarray(vals), np.asarray(centres)
+    med = float(np.median(v))
+    spread = max(3.0 * 1.4826 * float(np.median(np.abs(v - med))), 1.0)
+    keep = np.abs(v - med) <= spread
+    v, c = v[keep], c[keep]
+    half = smooth // 2
+    padded = np.pad(v, half, constant_values=np.nan)
+    sm = np.nanmedian(np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1), axis=1)
+    return np.interp(np.arange(rate_dps.shape[0]), c, sm)
+
+
+QUIET_DPS = 15.0
+QUIET_MIN_S = 0.5
+QUIET_R_SCALE = 0.01
+
+
+def quiet_mask(prep: PreparedLeg) -> np.ndarray:
+    """Samples where both segments are still (slower than QUIET_DPS, specific force within 10 % of g) for at least
+    QUIET_MIN_S: there the accelerometer angle sees gravity only and is accurate to a degree or two."""
+    speed = np.rad2deg(np.maximum(np.linalg.norm(prep.gyr_thigh_rps, axis=1),
+                                  np.linalg.norm(prep.gyr_shank_rps, axis=1)))
+    still = (speed < QUIET_DPS) & prep.valid
+    for acc in (prep.acc_thigh_mps2, prep.acc_shank_mps2):
+        still &= np.abs(np.linalg.norm(acc, axis=1) - G_MPS2) < 0.1 * G_MPS2
+    out = np.zeros(prep.n, dtype=bool)
+    for a, b in true_runs(still):
+        if b - a >= QUIET_MIN_S * prep.fs_hz:
+            out[a:b] = True
+    return out
+
+
+def leg_update_mask(data: LegData) -> np.ndarray:
+    """Where the accelerometer may update the filters: valid samples with a finite accelerometer angle, restricted
+    by ``extras["acc_update_mask"]`` when :mod:`pipeline.running` set one (running: 40-80 % of each cycle and quiet
+    periods)."""
+    mask = data.prep.valid & np.isfinite(data.acc_angle_deg)
+    extra = data.extras.get("acc_update_mask")
+    return mask & np.asarray(extra, dtype=bool) if extra is not None else mask
+
+
+def leg_strides(data: LegData) -> list[tuple[int, int]]:
+    """Stride intervals: running's foot-strike cycles when present, else the gait-event strides."""
+    cycles = data.extras.get("running_cycles")
+    if cycles:
+        return [(int(a), int(b)) for a, b in cycles]
+    return [(a, b) for a, _, b in data.events.strides]
+
+
+UPRIGHT_DEG = 45.0  # sitting puts the thigh ~90 deg off; running leaves the shank ~30 deg off on average
+
+
+def gait_gravity_directions(data: LegData) -> tuple[np.ndarray, np.ndarray] | None:
+    """Unit vectors of the mean specific force in the thigh and shank frames over the strides: during gait both
+    segments swing about the vertical, so these are close to each segment's long axis (pointing up)."""
+    strides = leg_strides(data)
+    if not strides:
+        return None
+    sel = np.zeros(data.prep.n, dtype=bool)
+    for a, b in strides:
+        sel[a:b] = True
+    sel &= data.prep.valid
+    out = []
+    for acc in (data.prep.acc_thigh_mps2, data.prep.acc_shank_mps2):
+        m = acc[sel].mean(axis=0)
+        norm = float(np.linalg.norm(m))
+        if norm < 0.5 * G_MPS2:
+            return None
+        out.append(m / norm)
+    return out[0], out[1]
+
+
+def standing_mask(data: LegData) -> np.ndarray:
+    """Quiet samples (:func:`quiet_mask`) with both segments upright: the specific force within UPRIGHT_DEG of its
+    mean direction during gait. Tells standing from sitting and lying without the joint-centre geometry."""
+    quiet = quiet_mask(data.prep)
+    dirs = gait_gravity_directions(data)
+    if dirs is None or not quiet.any():
+        return np.zeros_like(quiet)
+    cos_lim = math.cos(math.radians(UPRIGHT_DEG))
+    for acc, u in zip((data.prep.acc_thigh_mps2, data.prep.acc_shank_mps2), dirs, strict=True):
+        norm = np.maximum(np.linalg.norm(acc, axis=1), 1e-9)
+        quiet &= (acc @ u) / norm > cos_lim
+    return quiet
+
+
+def acc_zero_deg(data: LegData) -> float:
+    """Accelerometer-angle reading of a straight knee: the median accelerometer angle of quiet upright standing
+    minus the standing knee flexion the ``auto`` policy assumes (:data:`pipeline.fusion.STANDING_KNEE_DEG`). The
+    joint-centre geometry alone leaves a 10-40 deg offset. 0 without standing (the angle is taken as it is)."""
+    from pipeline.fusion import STANDING_KNEE_DEG
+
+    stand = standing_mask(data) & np.isfinite(data.acc_angle_deg)
+    if stand.sum() < data.fs_hz:
+        return 0.0
+    return float(np.median(data.acc_angle_deg[stand]) - STANDING_KNEE_DEG)
+
+
+def debiased_rate(data: LegData) -> np.ndarray:
+    rate = np.asarray(data.rate_dps, dtype=float)
+    bias = stride_bias_dps(rate, leg_strides(data))
+    return rate if bias is None else rate - bias
+
+
+def run_per_segment(data: LegData, fn: Callable[[int, int], np.ndarray]) -> np.ndarray:
+    """``fn(a, b)`` on each valid run ``[a, b)`` of the leg (the filters restart after a masked gap), NaN elsewhere."""
+    ok = data.prep.valid & np.isfinite(data.rate_dps)
+    out = np.full(ok.shape[0], np.nan)
+    for a, b in true_runs(ok):
+        if b - a >= 2:
+            out[a:b] = fn(a, b)
+    return out
+
+
+def kf_leg(data: LegData, tau_s: float | None = None) -> np.ndarray:
+    """KF knee angle of one leg: de-biased rate, impact-masked accelerometer angle, time constant from
+    :func:`pipeline.tuning.tune_time_constant` unless given, restarted on every valid run."""
+    from pipeline.tuning import tune_time_constant
+
+    rate = debiased_rate(data)
+    mask = leg_update_mask(data)
+    quiet = quiet_mask(data.prep)
+    r_scale = np.where(quiet, QUIET_R_SCALE, 1.0)
+    zero = acc_zero_deg(data)
+    z = np.asarray(data.acc_angle_deg, dtype=float) - zero
+    fs = data.fs_hz
+
+    def run(t: float) -> np.ndarray:
+        return run_per_segment(data, lambda a, b: kf_angle(rate[a:b], z[a:b], fs, tau_s=t, update_mask=mask[a:b],
+                                                           r_scale=r_scale[a:b]))
+
+    if tau_s is None:
+        tau_s, diag = tune_time_constant(data)
+        data.extras["kf_tuning"] = {**diag, "acc_zero_deg": round(zero, 2)}
+    return run(float(tau_s))
+
+
+@register("kf")
+def kf_estimator(data: LegData) -> np.ndarray:
+    return kf_leg(data)

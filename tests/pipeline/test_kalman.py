@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pipeline.estimators import available
 from pipeline.estimators.ekf import ekf_angle
 from pipeline.estimators.kf import (
     kf_angle,
@@ -12,6 +13,7 @@ from pipeline.estimators.kf import (
     kf_gains,
     linear_recursion,
     q_for_time_constant,
+    stride_bias_dps,
     time_constant_for_q,
 )
 
@@ -61,6 +63,33 @@ def test_gain_closed_form_matches_riccati_loop() -> None:
             ref[k] = p / (p + r)
             p *= 1 - ref[k]
     np.testing.assert_allclose(gains, ref, rtol=1e-10, atol=1e-14)
+
+
+def test_time_varying_r_matches_literal_equations() -> None:
+    rng = np.random.default_rng(6)
+    n = 4000
+    _, angle, rate = _knee(n)
+    z = angle + rng.normal(0, 5, n)
+    scale = np.where((np.arange(n) // 700) % 2 == 0, 0.01, 1.0)  # alternating quiet and dynamic stretches
+    mask = (np.arange(n) % 140) > 14
+    fast = kf_angle(rate, z, FS, tau_s=2.0, update_mask=mask, r_scale=scale)
+    slow = kf_angle_loop(rate, z, FS, tau_s=2.0, update_mask=mask, r_scale=scale)
+    np.testing.assert_allclose(fast, slow, atol=1e-8)
+
+
+def test_stride_bias_is_the_mean_rate_over_whole_strides() -> None:
+    n = int(30 * FS)
+    _, _, rate = _knee(n)
+    period = int(5 * FS)  # exactly 7 cycles of the 1.4 Hz knee
+    strides = [(k, k + period) for k in range(0, n - period, period)]
+    bias = stride_bias_dps(rate + 1.7, strides)
+    assert bias is not None
+    assert np.allclose(bias, 1.7, atol=0.05)
+    assert stride_bias_dps(rate, []) is None
+
+
+def test_kf_and_ekf_are_registered() -> None:
+    assert {"kf", "ekf", "go", "cf"} <= set(available())
 
 
 def test_time_constant_mapping_round_trips() -> None:

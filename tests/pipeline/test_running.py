@@ -5,8 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pipeline.estimators.kf import kf_leg
+from pipeline.prepare import prepare_leg
 from pipeline.running import (
     G_MPS2,
+    build_running_leg_data,
     cycle_window_mask,
     detect_foot_strikes,
     find_cycles,
@@ -14,7 +17,10 @@ from pipeline.running import (
     impact_mask,
     looks_like_running,
     lowpass_7hz,
+    thigh_axis_sign,
 )
+from pipeline.session import process_session
+from pipeline.simulate import SimConfig, SimSession, simulate_session
 
 FS = 200.0
 
@@ -107,12 +113,14 @@ def test_lowpass_is_zero_lag_and_respects_gaps() -> None:
     assert np.abs(y[:1000]).max() < 2
 
 
-def test_real_simulated_running_strikes() -> None:
-    """On the project simulator's running pattern (impacts weaker than the swing whip in raw magnitude)."""
-    from pipeline.prepare import prepare_leg
-    from pipeline.simulate import SimConfig, simulate_session
+@pytest.fixture(scope="module")
+def running_sim() -> SimSession:
+    return simulate_session(SimConfig(pattern="running", fs_hz=FS, seed=3, n_strides=40, legs=("left",)))
 
-    sim = simulate_session(SimConfig(pattern="running", fs_hz=FS, seed=3, n_strides=20, legs=("left",)))
+
+def test_simulated_running_strikes(running_sim: SimSession) -> None:
+    """On the project simulator's running pattern (impacts weaker than the swing whip in raw magnitude)."""
+    sim = running_sim
     by = {s.segment: s for s in sim.streams}
     prep = prepare_leg("left", by["thigh"], by["shank"])
     cycles = find_cycles(prep.acc_shank_mps2, prep.fs_hz, prep.valid)
@@ -122,3 +130,52 @@ def test_real_simulated_running_strikes() -> None:
     assert found.size >= truth.size - 2
     assert np.median(err) < 0.03
     assert looks_like_running(cycles)
+
+
+def test_running_session_auto_uses_the_kalman_filter(running_sim: SimSession) -> None:
+    """Target: RMSE <= 3.5 deg and peak swing flexion within a few degrees, without any reference-based tuning."""
+    sim = running_sim
+    res = process_session(sim.streams, activity="running")
+    leg = res.legs["left"]
+    assert leg.strides and {s.estimator for s in leg.strides} == {"kf"}
+    truth = sim.truth["left"]
+    inside = np.zeros(leg.t_s.size, dtype=bool)
+    for a, b in truth.bouts_s:
+        inside |= (leg.t_s >= a) & (leg.t_s <= b)
+    err = (leg.angle_deg - truth.angle_at(leg.t_s))[inside & np.isfinite(leg.angle_deg)]
+    assert float(np.sqrt(np.mean(err ** 2))) <= 3.5
+    peaks = np.array([s.peak_swing_flexion_deg for s in leg.strides])
+    true_peaks = np.array([s.peak_swing_flexion_deg for s in truth.strides if s.steady])
+    assert abs(float(np.median(peaks)) - float(np.median(true_peaks))) <= 3.0
+    assert 85.0 <= float(np.median(peaks)) <= 125.0
+
+
+def test_unknown_activity_is_detected_as_running(running_sim: SimSession) -> None:
+    res = process_session(running_sim.streams, activity="unknown")
+    assert res.legs["left"].strides[0].estimator == "kf"
+    assert "running" in res.legs["left"].info
+
+
+def test_thigh_axis_sign_is_recovered_from_the_swing_peak(running_sim: SimSession) -> None:
+    by = {s.segment: s for s in running_sim.streams}
+    prep = prepare_leg("left", by["thigh"], by["shank"])
+    data, _ = build_running_leg_data(prep)
+    cycles = data.extras["running_cycles"]
+    j1, j2 = data.axes.j1, data.axes.j2
+    for start in (j1, -j1):
+        got = thigh_axis_sign(start, j2, prep.gyr_thigh_rps, prep.gyr_shank_rps, cycles, prep.fs_hz)
+        np.testing.assert_allclose(got, j1)
+
+
+def test_kf_update_mask_skips_impacts_and_keeps_swing_windows(running_sim: SimSession) -> None:
+    by = {s.segment: s for s in running_sim.streams}
+    prep = prepare_leg("left", by["thigh"], by["shank"])
+    data, info = build_running_leg_data(prep)
+    update = data.extras["acc_update_mask"]
+    strikes = find_cycles(prep.acc_shank_mps2, prep.fs_hz, prep.valid).strikes
+    assert not update[strikes].any()
+    a, b = data.extras["running_cycles"][5]
+    assert update[a + int(0.6 * (b - a))]
+    assert info["running"]["acc_update_pct"] < 60
+    angle = kf_leg(data, tau_s=0.5)
+    assert np.isfinite(angle[prep.valid]).mean() > 0.95
