@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
-from sqlalchemy import and_, case, func, select
+from sqlalchemy import case, func, select
 from sqlalchemy.orm import Session as DbSession
 
 from server.models import Patient, Session
@@ -50,21 +50,35 @@ def _r(x: float | None, nd: int = 3) -> float | None:
     return None if x is None else round(float(x), nd)
 
 
-def _window_moments(m: type[TrendMetricValues], lo: datetime, hi: datetime) -> list[Any]:
-    inside = and_(m.started_at >= lo, m.started_at < hi)
+def _interval_moments(db: DbSession, owned: list[Any], metric: str, edges: list[datetime]) -> dict[str, dict]:
+    """Session moments per patient, leg and elementary interval [edges[i], edges[i+1]).
+
+    Windows are unions of these intervals and moments add up, so SQL evaluates one CASE and six sums per row
+    however the windows overlap. Returns {patient_id: {leg: {i: (k, n, s1, s2, m1, m2)}}}."""
+    m = TrendMetricValues
+    idx = case(*[(m.started_at < edges[i + 1], i) for i in range(len(edges) - 1)], else_=-1)
     sd2 = func.coalesce(m.sd, 0.0) * func.coalesce(m.sd, 0.0)
+    q = (select(m.patient_id, m.leg, idx, func.count(), func.sum(m.n_included), func.sum(m.n_included * m.mean),
+                func.sum((m.n_included - 1) * sd2 + m.n_included * m.mean * m.mean), func.sum(m.mean),
+                func.sum(m.mean * m.mean))
+         .join(Patient, Patient.id == m.patient_id)
+         .where(*owned, m.metric == metric, m.n_included >= MIN_STRIDES_PER_SESSION,
+                m.started_at >= edges[0], m.started_at < edges[-1])
+         .group_by(m.patient_id, m.leg, idx))
+    out: dict[str, dict] = {}
+    for pid, leg, i, *mom in db.execute(q):
+        out.setdefault(pid, {}).setdefault(leg, {})[int(i)] = tuple(float(x or 0) for x in mom)
+    return out
 
-    def s(expr: Any) -> Any:
-        return func.sum(case((inside, expr), else_=0.0))
 
-    return [func.sum(case((inside, 1), else_=0)), s(m.n_included), s(m.n_included * m.mean),
-            s((m.n_included - 1) * sd2 + m.n_included * m.mean * m.mean), s(m.mean), s(m.mean * m.mean)]
-
-
-def _window(row: Any, offset: int, start_days: float, end_days: float) -> stats.Window:
-    k, n, s1, s2, m1, m2 = (row[offset + i] for i in range(6))
-    return stats.window_from_moments(start_days, end_days, k=int(k or 0), n=int(n or 0), s1=float(s1 or 0),
-                                     s2=float(s2 or 0), m1=float(m1 or 0), m2=float(m2 or 0))
+def _window(per_interval: dict[int, tuple], idx: list[int], days: tuple[float, float]) -> stats.Window:
+    """The window made of the elementary intervals ``idx`` (moments add up)."""
+    k = n = s1 = s2 = m1 = m2 = 0.0
+    for i in idx:
+        mom = per_interval.get(i)
+        if mom is not None:
+            k, n, s1, s2, m1, m2 = k + mom[0], n + mom[1], s1 + mom[2], s2 + mom[3], m1 + mom[4], m2 + mom[5]
+    return stats.window_from_moments(days[0], days[1], k=int(k), n=int(n), s1=s1, s2=s2, m1=m1, m2=m2)
 
 
 def _win_json(w: stats.Window, now: datetime) -> dict[str, Any]:
@@ -92,18 +106,18 @@ def attention_list(db: DbSession, *, clinician_id: str | None, params: Attention
         .where(*owned).group_by(Session.patient_id)
     ).all())
 
-    # Window moments per patient and leg: [0] declining baseline, [6] latest, [12] stalled baseline.
-    m = TrendMetricValues
-    windows = [(now - 2 * win, now - win), (now - win, now + timedelta(seconds=1)),
-               (stall_start, stall_start + win)]
-    cols = [c for lo, hi in windows for c in _window_moments(m, lo, hi)]
-    moments: dict[str, dict[str, Any]] = {}
-    q = (select(m.patient_id, m.leg, *cols).join(Patient, Patient.id == m.patient_id)
-         .where(*owned, m.metric == metric.name, m.n_included >= MIN_STRIDES_PER_SESSION,
-                m.started_at >= min(now - 2 * win, stall_start))
-         .group_by(m.patient_id, m.leg))
-    for row in db.execute(q):
-        moments.setdefault(row[0], {})[row[1]] = row[2:]
+    # Windows: declining baseline, latest, stalled baseline (may coincide with or overlap the first).
+    latest_w = (now - win, now + timedelta(seconds=1))
+    decl_w = (now - 2 * win, now - win)
+    stall_w = (stall_start, stall_start + win)
+    edges = sorted({*latest_w, *decl_w, *stall_w})
+    moments = _interval_moments(db, owned, metric.name, edges)
+
+    def parts(w: tuple[datetime, datetime]) -> tuple[list[int], tuple[float, float]]:
+        idx = [i for i in range(len(edges) - 1) if edges[i] >= w[0] and edges[i + 1] <= w[1]]
+        return idx, ((w[0] - now).total_seconds() / 86400.0, (w[1] - now).total_seconds() / 86400.0)
+
+    latest_p, decl_p, stall_p = parts(latest_w), parts(decl_w), parts(stall_w)
 
     s = TrendSessionLeg
     sensor = {r[0]: r[1:] for r in db.execute(
@@ -115,9 +129,6 @@ def attention_list(db: DbSession, *, clinician_id: str | None, params: Attention
         select(Session.patient_id, func.count()).join(Patient, Patient.id == Session.patient_id)
         .where(*owned, Session.status == "failed", Session.started_at >= now - win).group_by(Session.patient_id)
     ).all())
-
-    def days_ago(dt: datetime) -> float:
-        return (as_utc(dt) - now).total_seconds() / 86400.0
 
     items = []
     for pid, name, ext, affected, created in patients:
@@ -134,24 +145,22 @@ def attention_list(db: DbSession, *, clinician_id: str | None, params: Attention
         legs = [affected] if affected in per_leg else sorted(per_leg)
         declining_legs = set()
         for leg in legs:
-            row = per_leg[leg]
-            base = _window(row, 0, -2 * p.window_days, -p.window_days)
-            latest = _window(row, 6, -p.window_days, 0.0)
+            base = _window(per_leg[leg], *decl_p)
+            latest = _window(per_leg[leg], *latest_p)
             ch = stats.compare(base, latest, mdc=metric.mdc, mdc_relative=metric.mdc_relative,
                                min_n=MIN_WINDOW_STRIDES)
             worse = ch.delta is not None and (ch.delta < 0) == (metric.better == "higher")
             if ch.significant and worse and metric.better != "none":
                 declining_legs.add(leg)
                 flags.append({"kind": "declining", "leg": leg, "metric": metric.name, "delta": _r(ch.delta),
-                              "mdc": _r(ch.mdc), "baseline": _win_json(base, now), "latest": _win_json(latest, now),
+                              "mdc": _r(ch.mdc), "baseline": base, "latest": latest,
                               "reason": (f"{metric.name} of the {leg} leg fell by {abs(ch.delta):.1f} {metric.unit} "
                                          f"(MDC {ch.mdc:g}) from {base.mean:.1f} to {latest.mean:.1f}")})
         for leg in legs:
             if leg in declining_legs:
                 continue
-            row = per_leg[leg]
-            sb = _window(row, 12, days_ago(stall_start), days_ago(stall_start + win))
-            latest = _window(row, 6, -p.window_days, 0.0)
+            sb = _window(per_leg[leg], *stall_p)
+            latest = _window(per_leg[leg], *latest_p)
             if sb.n_sessions == 0 or latest.n_sessions == 0:
                 continue  # not monitored across the whole period
             ch = stats.compare(sb, latest, mdc=metric.mdc, mdc_relative=metric.mdc_relative,
@@ -159,8 +168,7 @@ def attention_list(db: DbSession, *, clinician_id: str | None, params: Attention
             better = ch.delta is not None and (ch.delta > 0) == (metric.better == "higher")
             if not (ch.significant and better):
                 flags.append({"kind": "stalled", "leg": leg, "metric": metric.name, "weeks": p.stalled_weeks,
-                              "delta": _r(ch.delta), "mdc": _r(ch.mdc), "baseline": _win_json(sb, now),
-                              "latest": _win_json(latest, now),
+                              "delta": _r(ch.delta), "mdc": _r(ch.mdc), "baseline": sb, "latest": latest,
                               "reason": (f"no significant improvement of {metric.name} ({leg}) over "
                                          f"{p.stalled_weeks} weeks: change {ch.delta:+.1f} {metric.unit}, "
                                          f"MDC {ch.mdc:g}")})
@@ -187,10 +195,19 @@ def attention_list(db: DbSession, *, clinician_id: str | None, params: Attention
         items.append({
             "patient": {"id": pid, "display_name": name, "external_id": ext, "affected_leg": affected},
             "severity": flags[0]["severity"], "flags": flags,
-            "last_session_at": as_utc(last).isoformat() if last else None,
+            "last_session_at": as_utc(last) if last else None,
         })
-    items.sort(key=lambda it: (-it["severity"], -len(it["flags"]), it["last_session_at"] or "", it["patient"]["id"]))
+    epoch = datetime.min.replace(tzinfo=UTC)
+    items.sort(key=lambda it: (-it["severity"], -len(it["flags"]), it["last_session_at"] or epoch,
+                               it["patient"]["id"]))
     page = items[offset:offset + limit]
+    # Only the returned page is rendered in full (windows as JSON, times as ISO strings).
+    for it in page:
+        it["last_session_at"] = it["last_session_at"].isoformat() if it["last_session_at"] else None
+        for f in it["flags"]:
+            for key in ("baseline", "latest"):
+                if isinstance(f.get(key), stats.Window):
+                    f[key] = _win_json(f[key], now)
     return {
         "items": page, "next_cursor": str(offset + limit) if offset + limit < len(items) else None,
         "n_flagged": len(items), "n_patients": len(patients), "generated_at": now.isoformat(),

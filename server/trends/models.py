@@ -36,8 +36,9 @@ class TrendSessionLeg(Base):
 class TrendMetricValues(Base):
     """The included (quality-passing, plausible) values of one metric of one session-leg.
 
-    ``values`` is little-endian float32, in stride order; ``n_implausible`` counts quality-passing strides outside
-    the metric's plausibility limits (low-quality strides are counted once, on :class:`TrendSessionLeg`).
+    ``values`` is little-endian float32, ascending (quantiles of one session need no sort); ``n_implausible``
+    counts quality-passing strides outside the metric's plausibility limits (low-quality strides are counted
+    once, on :class:`TrendSessionLeg`).
     """
 
     __tablename__ = "trend_metric_values"

@@ -14,6 +14,7 @@ Method (also in the README):
 
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 from dataclasses import dataclass
 from datetime import UTC, date, datetime, timedelta
@@ -36,7 +37,7 @@ MIN_WINDOW_DAYS = 3  # count metrics: days with data per change window
 
 
 def _f(x: float | None, nd: int = 4) -> float | None:
-    if x is None or not np.isfinite(x):
+    if x is None or not math.isfinite(x):
         return None
     return round(float(x), nd)
 
@@ -113,24 +114,43 @@ def load_session_rows(db: DbSession, patient_id: str, metric: Metric, leg: str, 
     return out
 
 
+def _describe_rows(rows: list[SessionRow]) -> stats.Describe:
+    """Bucket statistics from the session summaries: mean and sd pooled exactly from the stored per-session
+    n/mean/sd, quantiles from the stored ascending values (a one-session bucket needs no sort, only 3 lookups)."""
+    n, mean, sd = stats.pool([stats.Point(0.0, r.n_included, r.mean, r.sd) for r in rows if r.n_included])
+    if n == 0:
+        return stats.Describe(0, None, None, None, None, None, None)
+    if len(rows) == 1:
+        v = decode_values(rows[0].values or b"")
+    else:
+        v = np.sort(decode_values(b"".join(r.values or b"" for r in rows)))
+    p10, median, p90 = stats.quantiles_sorted(v, (0.1, 0.5, 0.9))
+    return stats.Describe(n, mean, sd, median, p10, p90, sd / mean if sd is not None and mean else None)
+
+
 def _bucket_stats(metric: Metric, rows: list[SessionRow], bucket: Bucket, tz: Any) -> list[dict[str, Any]]:
-    groups: dict[date, list[SessionRow]] = defaultdict(list)
+    # Rows come ordered by time, so each bucket's rows (and their values) are one contiguous run.
+    groups: dict[date, list[SessionRow]] = {}
     for r in rows:
-        groups[bucket_date(local_date(r.started_at, tz), bucket)].append(r)
-    out = []
-    for start_day in sorted(groups):
-        grp = groups[start_day]
-        if metric.column is None:
-            # Per-day totals inside the bucket (a week has up to seven of them).
+        groups.setdefault(bucket_date(local_date(r.started_at, tz), bucket), []).append(r)
+    keys = sorted(groups)
+    if metric.column is None:
+        # Per-day totals inside the bucket (a week has up to seven of them).
+        chunks = []
+        for key in keys:
             per_day: dict[date, float] = defaultdict(float)
-            for r in grp:
+            for r in groups[key]:
                 per_day[local_date(r.started_at, tz)] += r.n_included
-            values = np.array(list(per_day.values()), dtype=np.float64)
-        else:
-            values = np.concatenate([decode_values(r.values) for r in grp if r.values]
-                                    or [np.empty(0, np.float32)]).astype(np.float64)
-        d = stats.describe(values)
-        b0, b1 = bucket_bounds(start_day, bucket, tz)
+            chunks.append(np.fromiter(per_day.values(), dtype=np.float64))
+        lengths = np.array([c.size for c in chunks])
+        values = np.concatenate(chunks) if chunks else np.empty(0)
+        described = stats.describe_segments(values, lengths)
+    else:
+        described = [_describe_rows(groups[key]) for key in keys]
+    out = []
+    for key, d in zip(keys, described, strict=True):
+        grp = groups[key]
+        b0, b1 = bucket_bounds(key, bucket, tz)
         out.append({
             "start": b0.isoformat(), "end": b1.isoformat(),
             "n_sessions": len({r.session_id for r in grp}),

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Literal
 
 import numpy as np
@@ -34,17 +35,89 @@ class Describe:
     cv: float | None
 
 
+def quantiles_sorted(v: np.ndarray, qs: Sequence[float]) -> list[float]:
+    """Type-7 quantiles of an ascending array: h = (n - 1) q, v[floor h] + (h - floor h) (v[floor h + 1] - ...).
+
+    The same numbers as ``np.percentile`` (default method) at a fraction of its per-call overhead, which matters for
+    a year of daily buckets."""
+    n = v.size
+    out = []
+    for q in qs:
+        h = (n - 1) * q
+        lo = int(math.floor(h))
+        hi = min(lo + 1, n - 1)
+        out.append(float(v[lo] + (h - lo) * (v[hi] - v[lo])))
+    return out
+
+
 def describe(values: np.ndarray) -> Describe:
     """Descriptive statistics of the included values of one bucket (NaN must already be removed)."""
-    v = np.asarray(values, dtype=np.float64)
+    v = np.sort(np.asarray(values, dtype=np.float64))
     n = int(v.size)
     if n == 0:
         return Describe(0, None, None, None, None, None, None)
     mean = float(v.mean())
-    sd = float(v.std(ddof=1)) if n >= 2 else None
-    p10, median, p90 = (float(q) for q in np.percentile(v, [10.0, 50.0, 90.0]))
+    sd = float(math.sqrt(float(np.dot(v - mean, v - mean)) / (n - 1))) if n >= 2 else None
+    p10, median, p90 = quantiles_sorted(v, (0.1, 0.5, 0.9))
     cv = sd / mean if sd is not None and mean != 0 else None
     return Describe(n, mean, sd, median, p10, p90, cv)
+
+
+def describe_segments(values: np.ndarray, lengths: np.ndarray, presorted: np.ndarray | None = None) -> list[Describe]:
+    """:func:`describe` of consecutive segments of ``values`` (segment i has ``lengths[i]`` values), vectorised:
+    a few reductions for a whole year of buckets instead of a Python loop of numpy calls. ``presorted[i]`` True
+    says segment i is already ascending (it is then not sorted again)."""
+    lengths = np.asarray(lengths, dtype=np.int64)
+    k = lengths.size
+    if k == 0:
+        return []
+    v = np.asarray(values, dtype=np.float64)
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    if presorted is None:
+        seg = np.repeat(np.arange(k), lengths)
+        vs = v[np.lexsort((v, seg))]  # sorted within each segment, segments in order
+    else:
+        vs = v.copy()
+        for i in np.flatnonzero(~np.asarray(presorted, dtype=bool) & (lengths > 1)):
+            vs[starts[i]:starts[i] + lengths[i]].sort()
+    nonempty = lengths > 0
+    safe_starts = np.minimum(starts, max(v.size - 1, 0))
+    sums = np.add.reduceat(vs, safe_starts) if v.size else np.zeros(k)
+    sums = np.where(nonempty, sums, 0.0)
+    n = np.maximum(lengths, 1)
+    means = sums / n
+    dev = vs - np.repeat(means, lengths)
+    ss = np.add.reduceat(dev * dev, safe_starts) if v.size else np.zeros(k)
+    ss = np.where(nonempty, ss, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sds = np.sqrt(ss / (lengths - 1))
+
+    def q(frac: float) -> np.ndarray:
+        h = (lengths - 1) * frac
+        lo = np.floor(h).astype(np.int64)
+        hi = np.minimum(lo + 1, lengths - 1)
+        lo_v = vs[np.clip(starts + lo, 0, max(v.size - 1, 0))] if v.size else np.zeros(k)
+        hi_v = vs[np.clip(starts + hi, 0, max(v.size - 1, 0))] if v.size else np.zeros(k)
+        return lo_v + (h - lo) * (hi_v - lo_v)
+
+    p10, med, p90 = q(0.1), q(0.5), q(0.9)
+    out = []
+    for i in range(k):
+        m = int(lengths[i])
+        if m == 0:
+            out.append(Describe(0, None, None, None, None, None, None))
+            continue
+        mean = float(means[i])
+        sd = float(sds[i]) if m >= 2 else None
+        out.append(Describe(m, mean, sd, float(med[i]), float(p10[i]), float(p90[i]),
+                            sd / mean if sd is not None and mean != 0 else None))
+    return out
+
+
+@lru_cache(maxsize=4096)
+def t_quantile(df: int) -> float:
+    """t(0.975, df), cached: scipy's ppf costs ~0.3 ms a call and the attention list needs thousands."""
+    return float(sps.t.ppf(0.975, df))
 
 
 @dataclass(frozen=True)
@@ -86,7 +159,7 @@ def ols_slope(t_days: np.ndarray, y: np.ndarray) -> Slope:
         return Slope("ols", n, b, a, None)
     sse = float(((v - (a + b * t)) ** 2).sum())
     se = math.sqrt(sse / (n - 2) / sxx)
-    tq = float(sps.t.ppf(0.975, n - 2))
+    tq = t_quantile(n - 2)
     p = float(2.0 * sps.t.sf(abs(b) / se, n - 2)) if se > 0 else 0.0
     return Slope("ols", n, b, a, (b - tq * se, b + tq * se), p)
 
@@ -151,7 +224,7 @@ class Window:
 
 
 def _t_ci(mean: float, sd: float, n: int) -> tuple[float, float]:
-    half = float(sps.t.ppf(0.975, n - 1)) * sd / math.sqrt(n)
+    half = t_quantile(n - 1) * sd / math.sqrt(n)
     return mean - half, mean + half
 
 

@@ -52,7 +52,7 @@ def summarise_leg(columns: dict[str, np.ndarray], quality: np.ndarray, estimator
         metric = METRICS[name]
         vals = metric.values(np.asarray(columns[metric.column], dtype=np.float64)[ok])
         keep = metric.plausible(vals)
-        inc = vals[keep]
+        inc = np.sort(vals[keep])  # ascending: bucket quantiles of one session need no sort at query time
         metric_rows.append({
             "metric": name, "n_included": int(inc.size), "n_implausible": int((~keep).sum()),
             "mean": float(inc.mean()) if inc.size else None,

@@ -145,3 +145,29 @@ def test_metric_plausibility_limits() -> None:
     assert ok.tolist() == [False, True, True, True, False, False]
     cadence = METRICS["cadence_steps_per_min"]
     assert cadence.values(np.array([1.2]))[0] == pytest.approx(100.0)  # 2 steps per 1.2 s stride
+
+
+def test_describe_segments_matches_describe_per_segment() -> None:
+    rng = np.random.default_rng(5)
+    lengths = np.array([5, 0, 1, 2, 300, 17])
+    values = rng.normal(50, 10, lengths.sum())
+    out = stats.describe_segments(values, lengths)
+    start = 0
+    for seg, n in zip(out, lengths, strict=True):
+        ref = stats.describe(values[start:start + n])
+        start += n
+        assert seg.n == ref.n
+        for field in ("mean", "sd", "median", "p10", "p90", "cv"):
+            a, b = getattr(seg, field), getattr(ref, field)
+            assert (a is None and b is None) or a == pytest.approx(b, rel=1e-12), field
+    # And both agree with numpy's own percentile.
+    big = values[lengths[:4].sum():lengths[:5].sum()]
+    assert out[4].p10 == pytest.approx(np.percentile(big, 10))
+    assert out[4].median == pytest.approx(np.median(big))
+
+
+def test_describe_segments_trusts_presorted_segments() -> None:
+    values = np.array([1.0, 2.0, 3.0, 9.0, 7.0, 8.0])
+    out = stats.describe_segments(values, np.array([3, 3]), presorted=np.array([True, False]))
+    assert (out[0].median, out[1].median) == (2.0, 8.0)
+    assert out[1].p10 == pytest.approx(7.2)  # sorted 7, 8, 9: 7 + 0.2 * 1
