@@ -8,7 +8,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from server.api import clinicians, health, patients, results, sessions
+from server.api import clinicians, compare, health, patients, results, sessions
 from server.api.body_limit import BodyLimitMiddleware
 from server.config import Settings, get_settings
 from server.db import make_engine, make_sessionmaker
@@ -64,4 +64,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(results.router)
     # Routers of other modules are included below this line (one line each).
     app.include_router(trends_router.router)
+    app.include_router(compare.router)
     return app
