@@ -8,13 +8,14 @@ share one queue.
 Guarantees, layer by layer:
 - ``queueing_lock=<session id>``: at most one waiting job per session (a second enqueue while one waits is a
   no-op), so "complete" followed by "reprocess" does not pile up jobs.
-- ``lock=<session id>``: procrastinate never runs two jobs of one session at the same time.
+- no procrastinate ``lock``: the claim below already excludes concurrent processing, and a lock would be held by
+  the "doing" job of a crashed worker until procrastinate declares that worker dead, delaying the recovery.
 - the atomic claim in :mod:`server.jobs.process` (``status='queued'`` -> ``'processing'``): whatever the queue
   does (a job delivered again after a worker was presumed dead, a job deferred twice), only one runner processes
   a given queued session, and only the holder of the claim may store results.
 - recovery (periodic task ``gaitmon.recover`` every minute and at worker start): procrastinate jobs of workers
-  that stopped heart-beating are marked failed (frees their lock); sessions whose own heartbeat is older than
-  ``job_stall_seconds`` go back to "queued" and get a new job.
+  that stopped heart-beating are marked failed (they would stay "doing" forever); sessions whose own heartbeat
+  is older than ``job_stall_seconds`` go back to "queued" and get a new job.
 """
 
 from __future__ import annotations
@@ -110,8 +111,7 @@ def _queued_without_job(database_url: str) -> list[str]:
 async def _defer_async(app: procrastinate.App, session_id: str) -> None:
     # AlreadyEnqueued: a job for this session is already waiting; it will find the session queued.
     with contextlib.suppress(pexc.AlreadyEnqueued):
-        await app.configure_task(PROCESS_TASK, queueing_lock=session_id, lock=session_id).defer_async(
-            session_id=session_id)
+        await app.configure_task(PROCESS_TASK, queueing_lock=session_id).defer_async(session_id=session_id)
 
 
 _api_apps: dict[str, procrastinate.App] = {}
@@ -131,8 +131,7 @@ def _api_app(database_url: str) -> procrastinate.App:
 def defer_session(database_url: str, session_id: str) -> None:
     """Defer the processing job of a queued session (no-op when one is already waiting)."""
     try:
-        _api_app(database_url).configure_task(PROCESS_TASK, queueing_lock=session_id, lock=session_id).defer(
-            session_id=session_id)
+        _api_app(database_url).configure_task(PROCESS_TASK, queueing_lock=session_id).defer(session_id=session_id)
     except pexc.AlreadyEnqueued:
         log.info("session %s already has a waiting job", session_id)
 

@@ -60,3 +60,42 @@ def empty_pg_url() -> Iterator[str]:
     with admin.connect() as conn:
         conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
     admin.dispose()
+
+
+def insert_simulated_session(url: str, *, n_strides: int = 16, seed: int = 4) -> tuple[str, int]:
+    """A completed (queued) session holding a simulated recording, as the upload endpoint leaves it.
+
+    Returns the session id and the number of stored samples.
+    """
+    from datetime import UTC, datetime
+
+    import numpy as np
+
+    from pipeline.simulate import SimConfig, simulate_session
+    from server.db import make_engine, make_sessionmaker
+    from server.models import Batch, Patient, Session, SessionSensor
+    from server.rawdata import content_sha256, encode_samples
+
+    sim = simulate_session(SimConfig(n_strides=n_strides, seed=seed))
+    engine = make_engine(url)
+    with make_sessionmaker(engine)() as db:
+        patient = Patient(display_name="simulated")
+        db.add(patient)
+        db.flush()
+        sess = Session(patient_id=patient.id, client_session_id=f"sim-{seed}", started_at=datetime.now(UTC),
+                       activity="walking", status="queued", completed_at=datetime.now(UTC))
+        db.add(sess)
+        db.flush()
+        for s in sim.streams:
+            db.add(SessionSensor(session_id=sess.id, sensor_id=s.sensor_id, leg=s.leg, segment=s.segment,
+                                 sample_rate_hz=s.fs_hz, gyro_unit=s.gyro_unit, acc_unit=s.acc_unit))
+            for seq, part in enumerate(np.array_split(np.arange(len(s.t_s)), 8)):
+                t_ms, g, a = s.t_s[part] * 1000.0, s.gyr[part], s.acc[part]
+                tb, gb, ab = encode_samples(t_ms, g, a)
+                db.add(Batch(session_id=sess.id, sensor_id=s.sensor_id, seq=seq, t0_ms=float(t_ms[0]),
+                             n_samples=len(part), t_first_ms=float(t_ms[0]), t_last_ms=float(t_ms[-1]),
+                             content_sha256=content_sha256(t_ms, g, a), t_ms=tb, gyro=gb, acc=ab))
+        db.commit()
+        sid = sess.id
+    engine.dispose()
+    return sid, sum(len(s.t_s) for s in sim.streams)

@@ -376,8 +376,9 @@ def test_procrastinate_recovery_requeues_and_frees_dead_jobs(pg_settings: Settin
         with sm() as db:
             db.execute(update(Session).where(Session.id == stalled)
                        .values(heartbeat_at=datetime.now(UTC) - timedelta(hours=1)))
-            # Its job is "doing" with no live worker: it holds the session's lock until someone frees it.
-            db.execute(text("UPDATE procrastinate_jobs SET status = 'doing' WHERE lock = :s"), {"s": stalled})
+            # Its job is "doing" with no live worker: it would stay so forever unless someone ends it.
+            db.execute(text("UPDATE procrastinate_jobs SET status = 'doing' WHERE queueing_lock = :s"),
+                       {"s": stalled})
             db.commit()
         worker.close_api_apps()
         app = worker.make_app(url, pg_settings)
@@ -392,8 +393,8 @@ def test_procrastinate_recovery_requeues_and_frees_dead_jobs(pg_settings: Settin
                                           "WHERE status = 'todo'")).scalars())
         assert waiting == {stalled, orphan}
         with sm() as db:
-            old = db.execute(text("SELECT status FROM procrastinate_jobs WHERE lock = :s ORDER BY id LIMIT 1"),
-                             {"s": stalled}).scalar()
+            old = db.execute(text("SELECT status FROM procrastinate_jobs WHERE queueing_lock = :s "
+                                  "ORDER BY id LIMIT 1"), {"s": stalled}).scalar()
         assert old == "failed"
         worker.run_worker(pg_settings, wait=False, install_signal_handlers=False)
         assert get(sm, stalled).status == "done" and get(sm, orphan).status == "done"

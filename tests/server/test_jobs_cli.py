@@ -8,17 +8,14 @@ import subprocess
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 from sqlalchemy import select
 
-from pipeline.simulate import SimConfig, simulate_session
 from server import cli
 from server.config import Settings
 from server.db import make_engine, make_sessionmaker
-from server.models import Batch, Clinician, Patient, Session, SessionSensor, Stride, Token
-from server.rawdata import content_sha256, encode_samples
-from tests.integration.conftest import gaitmon_command, server_env
+from server.models import Clinician, Session, Stride, Token
+from tests.integration.conftest import gaitmon_command, insert_simulated_session, server_env
 
 
 def run(args: list[str], env: dict[str, str], cwd: Path) -> subprocess.CompletedProcess:
@@ -32,35 +29,6 @@ def env(tmp_path: Path) -> dict[str, str]:
 
 def db_url(tmp_path: Path) -> str:
     return f"sqlite:///{tmp_path / 'data' / 'gaitmon.sqlite'}"
-
-
-def insert_simulated_session(url: str) -> str:
-    """A completed (queued) session holding a simulated recording, as the upload endpoint would leave it."""
-    from datetime import UTC, datetime
-
-    sim = simulate_session(SimConfig(n_strides=16, seed=4))
-    sm = make_sessionmaker(make_engine(url))
-    with sm() as db:
-        patient = Patient(display_name="cli")
-        db.add(patient)
-        db.flush()
-        sess = Session(patient_id=patient.id, client_session_id="cli", started_at=datetime.now(UTC),
-                       activity="walking", status="queued", completed_at=datetime.now(UTC))
-        db.add(sess)
-        db.flush()
-        for s in sim.streams:
-            db.add(SessionSensor(session_id=sess.id, sensor_id=s.sensor_id, leg=s.leg, segment=s.segment,
-                                 sample_rate_hz=s.fs_hz, gyro_unit=s.gyro_unit, acc_unit=s.acc_unit))
-            for seq, part in enumerate(np.array_split(np.arange(len(s.t_s)), 8)):
-                t_ms, g, a = s.t_s[part] * 1000.0, s.gyr[part], s.acc[part]
-                tb, gb, ab = encode_samples(t_ms, g, a)
-                db.add(Batch(session_id=sess.id, sensor_id=s.sensor_id, seq=seq, t0_ms=float(t_ms[0]),
-                             n_samples=len(part), t_first_ms=float(t_ms[0]), t_last_ms=float(t_ms[-1]),
-                             content_sha256=content_sha256(t_ms, g, a), t_ms=tb, gyro=gb, acc=ab))
-        db.commit()
-        sid = sess.id
-    sm.kw["bind"].dispose()
-    return sid
 
 
 def test_tokens_from_the_command_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
@@ -91,7 +59,7 @@ def test_tokens_from_the_command_line(tmp_path: Path, monkeypatch: pytest.Monkey
 
 def test_sqlite_worker_processes_queue_and_stops_on_sigterm(tmp_path: Path, env: dict[str, str]) -> None:
     assert run(["migrate"], env, tmp_path).returncode == 0
-    sid = insert_simulated_session(db_url(tmp_path))
+    sid, _ = insert_simulated_session(db_url(tmp_path))
     log_path = tmp_path / "worker.log"
     with log_path.open("wb") as log:
         proc = subprocess.Popen(gaitmon_command() + ["worker"], env=env, cwd=tmp_path, stdout=log,
