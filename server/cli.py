@@ -18,6 +18,7 @@ from datetime import UTC, datetime
 
 from sqlalchemy import select, text
 from sqlalchemy.engine import make_url
+from sqlalchemy.exc import OperationalError
 
 from server.config import Settings, get_settings
 
@@ -30,6 +31,8 @@ MIGRATION_LOCK_ID = 727_011_001
 def setup_logging(level: str) -> None:
     logging.basicConfig(stream=sys.stderr, level=level.upper(),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
+    # One line per plugin on every start says nothing to an operator.
+    logging.getLogger("alembic.runtime.plugins").setLevel(logging.WARNING)
 
 
 def safe_url(url: str) -> str:
@@ -222,7 +225,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     setup_logging(settings.log_level)
     func = args.func
     # simulate_cli's handlers may take (args) only; ours take (args, settings).
-    code = func(args, settings) if len(inspect.signature(func).parameters) >= 2 else func(args)
+    try:
+        code = func(args, settings) if len(inspect.signature(func).parameters) >= 2 else func(args)
+    except OperationalError as exc:
+        # An operator error (database down, wrong URL), not a bug: one line, no traceback.
+        reason = str(exc.orig or exc).strip().splitlines()[0] if str(exc.orig or exc).strip() else type(exc).__name__
+        print(f"error: cannot use the database {safe_url(settings.resolved_database_url)}: {reason}",
+              file=sys.stderr)
+        return 1
     return int(code or 0)
 
 
