@@ -18,6 +18,7 @@ grows with the number of patients, not with their strides.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from datetime import UTC, datetime, timedelta
 from typing import Any
@@ -47,7 +48,7 @@ class AttentionParams:
 
 
 def _r(x: float | None, nd: int = 3) -> float | None:
-    return None if x is None else round(float(x), nd)
+    return None if x is None or not math.isfinite(x) else round(float(x), nd)
 
 
 def _interval_moments(db: DbSession, owned: list[Any], metric: str, edges: list[datetime]) -> dict[str, dict]:

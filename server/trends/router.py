@@ -20,6 +20,8 @@ from server.trends.metrics import METRICS
 from server.trends.timeutil import parse_bound, zone
 
 log = logging.getLogger("gaitmon.api")
+# Plain JSON documents (no response_model): FastAPI's jsonable_encoder would walk a year of buckets field by field,
+# which costs more than computing them; every value is already a JSON type.
 router = APIRouter(prefix="/v1", tags=["trends"])
 
 MetricName = Enum("MetricName", {name: name for name in METRICS}, type=str)  # type: ignore[misc]
@@ -54,28 +56,29 @@ def _range(patient: Patient, start: str | None, end: str | None) -> tuple[dateti
 def get_trends(patient_id: str, db: Db, caller: Caller, metric: MetricName = MetricName.peak_swing_flexion_deg,
                leg: LegName | None = None, bucket: BucketName = "day", start: FromQ = None, end: ToQ = None,
                method: SlopeMethodName = "ols",
-               window_days: Annotated[float, Query(ge=1, le=180)] = service.WINDOW_DAYS) -> dict[str, Any]:
+               window_days: Annotated[float, Query(ge=1, le=180)] = service.WINDOW_DAYS) -> JSONResponse:
     patient = get_patient_for(db, caller, patient_id)
     lo, hi = _range(patient, start, end)
-    return service.patient_trends(db, patient, metric_name=metric.value, leg=leg, bucket=bucket, start=lo, end=hi,
-                                  method=method, window_days=window_days)
+    return JSONResponse(service.patient_trends(db, patient, metric_name=metric.value, leg=leg, bucket=bucket,
+                                               start=lo, end=hi, method=method, window_days=window_days))
 
 
 @router.get("/patients/{patient_id}/symmetry", summary="Affected vs other leg per bucket (ratio, symmetry index)")
 def get_symmetry(patient_id: str, db: Db, caller: Caller,
                  metric: MetricName = MetricName.peak_swing_flexion_deg, bucket: BucketName = "week",
-                 start: FromQ = None, end: ToQ = None) -> dict[str, Any]:
+                 start: FromQ = None, end: ToQ = None) -> JSONResponse:
     patient = get_patient_for(db, caller, patient_id)
     lo, hi = _range(patient, start, end)
-    return service.patient_symmetry(db, patient, metric_name=metric.value, bucket=bucket, start=lo, end=hi)
+    return JSONResponse(service.patient_symmetry(db, patient, metric_name=metric.value, bucket=bucket, start=lo,
+                                                 end=hi))
 
 
 @router.get("/patients/{patient_id}/completeness",
             summary="Remote-monitoring view: days with data, strides and walking minutes per local day")
 def get_completeness(patient_id: str, db: Db, caller: Caller,
-                     days: Annotated[int, Query(ge=1, le=366)] = 30) -> dict[str, Any]:
+                     days: Annotated[int, Query(ge=1, le=366)] = 30) -> JSONResponse:
     patient = get_patient_for(db, caller, patient_id)
-    return service.patient_completeness(db, patient, days=days)
+    return JSONResponse(service.patient_completeness(db, patient, days=days))
 
 
 @router.get("/attention", summary="Patients who need attention (declining, stalled, silent, sensor trouble)")
@@ -83,7 +86,7 @@ def get_attention(db: Db, caller: Caller, limit: Annotated[int, Query(ge=1, le=2
                   cursor: str | None = None, metric: MetricName = MetricName.peak_swing_flexion_deg,
                   silent_days: Annotated[float, Query(gt=0, le=365)] = 3.0,
                   stalled_weeks: Annotated[int, Query(ge=1, le=52)] = 4,
-                  window_days: Annotated[float, Query(ge=1, le=90)] = 14.0) -> dict[str, Any]:
+                  window_days: Annotated[float, Query(ge=1, le=90)] = 14.0) -> JSONResponse:
     require_role(caller, "admin", "clinician", action="see the attention list")
     offset = 0
     if cursor:
@@ -92,8 +95,8 @@ def get_attention(db: Db, caller: Caller, limit: Annotated[int, Query(ge=1, le=2
         offset = int(cursor)
     params = AttentionParams(metric=metric.value, silent_days=silent_days, stalled_weeks=stalled_weeks,
                              window_days=window_days)
-    return attention_list(db, clinician_id=None if caller.is_admin else caller.clinician_id, params=params,
-                          limit=limit, offset=offset)
+    return JSONResponse(attention_list(db, clinician_id=None if caller.is_admin else caller.clinician_id,
+                                       params=params, limit=limit, offset=offset))
 
 
 @router.get("/patients/{patient_id}/strides.csv", summary="Every stride of the patient as CSV",
