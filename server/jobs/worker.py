@@ -21,6 +21,7 @@ Guarantees, layer by layer:
 from __future__ import annotations
 
 import asyncio
+import atexit
 import contextlib
 import logging
 import threading
@@ -124,16 +125,24 @@ def _api_app(database_url: str) -> procrastinate.App:
         app = _api_apps.get(database_url)
         if app is None:
             app = make_app(database_url, min_size=1, max_size=4).open()
+            if not _api_apps:
+                atexit.register(close_api_apps)
             _api_apps[database_url] = app
         return app
 
 
 def defer_session(database_url: str, session_id: str) -> None:
-    """Defer the processing job of a queued session (no-op when one is already waiting)."""
+    """Defer the processing job of a queued session (no-op when one is already waiting).
+
+    Never raises: the session is already committed as "queued", and the workers' periodic recovery defers a job
+    for any queued session that has none, so a failed defer only delays processing by up to a minute.
+    """
     try:
         _api_app(database_url).configure_task(PROCESS_TASK, queueing_lock=session_id).defer(session_id=session_id)
     except pexc.AlreadyEnqueued:
         log.info("session %s already has a waiting job", session_id)
+    except Exception:  # noqa: BLE001
+        log.exception("session %s: deferring its job failed; the workers' recovery will pick it up", session_id)
 
 
 def close_api_apps() -> None:
