@@ -293,10 +293,11 @@ def build_running_leg_data(prep: PreparedLeg, cycles: RunningCycles | None = Non
     acc_angle = accelerometer_angle_deg(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, centres)
     acc_angle[~valid] = np.nan
     impacts = impact_mask(cycles.strikes, n, fs, stride_s=cycles.stride_s)
-    update = (fit_mask | quiet_mask(prep)) & ~impacts
+    quiet = quiet_mask(prep)
+    update = (fit_mask | quiet) & ~impacts
     data = LegData(prep=filt, axes=axes, centres=centres, rate_dps=rate, acc_angle_deg=acc_angle,
                    shank_sag_dps=shank_sag, events=events, activity="running",
-                   extras={"acc_update_mask": update, "running_cycles": cycles.cycles})
+                   extras={"acc_update_mask": update, "running_cycles": cycles.cycles, "quiet_mask": quiet})
     info = {"j1": np.round(axes.j1, 4).tolist(), "j2": np.round(axes.j2, 4).tolist(),
             "axis_rms_residual_dps": round(axes.rms_residual_dps, 2), "axis_fit_samples": axes.n_samples,
             "o1_m": np.round(centres.o1, 4).tolist(), "o2_m": np.round(centres.o2, 4).tolist(),

@@ -30,9 +30,9 @@ from pipeline.estimators.kf import (
     acc_zero_deg,
     debiased_rate,
     interval_rate,
+    leg_quiet,
     leg_update_mask,
     q_for_time_constant,
-    quiet_mask,
     run_per_segment,
 )
 from pipeline.signal_utils import lowpass_runs
@@ -140,7 +140,7 @@ def ekf_leg(data: LegData, tau_s: float | None = None) -> np.ndarray:
 
     rate = debiased_rate(data)
     mask = leg_update_mask(data)
-    r_scale = np.where(quiet_mask(data.prep), QUIET_R_SCALE, 1.0)
+    r_scale = np.where(leg_quiet(data), QUIET_R_SCALE, 1.0)
     zero = math.radians(acc_zero_deg(data))
     thigh, shank = plane_accelerations(data)
     # b = Rot(alpha + zero) a  ->  b = Rot(alpha) (Rot(zero) a): the standing zero moves into the thigh vector

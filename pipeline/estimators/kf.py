@@ -245,19 +245,30 @@ QUIET_MIN_S = 0.5
 QUIET_R_SCALE = 0.01
 
 
+def _norm(x: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.einsum("ij,ij->i", x, x))
+
+
 def quiet_mask(prep: PreparedLeg) -> np.ndarray:
     """Samples where both segments are still (slower than QUIET_DPS, specific force within 10 % of g) for at least
     QUIET_MIN_S: there the accelerometer angle sees gravity only and is accurate to a degree or two."""
-    speed = np.rad2deg(np.maximum(np.linalg.norm(prep.gyr_thigh_rps, axis=1),
-                                  np.linalg.norm(prep.gyr_shank_rps, axis=1)))
-    still = (speed < QUIET_DPS) & prep.valid
+    lim = math.radians(QUIET_DPS) ** 2
+    still = prep.valid & (np.einsum("ij,ij->i", prep.gyr_thigh_rps, prep.gyr_thigh_rps) < lim)
+    still &= np.einsum("ij,ij->i", prep.gyr_shank_rps, prep.gyr_shank_rps) < lim
     for acc in (prep.acc_thigh_mps2, prep.acc_shank_mps2):
-        still &= np.abs(np.linalg.norm(acc, axis=1) - G_MPS2) < 0.1 * G_MPS2
+        still &= np.abs(_norm(acc) - G_MPS2) < 0.1 * G_MPS2
     out = np.zeros(prep.n, dtype=bool)
     for a, b in true_runs(still):
         if b - a >= QUIET_MIN_S * prep.fs_hz:
             out[a:b] = True
     return out
+
+
+def leg_quiet(data: LegData) -> np.ndarray:
+    """:func:`quiet_mask` of the leg, computed once per leg (the KF, the EKF and the standing zero share it)."""
+    if "quiet_mask" not in data.extras:
+        data.extras["quiet_mask"] = quiet_mask(data.prep)
+    return data.extras["quiet_mask"]
 
 
 def leg_update_mask(data: LegData) -> np.ndarray:
@@ -303,13 +314,13 @@ def gait_gravity_directions(data: LegData) -> tuple[np.ndarray, np.ndarray] | No
 def standing_mask(data: LegData) -> np.ndarray:
     """Quiet samples (:func:`quiet_mask`) with both segments upright: the specific force within UPRIGHT_DEG of its
     mean direction during gait. Tells standing from sitting and lying without the joint-centre geometry."""
-    quiet = quiet_mask(data.prep)
+    quiet = leg_quiet(data).copy()
     dirs = gait_gravity_directions(data)
     if dirs is None or not quiet.any():
         return np.zeros_like(quiet)
     cos_lim = math.cos(math.radians(UPRIGHT_DEG))
     for acc, u in zip((data.prep.acc_thigh_mps2, data.prep.acc_shank_mps2), dirs, strict=True):
-        norm = np.maximum(np.linalg.norm(acc, axis=1), 1e-9)
+        norm = np.maximum(_norm(acc), 1e-9)
         quiet &= (acc @ u) / norm > cos_lim
     return quiet
 
@@ -349,8 +360,7 @@ def kf_leg(data: LegData, tau_s: float | None = None) -> np.ndarray:
 
     rate = debiased_rate(data)
     mask = leg_update_mask(data)
-    quiet = quiet_mask(data.prep)
-    r_scale = np.where(quiet, QUIET_R_SCALE, 1.0)
+    r_scale = np.where(leg_quiet(data), QUIET_R_SCALE, 1.0)
     zero = acc_zero_deg(data)
     z = np.asarray(data.acc_angle_deg, dtype=float) - zero
     fs = data.fs_hz
