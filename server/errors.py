@@ -123,6 +123,7 @@ async def _validation_handler(request: Request, exc: Exception) -> JSONResponse:
     detail = f"{first['field']}: {first['message']}"
     if len(errors) > 1:
         detail += f" (and {len(exc.errors()) - 1} more)"
+    log.info("%s %s -> 422 %s", request.method, request.url.path, detail[:300])
     return problem_response(422, detail, title="Validation failed", slug="validation-error",
                             instance=request.url.path, errors=errors)
 

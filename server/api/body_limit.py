@@ -8,6 +8,7 @@ behind sees an ordinary (decompressed) body without ``Content-Encoding``.
 from __future__ import annotations
 
 import json
+import logging
 import zlib
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
@@ -19,6 +20,8 @@ Message = MutableMapping[str, Any]
 Receive = Callable[[], Awaitable[Message]]
 Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+
+log = logging.getLogger("gaitmon.api")
 
 BODY_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
 
@@ -76,6 +79,7 @@ class BodyLimitMiddleware:
         try:
             body = await self._read_body(headers, encoding, receive)
         except _Reject as rej:
+            log.info("%s %s -> %d %s", scope["method"], scope.get("path"), rej.status, rej.detail)
             await _send_problem(scope, send, rej.status, rej.detail)
             return
         new_headers = [(k, v) for k, v in headers if k not in (b"content-encoding", b"content-length")]

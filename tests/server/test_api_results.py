@@ -12,7 +12,7 @@ from server.api.results import minmax_indices
 from server.config import Settings
 from server.jobs.process import run_queued
 from server.simulate_cli import arrange_batches, session_to_requests
-from tests.server.helpers import Api, bearer, open_api
+from tests.server.helpers import Api, bearer, count_rows, open_api
 
 
 @pytest.fixture
@@ -99,3 +99,12 @@ def test_simulated_session_strides_and_knee_angle(api: Api) -> None:
     assert [s["t_start_s"] for s in again] == [s["t_start_s"] for s in strides]
     listed = c.get(f"/v1/patients/{patient['id']}/sessions", headers=bearer(clin)).json()["items"]
     assert [s["id"] for s in listed] == [sid] and listed[0]["status"] == "done"
+
+    # Deleting the patient removes the processed session too, including the trend summaries built from it.
+    before = count_rows(api.engine)
+    assert before["strides"] > 0 and before["knee_angle_traces"] == 1
+    assert all(n > 0 for table, n in before.items() if table.startswith("trend_"))
+    assert c.delete(f"/v1/patients/{patient['id']}", headers=bearer(clin)).status_code == 204
+    after = count_rows(api.engine)
+    assert after.pop("clinicians") == 1 and after.pop("tokens") == 2  # admin + clinician; the device's is gone
+    assert all(n == 0 for n in after.values()), after
