@@ -21,6 +21,7 @@ from pipeline.running import (
 )
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, SimSession, simulate_session
+from pipeline.tuning import TAU_RANGE_S, tune_time_constant
 
 FS = 200.0
 
@@ -179,3 +180,16 @@ def test_kf_update_mask_skips_impacts_and_keeps_swing_windows(running_sim: SimSe
     assert info["running"]["acc_update_pct"] < 60
     angle = kf_leg(data, tau_s=0.5)
     assert np.isfinite(angle[prep.valid]).mean() > 0.95
+
+
+def test_tuning_trusts_a_cleaner_gyroscope_longer(running_sim: SimSession) -> None:
+    by = {s.segment: s for s in running_sim.streams}
+    prep = prepare_leg("left", by["thigh"], by["shank"])
+    data, _ = build_running_leg_data(prep)
+    tau, diag = tune_time_constant(data)
+    assert TAU_RANGE_S[0] <= tau <= TAU_RANGE_S[1] and diag["strides"] >= 20
+    # a gyro whose per-stride closure scatters more (a wandering bias) must lean on the accelerometer sooner
+    rng = np.random.default_rng(0)
+    wander = np.repeat(rng.normal(0, 3.0, prep.n // 100 + 1), 100)[:prep.n]
+    tau_noisy, _ = tune_time_constant(data, data.rate_dps + wander)
+    assert tau_noisy < 0.7 * tau
