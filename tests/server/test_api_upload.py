@@ -6,6 +6,7 @@ import gzip
 import json
 import zlib
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -261,3 +262,17 @@ def test_batch_racing_complete_is_refused_not_stored(api: Api) -> None:
             ingest.ingest_batch(db, stale, BatchIn(**batch_body("L-thigh", 1)), max_samples=1000)
     assert exc.value.status == 409
     assert _batches(api) == 1
+
+
+def test_concurrent_replays_store_once(api: Api) -> None:
+    """Eight simultaneous sends of one batch (and of a session create): one is stored, the others are replays."""
+    _, dev, sess = api.setup_device_session()
+    body = batch_body("L-shank", 5, n=200)
+    with ThreadPoolExecutor(8) as pool:
+        codes = sorted(pool.map(lambda _: api.upload(dev, sess["id"], body).status_code, range(8)))
+    assert codes == [200] * 7 + [201]
+    assert _batches(api) == 1
+    me = api.client.get("/v1/me", headers=bearer(dev)).json()
+    with ThreadPoolExecutor(6) as pool:
+        ids = list(pool.map(lambda _: api.session(dev, me["patient_id"], client_session_id="same")["id"], range(6)))
+    assert len(set(ids)) == 1
