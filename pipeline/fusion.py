@@ -32,7 +32,8 @@ STANDING_KNEE_DEG = 4.0
 DRIFT_MAX_DEG = 15.0
 MISMATCH_DEG = 8.0
 PENALTY = {"no_absolute_reference": 0.2, "no_zero_crossing": 0.3, "drift": 0.3, "saturation": 0.5,
-           "go_cf_mismatch": 0.3, "cf_fallback": 0.2, "no_go_estimate": 0.3, "few_quiet_samples": 0.1}
+           "go_cf_mismatch": 0.3, "cf_fallback": 0.2, "no_go_estimate": 0.3, "few_quiet_samples": 0.1,
+           "bridged_gap": 0.1}
 
 
 @dataclass
@@ -111,25 +112,36 @@ def standing_reference(data: LegData, acc_angle_deg: np.ndarray, exclude: np.nda
     return float(np.median(vals)) if vals.size >= min_len else None
 
 
+def _segment_sums(x: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
+    """Sum of ``x[a:b]`` for each (non-overlapping or not) half-open range, via a prefix sum."""
+    c = np.concatenate(([0.0], np.cumsum(x, dtype=float)))
+    return c[stops] - c[starts]
+
+
 def stance_offsets(data: LegData, go_rel: np.ndarray, strides: list[tuple[int, int, int]]
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Median of (accelerometer angle - GO) over the quiet stance samples of each stride, and the quiet-sample
-    count. Quiet: both segments' angular speed below CALM_DPS (lever-arm terms of Eq. 6 small)."""
+    """Mean of (accelerometer angle - GO) over the quiet stance samples of each stride, and the quiet-sample count.
+    Quiet: both segments' angular speed below CALM_DPS (lever-arm terms of Eq. 6 small); a stride with fewer than 5
+    quiet samples uses its whole stance. The running median over strides (:func:`fuse`) removes outliers."""
+    if not strides:
+        return np.zeros(0), np.zeros(0, dtype=int)
     prep = data.prep
     speed = np.rad2deg(np.maximum(np.linalg.norm(prep.gyr_thigh_rps, axis=1),
                                   np.linalg.norm(prep.gyr_shank_rps, axis=1)))
     diff = data.acc_angle_deg - go_rel
-    offs = np.full(len(strides), np.nan)
-    counts = np.zeros(len(strides), dtype=int)
-    for k, (a, t, _) in enumerate(strides):
-        d = diff[a:t + 1]
-        quiet = (speed[a:t + 1] < CALM_DPS) & np.isfinite(d)
-        if quiet.sum() < 5:
-            quiet = np.isfinite(d)
-        counts[k] = int(((speed[a:t + 1] < CALM_DPS) & np.isfinite(d)).sum())
-        if quiet.any():
-            offs[k] = float(np.median(d[quiet]))
-    return offs, counts
+    ok = np.isfinite(diff)
+    d0 = np.where(ok, diff, 0.0)
+    quiet = ok & (speed < CALM_DPS)
+    arr = np.asarray(strides)
+    lo, hi = arr[:, 0], arr[:, 1] + 1
+    n_quiet = _segment_sums(quiet, lo, hi)
+    n_ok = _segment_sums(ok, lo, hi)
+    s_quiet = _segment_sums(np.where(quiet, d0, 0.0), lo, hi)
+    s_ok = _segment_sums(d0, lo, hi)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        offs = np.where(n_quiet >= 5, s_quiet / np.maximum(n_quiet, 1), s_ok / n_ok)
+    offs[n_ok == 0] = np.nan
+    return offs, n_quiet.astype(int)
 
 
 def _in_bouts(data: LegData) -> np.ndarray:
@@ -165,49 +177,66 @@ def fuse(data: LegData, go_rel: np.ndarray, go_diag: dict, cf: np.ndarray) -> Fu
     angle = cf_used.copy()
     labels = np.where(np.isfinite(angle), "cf", "")
     zi, zf, drift = go_diag["zau_idx"], go_diag["zau_found"], go_diag["drift_deg"]
-    sat = data.prep.saturated
     centres = np.array([(a + b) / 2.0 for a, _, b in strides])
     offset_t = np.interp(np.arange(n), centres, smooth) if len(strides) else np.zeros(n)
     go_abs = go_rel + offset_t
-    choices = []
-    for k, (a, _t, b) in enumerate(strides):
+    choices: list[StrideChoice] = []
+    if not strides:
+        return FusionResult(angle_deg=angle, estimator=labels.astype(str), choices=choices,
+                            info={"absolute_reference": bool(absolute_ok), "cf_shift_deg": round(cf_shift, 2)})
+    arr = np.asarray(strides)
+    lo, hi = arr[:, 0], arr[:, 2] + 1
+    # per-stride checks from prefix sums (no per-sample Python work)
+    go_ok = np.isfinite(go_abs)
+    n_len = hi - lo
+    go_complete = _segment_sums(go_ok, lo, hi) == n_len
+    saturated = _segment_sums(data.prep.saturated, lo, hi) > 0
+    bridged = np.zeros(n_len.size, dtype=bool)
+    for g0, g1 in data.prep.bridged_s:
+        i0, i1 = np.searchsorted(data.prep.t_s, [g0, g1])
+        bridged |= (lo <= i1) & (hi > i0)
+    zl, zh = np.searchsorted(zi, lo), np.searchsorted(zi, hi)
+    missing = np.concatenate(([0], np.cumsum(~zf)))
+    no_crossing = (missing[zh] - missing[zl]) > 0
+    big_drift = np.concatenate(([0], np.cumsum(np.nan_to_num(np.abs(drift)) > DRIFT_MAX_DEG))) if drift.size \
+        else np.zeros(1, dtype=int)
+    d_lo, d_hi = np.clip(zl - 1, 0, drift.size), np.clip(zh, 0, drift.size)
+    drifted = (big_drift[d_hi] - big_drift[d_lo]) > 0
+    e = go_abs - cf_used
+    e_ok = np.isfinite(e)
+    e0 = np.where(e_ok, e, 0.0)
+    ne = np.maximum(_segment_sums(e_ok, lo, hi), 1)
+    mean_e = _segment_sums(e0, lo, hi) / ne
+    var_e = np.maximum(_segment_sums(e0 * e0, lo, hi) / ne - mean_e ** 2, 0.0)
+    mismatch = np.sqrt(var_e) > MISMATCH_DEG
+    for k in range(len(strides)):
         reasons: list[str] = []
         if not absolute_ok:
             reasons.append("no_absolute_reference")
         elif quiet_counts[k] < 5:
             reasons.append("few_quiet_samples")
         use_go = True
-        seg = go_abs[a:b + 1]
-        if not np.isfinite(seg).all():
-            reasons.append("no_go_estimate")
-            use_go = False
-        inside = np.flatnonzero((zi >= a) & (zi <= b))
-        if inside.size and not zf[inside].all():
-            reasons.append("no_zero_crossing")
-            use_go = False
-        # drift removed over the ZAU interval(s) touching this stride
-        j = np.searchsorted(zi, [a, b])
-        dr = drift[max(j[0] - 1, 0):min(j[1], drift.size)] if drift.size else np.zeros(0)
-        if dr.size and np.nanmax(np.abs(np.nan_to_num(dr))) > DRIFT_MAX_DEG:
-            reasons.append("drift")
-            use_go = False
-        if sat[a:b + 1].any():
-            reasons.append("saturation")
-            use_go = False
-        c = cf_used[a:b + 1]
-        if use_go and np.isfinite(c).all():
-            e = seg - c
-            if np.sqrt(np.mean((e - e.mean()) ** 2)) > MISMATCH_DEG:
-                reasons.append("go_cf_mismatch")
-        if use_go:
-            angle[a:b + 1] = seg
-            labels[a:b + 1] = "go"
-            name = "go"
-        else:
+        for flag, reason in ((not go_complete[k], "no_go_estimate"), (no_crossing[k], "no_zero_crossing"),
+                             (drifted[k], "drift"), (saturated[k], "saturation")):
+            if flag:
+                reasons.append(reason)
+                use_go = False
+        if bridged[k]:
+            reasons.append("bridged_gap")
+        if use_go and mismatch[k]:
+            reasons.append("go_cf_mismatch")
+        if not use_go:
             reasons.append("cf_fallback")
-            name = "cf"
         quality = max(0.0, 1.0 - sum(PENALTY.get(r, 0.1) for r in reasons))
-        choices.append(StrideChoice(estimator=name, quality=round(quality, 3), reasons=tuple(reasons)))
+        choices.append(StrideChoice(estimator="go" if use_go else "cf", quality=round(quality, 3),
+                                    reasons=tuple(reasons)))
+    use = np.array([c.estimator == "go" for c in choices])
+    cover = np.zeros(n + 1, dtype=int)
+    np.add.at(cover, lo[use], 1)
+    np.add.at(cover, hi[use], -1)
+    go_mask = np.cumsum(cover)[:-1] > 0
+    angle[go_mask] = go_abs[go_mask]
+    labels = np.where(go_mask, "go", labels)
     labels = np.where(np.isfinite(angle), labels, "")
     info = {"absolute_reference": bool(absolute_ok), "standing_ref_deg": None if ref is None else round(ref, 2),
             "cf_shift_deg": round(cf_shift, 2),

@@ -74,14 +74,18 @@ def _rising_crossings(x: np.ndarray) -> np.ndarray:
     return np.flatnonzero((x[:-1] <= 0) & (x[1:] > 0)) + 1
 
 
-def _swing_lobes(ws: np.ndarray) -> list[tuple[int, int, int]]:
-    """``(start, peak, stop)`` of each positive lobe of the smoothed rate (start/stop may be the signal edges)."""
+def _swing_lobes(ws: np.ndarray, min_height: float) -> list[tuple[int, int, int]]:
+    """``(start, peak, stop)`` of each positive lobe of the smoothed rate reaching ``min_height`` (start/stop may be
+    the signal edges). Vectorised: standing noise makes thousands of tiny lobes."""
     pos = ws > 0
     if not pos.any():
         return []
     edges = np.diff(np.concatenate(([0], pos.astype(np.int8), [0])))
     starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-    return [(int(a), int(a + np.argmax(ws[a:b])), int(b)) for a, b in zip(starts, stops, strict=True)]
+    heights = np.maximum.reduceat(ws, starts)
+    keep = heights >= min_height
+    return [(int(a), int(a + np.argmax(ws[a:b])), int(b))
+            for a, b in zip(starts[keep], stops[keep], strict=True)]
 
 
 def _merge_lobes(ws: np.ndarray, lobes: list[tuple[int, int, int]], fs_hz: float) -> list[tuple[int, int, int]]:
@@ -132,7 +136,7 @@ def detect_gait_events(shank_sag_dps: np.ndarray, fs_hz: float, valid: np.ndarra
     ws = lowpass(w0, LOBE_CUTOFF_HZ, fs_hz)
     we = lowpass(w0, EVENT_CUTOFF_HZ, fs_hz)
     ws[~valid] = 0.0
-    lobes = _merge_lobes(ws, _swing_lobes(ws), fs_hz)
+    lobes = _merge_lobes(ws, _swing_lobes(ws, 0.5 * MIN_PEAK_DPS), fs_hz)
     if not lobes:
         return GaitEvents(empty, empty, empty, empty, empty)
     heights = np.array([ws[p] for _, p, _ in lobes])

@@ -2,9 +2,9 @@
 
 Thigh and shank IMUs are not sample-synchronous and may run at different rates, so both are linearly
 interpolated onto one grid at the faster of the two rates (cubic spline: gait signals are smooth at 50-200 Hz and a
-spline keeps swing peaks that straight lines would cut). A gap is a step between consecutive samples longer than
+cubic keeps swing peaks that straight lines would cut). A gap is a step between consecutive samples longer than
 ``GAP_FACTOR`` nominal periods. Gaps up to ``MAX_BRIDGE_S`` (150 ms: one or two lost BLE packets; shorter than the
-swing-flexion phase, ~250 ms, so the spline still sees both sides of any knee event) are bridged by the spline and
+swing-flexion phase, ~250 ms, so the cubic still sees both sides of any knee event) are bridged by the cubic and
 reported (``bridged_s``, strides touching one get a quality note); longer gaps are masked: no angle, no stride across.
 """
 
@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 from pipeline.types import RawSensorStream
 
@@ -113,16 +112,30 @@ def saturation_mask(gyr: np.ndarray) -> np.ndarray:
 
 
 def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Cubic spline through the samples; straight lines across long gaps (masked anyway, but no overshoot)."""
-    if t.shape[0] < 4:
+    """Cubic Hermite interpolation (Catmull-Rom slopes from the neighbouring samples, non-uniform times), fully
+    vectorised; straight lines across gaps longer than MAX_BRIDGE_S (masked anyway, but no overshoot)."""
+    n = t.shape[0]
+    if n < 4:
         return np.column_stack([np.interp(t_new, t, x[:, k]) for k in range(x.shape[1])])
-    out = CubicSpline(t, x, axis=0)(t_new)
-    gap = np.flatnonzero(np.diff(t) > MAX_BRIDGE_S)
-    if gap.size:
-        pos = np.searchsorted(t, t_new, side="right") - 1
-        in_gap = np.isin(pos, gap)
-        if in_gap.any():
-            out[in_gap] = np.column_stack([np.interp(t_new[in_gap], t, x[:, k]) for k in range(x.shape[1])])
+    # slopes: central differences inside, one-sided at the ends and next to long gaps
+    dt = np.diff(t)
+    dx = np.diff(x, axis=0) / dt[:, None]
+    m = np.empty_like(x)
+    m[1:-1] = (x[2:] - x[:-2]) / (t[2:] - t[:-2])[:, None]
+    m[0], m[-1] = dx[0], dx[-1]
+    long_gap = dt > MAX_BRIDGE_S
+    g = np.flatnonzero(long_gap)
+    m[g] = dx[np.maximum(g - 1, 0)]  # one-sided: the data before the gap
+    m[g + 1] = dx[np.minimum(g + 1, n - 2)]  # and after it
+    i = np.clip(np.searchsorted(t, t_new, side="right") - 1, 0, n - 2)
+    h = dt[i][:, None]
+    u = ((t_new - t[i])[:, None]) / h
+    u2, u3 = u * u, u * u * u
+    out = ((2 * u3 - 3 * u2 + 1) * x[i] + (u3 - 2 * u2 + u) * h * m[i]
+           + (-2 * u3 + 3 * u2) * x[i + 1] + (u3 - u2) * h * m[i + 1])
+    lin = long_gap[i]
+    if lin.any():
+        out[lin] = x[i[lin]] + u[lin] * (x[i[lin] + 1] - x[i[lin]])
     return out
 
 
