@@ -30,4 +30,8 @@ def complementary_filter(rate_dps: np.ndarray, acc_angle_deg: np.ndarray, fs_hz:
 
 @register("cf")
 def cf_estimator(data: LegData) -> np.ndarray:
+    if data.activity == "running":  # impact-free updates and the KF's inputs (pipeline.running)
+        from pipeline.estimators.kf import cf_running_leg
+
+        return cf_running_leg(data)
     return complementary_filter(data.rate_dps, data.acc_angle_deg, data.fs_hz, data.prep.valid)

@@ -375,6 +375,30 @@ def kf_leg(data: LegData, tau_s: float | None = None) -> np.ndarray:
     return run(float(tau_s))
 
 
+def cf_running_leg(data: LegData, tau_s: float | None = None) -> np.ndarray:
+    """The complementary filter of Eq. 17 (constant gain ``lambda = dt / tau``) on a running leg, with the same
+    inputs as the KF (de-biased rate, standing zero, measurement updates only where ``leg_update_mask`` allows:
+    Rhudy et al. skip the impacts for CF, KF and EKF alike) and the same time constant, so the two differ only in
+    the gain schedule."""
+    from pipeline.tuning import tune_time_constant
+
+    rate = interval_rate(debiased_rate(data))
+    mask = leg_update_mask(data)
+    z = np.asarray(data.acc_angle_deg, dtype=float) - acc_zero_deg(data)
+    fs = data.fs_hz
+    if tau_s is None:
+        tau_s, _ = tune_time_constant(data)
+    lam = gain_for_time_constant(float(tau_s), fs)
+
+    def run(a: int, b: int) -> np.ndarray:
+        gains = np.where(mask[a:b], lam, 0.0)
+        drive = np.concatenate(([0.0], rate[a:b - 1] / fs))
+        x0 = _start_from_measurement(z[a:b], mask[a:b], rate[a:b], 1.0 / fs)
+        return linear_recursion(1.0 - gains, (1.0 - gains) * drive + gains * np.where(mask[a:b], z[a:b], 0.0), x0)
+
+    return run_per_segment(data, run)
+
+
 @register("kf")
 def kf_estimator(data: LegData) -> np.ndarray:
     return kf_leg(data)
