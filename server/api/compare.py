@@ -3,13 +3,16 @@
 ``GET /v1/sessions/{session_id}/compare`` re-runs the pipeline on the stored raw data once per estimator (``auto``,
 the policy the stored results come from, and each registered estimator: ``go`` Allseits et al. 2018, ``cf`` Seel /
 Rhudy Eq. 17, ``kf`` Rhudy Eq. 18-21, ``ekf`` Rhudy Eq. 22-24) and returns per leg the per-stride metric summary of
-each and the RMS difference between every pair of continuous angle estimates. Nothing is stored; the call costs
-a few pipeline runs, so it is meant for a clinician's occasional look, not for polling.
+each and the RMS difference between every pair of continuous angle estimates. Nothing is stored in the database;
+the call costs a few pipeline runs (seconds for a long session), so the last few answers are kept in memory, keyed
+by the session's uploaded content and the algorithm version.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
+from collections import OrderedDict
 from itertools import combinations
 
 import numpy as np
@@ -31,6 +34,7 @@ log = logging.getLogger("gaitmon.compare")
 router = APIRouter(prefix="/v1/sessions", tags=["results"])
 
 METRICS = ("peak_swing_flexion_deg", "rom_deg", "min_flexion_deg")
+CACHE_SIZE = 8
 
 
 class MetricSummary(BaseModel):
@@ -68,6 +72,10 @@ class CompareOut(BaseModel):
     failed: dict[str, str] = Field(description="Estimators that could not run on this session, with the reason")
     legs: dict[str, LegComparison]
     warnings: list[str]
+
+
+_cache: OrderedDict[tuple, CompareOut] = OrderedDict()  # (session, content, version, estimators) -> answer
+_cache_lock = threading.Lock()
 
 
 def _summary(values: list[float]) -> MetricSummary:
@@ -127,10 +135,16 @@ def compare_session(session_id: str, db: Db, caller: Caller,
     if session.status == "receiving":
         raise ProblemError(409, "The session is still receiving data; compare it once it is complete",
                            title="Comparison not available", slug="compare-not-ready")
-    n_batches = db.scalar(select(func.count()).select_from(Batch).where(Batch.session_id == session.id)) or 0
-    if n_batches == 0:
+    n_batches, last_batch = db.execute(select(func.count(), func.max(Batch.id))
+                                       .where(Batch.session_id == session.id)).one()
+    if not n_batches:
         raise ProblemError(409, "The session has no uploaded data", title="Comparison not available",
                            slug="compare-not-ready")
+    key = (session.id, n_batches, last_batch, session.activity, ALGORITHM_VERSION, tuple(names))
+    with _cache_lock:
+        if key in _cache:
+            _cache.move_to_end(key)
+            return _cache[key]
     streams = load_streams(db, session.id)
     results: dict[str, SessionResult] = {}
     failed: dict[str, str] = {}
@@ -142,5 +156,10 @@ def compare_session(session_id: str, db: Db, caller: Caller,
             failed[name] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
     warnings = next((list(r.warnings) for r in results.values()), [])
     log.info("compare %s: %s", session.id, ", ".join(results))
-    return CompareOut(session_id=session.id, activity=session.activity, algorithm_version=ALGORITHM_VERSION,
-                      estimators=list(results), failed=failed, legs=compare_results(results), warnings=warnings)
+    out = CompareOut(session_id=session.id, activity=session.activity, algorithm_version=ALGORITHM_VERSION,
+                     estimators=list(results), failed=failed, legs=compare_results(results), warnings=warnings)
+    with _cache_lock:
+        _cache[key] = out
+        while len(_cache) > CACHE_SIZE:
+            _cache.popitem(last=False)
+    return out

@@ -9,6 +9,7 @@ import pytest
 
 from pipeline.simulate import SimConfig, simulate_session
 from pipeline.types import LegResult, SessionResult, StrideMetrics
+from server.api import compare
 from server.api.compare import compare_results
 from server.config import Settings
 from server.simulate_cli import session_to_requests
@@ -56,7 +57,7 @@ def test_pairwise_rms_and_summaries() -> None:
     assert leg.estimators["kf"].n_strides == 0 and leg.estimators["kf"].rom_deg.mean is None
 
 
-def test_compare_running_session_over_http(api: Api) -> None:
+def test_compare_running_session_over_http(api: Api, monkeypatch: pytest.MonkeyPatch) -> None:
     c = api.client
     _, clin = api.clinician()
     patient = api.patient(clin)
@@ -98,3 +99,12 @@ def test_compare_running_session_over_http(api: Api) -> None:
 
     sub = c.get(url + "?estimators=kf,ekf", headers=bearer(clin)).json()
     assert sub["estimators"] == ["kf", "ekf"] and len(sub["legs"]["left"]["pairs"]) == 1
+
+    def boom(*args: object, **kwargs: object) -> None:
+        raise AssertionError("recomputed")
+
+    monkeypatch.setattr(compare, "process_session", boom)  # the same content again: answered from memory
+    again = c.get(url, headers=bearer(clin))
+    assert again.status_code == 200 and again.json() == body
+    fresh = c.get(url + "?estimators=go", headers=bearer(clin)).json()  # not cached: every estimator fails
+    assert fresh["estimators"] == [] and fresh["failed"] == {"go": "recomputed"}
