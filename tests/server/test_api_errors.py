@@ -81,3 +81,10 @@ def test_openapi_and_docs(api: Api) -> None:
     assert {"sensor_id", "seq", "t0_ms", "gyro", "acc", "timestamps_ms"} <= \
         set(batch["requestBody"]["content"]["application/json"]["schema"]["properties"])
     assert api.client.get("/docs").status_code == 200
+
+
+def test_large_responses_are_gzipped_when_accepted(api: Api) -> None:
+    r = api.client.get("/openapi.json", headers={"Accept-Encoding": "gzip"})
+    assert r.headers.get("content-encoding") == "gzip" and "paths" in r.json()
+    r = api.client.get("/openapi.json", headers={"Accept-Encoding": "identity"})
+    assert "content-encoding" not in r.headers and "paths" in r.json()
