@@ -18,10 +18,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-MAX_FIT_SAMPLES = 2000
+MAX_FIT_SAMPLES = 1500
 FIT_CHUNKS = 20
-N_RESTARTS = 4
-N_CENTRE_STARTS = 6
+N_RESTARTS = 2
+N_CENTRE_STARTS = 4
 _EPS = 1e-9
 
 
@@ -201,7 +201,7 @@ def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.nd
     # the samples, then the best one refined on all of them.
     rng = np.random.default_rng(1)
     starts = [np.full(6, 1e-3)] + [rng.uniform(-0.25, 0.25, 6) for _ in range(N_CENTRE_STARTS)]
-    sub = slice(None, None, 4) if a1.shape[0] >= 400 else slice(None)
+    sub = slice(None, None, 6) if a1.shape[0] >= 600 else slice(None)
     args_sub = (a1[sub], m1[sub], a2[sub], m2[sub])
     best = min((least_squares(_centre_resid, x0, jac=_centre_jac, args=args_sub, method="lm", max_nfev=200)
                 for x0 in starts), key=lambda r: r.cost)

@@ -103,19 +103,27 @@ def _merge_lobes(ws: np.ndarray, lobes: list[tuple[int, int, int]], fs_hz: float
     return merged
 
 
-def _heel_strike(zc: int, n: int, fs_hz: float, jerk: np.ndarray | None) -> int:
-    """HS after the end of a swing lobe at ``zc``: the impact if one stands out, else a fixed delay."""
-    if jerk is not None:
-        a = max(zc + int(round(IMPACT_WINDOW_S[0] * fs_hz)), 1)
-        b = min(zc + int(round(IMPACT_WINDOW_S[1] * fs_hz)) + 1, n)
-        if b - a >= 3:
-            win = jerk[a:b]
-            k = int(np.argmax(win))
-            if win[k] > IMPACT_PROMINENCE * max(float(np.median(win)), 1e-9):
-                # onset of the impact: the last sample before the first jump of at least half the largest
-                first = int(np.flatnonzero(win[:k + 1] >= 0.5 * win[k])[0])
-                return a + first - 1
-    return min(zc + int(round(HS_DELAY_S * fs_hz)), n - 1)
+def _heel_strikes(zc: np.ndarray, n: int, fs_hz: float, jerk: np.ndarray | None) -> np.ndarray:
+    """HS after the end of each swing lobe (indices ``zc``): the impact onset if one stands out of the window
+    (largest jump > IMPACT_PROMINENCE x the window's median jump), else the zero crossing + HS_DELAY_S.
+    Vectorised over lobes: one (lobes x window) matrix."""
+    fallback = np.minimum(zc + int(round(HS_DELAY_S * fs_hz)), n - 1)
+    if jerk is None or zc.size == 0:
+        return fallback
+    off = np.arange(int(round(IMPACT_WINDOW_S[0] * fs_hz)), int(round(IMPACT_WINDOW_S[1] * fs_hz)) + 1)
+    idx = zc[:, None] + off[None, :]
+    inside = (idx >= 1) & (idx < n)
+    win = np.where(inside, jerk[np.clip(idx, 0, n - 1)], 0.0)
+    k = np.argmax(win, axis=1)
+    peak = win[np.arange(zc.size), k]
+    med = np.median(np.where(inside, win, np.nan), axis=1) if inside.all() else np.nanmedian(
+        np.where(inside, win, np.nan), axis=1)
+    stands_out = peak > IMPACT_PROMINENCE * np.maximum(np.nan_to_num(med), 1e-9)
+    # onset: the last sample before the first jump of at least half the largest
+    before_peak = np.arange(off.size)[None, :] <= k[:, None]
+    first = np.argmax((win >= 0.5 * peak[:, None]) & before_peak, axis=1)
+    onset = idx[np.arange(zc.size), first] - 1
+    return np.where(stands_out & (onset >= 0), onset, fallback)
 
 
 def detect_gait_events(shank_sag_dps: np.ndarray, fs_hz: float, valid: np.ndarray | None = None,
@@ -150,13 +158,14 @@ def detect_gait_events(shank_sag_dps: np.ndarray, fs_hz: float, valid: np.ndarra
         acc = np.asarray(shank_acc_mps2, dtype=float)
         jerk = np.concatenate(([0.0], np.linalg.norm(np.diff(acc, axis=0), axis=1)))
         jerk[~valid | ~np.isfinite(jerk)] = 0.0
-    ms, to, hs = [], [], []
-    for a, p, b in lobes:
+    ms, to = [], []
+    for a, p, _ in lobes:
         ms.append(p)
         to.append(min(int(max(a - search, 0) + np.argmin(we[max(a - search, 0):a + 1])) + to_delay, p - 1)
                   if a > 0 else -1)
-        hs.append(_heel_strike(b, n, fs_hz, jerk) if b < n else -1)
-    ms_a, to_a, hs_a = np.array(ms), np.array(to), np.array(hs)
+    ms_a, to_a = np.array(ms, dtype=int), np.array(to, dtype=int)
+    ends = np.array([b for _, _, b in lobes], dtype=int)
+    hs_a = np.where(ends < n, _heel_strikes(np.minimum(ends, n - 1), n, fs_hz, jerk), -1)
     bout = _bouts(ms_a, ws, valid, fs_hz, min_bout_peaks)
     mst = np.full(ms_a.size, -1)
     for k in range(ms_a.size - 1):

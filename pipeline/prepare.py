@@ -179,10 +179,12 @@ def prepare_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream) -> Pre
     sat2 = saturation_mask(g2)
     saturated = (np.interp(t_grid, t1, sat1.astype(float)) > 0) | (np.interp(t_grid, t2, sat2.astype(float)) > 0)
     merged = _merge_intervals(gaps)
+    thigh6 = _interp_columns(t_grid, t1, np.hstack([g1, a1]))
+    shank6 = _interp_columns(t_grid, t2, np.hstack([g2, a2]))
     return PreparedLeg(
         leg=leg, fs_hz=fs_hz, t0_s=float(t_start), t_s=t_grid,
-        gyr_thigh_rps=_interp_columns(t_grid, t1, g1), gyr_shank_rps=_interp_columns(t_grid, t2, g2),
-        acc_thigh_mps2=_interp_columns(t_grid, t1, a1), acc_shank_mps2=_interp_columns(t_grid, t2, a2),
+        gyr_thigh_rps=thigh6[:, :3], gyr_shank_rps=shank6[:, :3],
+        acc_thigh_mps2=thigh6[:, 3:], acc_shank_mps2=shank6[:, 3:],
         valid=valid, saturated=saturated, gaps_s=merged, bridged_gaps=br1 + br2,
         bridged_s=_merge_intervals(noted1 + noted2),
     )
