@@ -93,6 +93,22 @@ class PatientIn(_In):
         return value
 
 
+class PatientPatch(_In):
+    """Fields to change; fields left out stay as they are (null clears an optional field)."""
+
+    external_id: Annotated[str, Field(max_length=200)] | None = None
+    display_name: Annotated[str, Field(max_length=200)] | None = None
+    affected_leg: Leg | None = None
+    timezone: Annotated[str, Field(max_length=64)] | None = None
+
+    @field_validator("timezone")
+    @classmethod
+    def _known_timezone(cls, value: str | None) -> str:
+        if value is None:
+            raise ValueError("timezone cannot be null")
+        return PatientIn._known_timezone(value)
+
+
 class PatientOut(BaseModel):
     id: str
     clinician_id: str | None

@@ -18,6 +18,7 @@ from server.schemas import (
     PatientIn,
     PatientOut,
     PatientPage,
+    PatientPatch,
     SessionListItem,
     SessionPage,
     TokenOut,
@@ -71,6 +72,16 @@ def list_patients(db: Db, caller: Caller, limit: int = Query(50, ge=1, le=200),
 @router.get("/{patient_id}", response_model=PatientOut, summary="One patient")
 def get_patient(patient_id: str, db: Db, caller: Caller) -> PatientOut:
     return patient_out(get_patient_for(db, caller, patient_id))
+
+
+@router.patch("/{patient_id}", response_model=PatientOut, summary="Change a patient's details")
+def patch_patient(patient_id: str, body: PatientPatch, db: Db, caller: Caller) -> PatientOut:
+    require_role(caller, "admin", "clinician", action="change patients")
+    patient = get_patient_for(db, caller, patient_id)
+    for field, value in body.model_dump(exclude_unset=True).items():
+        setattr(patient, field, value)
+    db.commit()
+    return patient_out(patient)
 
 
 @router.delete("/{patient_id}", status_code=204, response_class=Response,

@@ -102,3 +102,23 @@ def test_delete_patient_removes_all_its_rows_and_nothing_else(api: Api) -> None:
     assert c.get(f"/v1/patients/{gone}", headers=bearer(clin)).status_code == 404
     assert c.delete(f"/v1/patients/{gone}", headers=bearer(clin)).status_code == 404
     assert c.get(f"/v1/patients/{keep}", headers=bearer(clin)).status_code == 200
+
+
+def test_patch_patient_changes_only_given_fields(api: Api) -> None:
+    c = api.client
+    _, clin = api.clinician()
+    _, other = api.clinician("Other")
+    p = api.patient(clin, external_id="MRN-1", display_name="P. One", affected_leg="left")
+    dev = api.device(clin, p["id"])
+    r = c.patch(f"/v1/patients/{p['id']}", json={"affected_leg": "right", "timezone": "America/New_York"},
+                headers=bearer(clin))
+    assert r.status_code == 200
+    assert {k: r.json()[k] for k in ("external_id", "display_name", "affected_leg", "timezone")} == \
+        {"external_id": "MRN-1", "display_name": "P. One", "affected_leg": "right", "timezone": "America/New_York"}
+    r = c.patch(f"/v1/patients/{p['id']}", json={"display_name": None}, headers=bearer(clin))
+    assert r.status_code == 200 and r.json()["display_name"] is None and r.json()["affected_leg"] == "right"
+    for bad in ({"timezone": None}, {"timezone": "Nowhere/City"}, {"affected_leg": "x"}, {"clinician_id": "x"}):
+        assert c.patch(f"/v1/patients/{p['id']}", json=bad, headers=bearer(clin)).status_code == 422, bad
+    assert c.patch(f"/v1/patients/{p['id']}", json={}, headers=bearer(other)).status_code == 404
+    assert c.patch(f"/v1/patients/{p['id']}", json={}, headers=bearer(dev)).status_code == 403
+    assert c.get(f"/v1/patients/{p['id']}", headers=bearer(clin)).json()["timezone"] == "America/New_York"
