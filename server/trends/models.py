@@ -55,4 +55,6 @@ class TrendMetricValues(Base):
     mean: Mapped[float | None] = mapped_column(Float)
     sd: Mapped[float | None] = mapped_column(Float)
     median: Mapped[float | None] = mapped_column(Float)
+    p10: Mapped[float | None] = mapped_column(Float)
+    p90: Mapped[float | None] = mapped_column(Float)
     values: Mapped[bytes] = mapped_column(LargeBinary)

@@ -56,7 +56,10 @@ class SessionRow:
     n_implausible: int
     mean: float | None
     sd: float | None
-    values: bytes | None
+    median: float | None = None
+    p10: float | None = None
+    p90: float | None = None
+    values: bytes | None = None
 
 
 def _time_filter(col: Any, start: datetime | None, end: datetime | None) -> list[Any]:
@@ -85,7 +88,8 @@ def default_leg(db: DbSession, patient: Patient) -> str | None:
 
 
 def load_session_rows(db: DbSession, patient_id: str, metric: Metric, leg: str, start: datetime | None,
-                      end: datetime | None, *, with_values: bool = True) -> list[SessionRow]:
+                      end: datetime | None) -> list[SessionRow]:
+    """The session summaries of one metric and leg in time order, without value arrays (see :func:`attach_values`)."""
     if metric.column is None:  # count metric: from the session-leg counts
         q = (select(TrendSessionLeg.session_id, TrendSessionLeg.started_at, TrendSessionLeg.n_strides,
                     TrendSessionLeg.n_low_quality)
@@ -95,40 +99,59 @@ def load_session_rows(db: DbSession, patient_id: str, metric: Metric, leg: str, 
         out = []
         for sid, t, n, low in db.execute(q):
             ok = (n or 0) - (low or 0)
-            out.append(SessionRow(sid, as_utc(t), ok, low or 0, low or 0, 0, float(ok), None, None))
+            out.append(SessionRow(sid, as_utc(t), ok, low or 0, low or 0, 0, float(ok), None))
         return out
     m, s = TrendMetricValues, TrendSessionLeg
-    cols = [m.session_id, m.started_at, m.n_included, m.n_implausible, m.mean, m.sd, s.n_low_quality]
-    if with_values:
-        cols.append(m.values)
-    q = (select(*cols)
+    q = (select(m.session_id, m.started_at, m.n_included, m.n_implausible, m.mean, m.sd, m.median, m.p10, m.p90,
+                s.n_low_quality)
          .join(s, and_(s.session_id == m.session_id, s.leg == m.leg))
          .where(m.patient_id == patient_id, m.metric == metric.name, m.leg == leg,
                 *_time_filter(m.started_at, start, end))
          .order_by(m.started_at))
     out = []
-    for r in db.execute(q):
-        low = r.n_low_quality or 0
-        out.append(SessionRow(r.session_id, as_utc(r.started_at), r.n_included, low + r.n_implausible, low,
-                              r.n_implausible, r.mean, r.sd, r.values if with_values else None))
+    for sid, t, n, n_impl, mean, sd, med, p10, p90, low in db.execute(q):
+        low = low or 0
+        out.append(SessionRow(sid, as_utc(t), n, low + n_impl, low, n_impl, mean, sd, med, p10, p90))
     return out
+
+
+def attach_values(db: DbSession, metric: Metric, leg: str, rows: list[SessionRow]) -> None:
+    """Load the value arrays of these rows (only buckets pooling several sessions need them: the arrays are the
+    bulk of the bytes, ~4 kB per 1,000 strides)."""
+    ids = [r.session_id for r in rows if r.values is None and r.n_included]
+    blobs: dict[str, bytes] = {}
+    m = TrendMetricValues
+    for i in range(0, len(ids), 500):
+        blobs.update(db.execute(select(m.session_id, m.values).where(
+            m.session_id.in_(ids[i:i + 500]), m.metric == metric.name, m.leg == leg)).tuples().all())
+    for r in rows:
+        if r.values is None:
+            r.values = blobs.get(r.session_id, b"")
 
 
 def _describe_rows(rows: list[SessionRow]) -> stats.Describe:
     """Bucket statistics from the session summaries: mean and sd pooled exactly from the stored per-session
-    n/mean/sd, quantiles from the stored ascending values (a one-session bucket needs no sort, only 3 lookups)."""
+    n/mean/sd; quantiles stored per session (one-session bucket) or from the merged ascending value arrays."""
     n, mean, sd = stats.pool([stats.Point(0.0, r.n_included, r.mean, r.sd) for r in rows if r.n_included])
     if n == 0:
         return stats.Describe(0, None, None, None, None, None, None)
-    if len(rows) == 1:
-        v = decode_values(rows[0].values or b"")
-    else:
-        v = np.sort(decode_values(b"".join(r.values or b"" for r in rows)))
+    cv = sd / mean if sd is not None and mean else None
+    used = [r for r in rows if r.n_included]
+    if len(used) == 1 and used[0].p10 is not None:
+        r = used[0]
+        return stats.Describe(n, mean, sd, r.median, r.p10, r.p90, cv)
+    v = np.sort(decode_values(b"".join(r.values or b"" for r in used)))
     p10, median, p90 = stats.quantiles_sorted(v, (0.1, 0.5, 0.9))
-    return stats.Describe(n, mean, sd, median, p10, p90, sd / mean if sd is not None and mean else None)
+    return stats.Describe(n, mean, sd, median, p10, p90, cv)
 
 
-def _bucket_stats(metric: Metric, rows: list[SessionRow], bucket: Bucket, tz: Any) -> list[dict[str, Any]]:
+def _needs_values(rows: list[SessionRow]) -> bool:
+    used = [r for r in rows if r.n_included]
+    return len(used) > 1 or (len(used) == 1 and used[0].p10 is None)
+
+
+def _bucket_stats(db: DbSession, metric: Metric, leg: str, rows: list[SessionRow], bucket: Bucket,
+                  tz: Any) -> list[dict[str, Any]]:
     # Rows come ordered by time, so each bucket's rows (and their values) are one contiguous run.
     groups: dict[date, list[SessionRow]] = {}
     for r in rows:
@@ -146,6 +169,7 @@ def _bucket_stats(metric: Metric, rows: list[SessionRow], bucket: Bucket, tz: An
         values = np.concatenate(chunks) if chunks else np.empty(0)
         described = stats.describe_segments(values, lengths)
     else:
+        attach_values(db, metric, leg, [r for key in keys if _needs_values(groups[key]) for r in groups[key]])
         described = [_describe_rows(groups[key]) for key in keys]
     out = []
     for key, d in zip(keys, described, strict=True):
@@ -235,7 +259,7 @@ def patient_trends(db: DbSession, patient: Patient, *, metric_name: str, leg: st
     tz = zone(patient.timezone)
     leg = leg or default_leg(db, patient)
     rows = load_session_rows(db, patient.id, metric, leg, start, end) if leg else []
-    buckets = _bucket_stats(metric, rows, bucket, tz)
+    buckets = _bucket_stats(db, metric, leg, rows, bucket, tz)
     points, t0 = session_points(metric, rows, tz)
     trend_basis_unit = "per local day" if metric.column is None else "per session"
     return {
@@ -266,7 +290,7 @@ def patient_symmetry(db: DbSession, patient: Patient, *, metric_name: str, bucke
     tz = zone(patient.timezone)
     ref = patient.affected_leg or "left"
     other = "right" if ref == "left" else "left"
-    by_leg = {leg: {b["start"]: b for b in _bucket_stats(metric, load_session_rows(
+    by_leg = {leg: {b["start"]: b for b in _bucket_stats(db, metric, leg, load_session_rows(
         db, patient.id, metric, leg, start, end), bucket, tz)} for leg in (ref, other)}
     out = []
     for key in sorted(set(by_leg[ref]) | set(by_leg[other])):

@@ -18,6 +18,7 @@ from sqlalchemy.orm import sessionmaker
 from server.models import Session, SessionSensor, Stride, utcnow
 from server.trends.metrics import METRICS, MIN_QUALITY, PRIMARY_ESTIMATORS, STRIDE_METRICS
 from server.trends.models import TrendMetricValues, TrendSessionLeg
+from server.trends.stats import quantiles_sorted
 
 log = logging.getLogger(__name__)
 
@@ -30,6 +31,13 @@ def encode_values(values: np.ndarray) -> bytes:
 
 def decode_values(blob: bytes) -> np.ndarray:
     return np.frombuffer(blob, dtype="<f4")
+
+
+def _quantiles(sorted_values: np.ndarray) -> dict[str, float | None]:
+    if not sorted_values.size:
+        return {"median": None, "p10": None, "p90": None}
+    p10, median, p90 = quantiles_sorted(sorted_values, (0.1, 0.5, 0.9))
+    return {"median": median, "p10": p10, "p90": p90}
 
 
 def summarise_leg(columns: dict[str, np.ndarray], quality: np.ndarray, estimators: list[str], *,
@@ -57,7 +65,7 @@ def summarise_leg(columns: dict[str, np.ndarray], quality: np.ndarray, estimator
             "metric": name, "n_included": int(inc.size), "n_implausible": int((~keep).sum()),
             "mean": float(inc.mean()) if inc.size else None,
             "sd": float(inc.std(ddof=1)) if inc.size >= 2 else None,
-            "median": float(np.median(inc)) if inc.size else None,
+            **_quantiles(inc),
             "values": encode_values(inc),
         })
     return leg_row, metric_rows

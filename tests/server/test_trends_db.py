@@ -296,3 +296,21 @@ def test_attention_flags_declining_stalled_silent_and_sensor_trouble(factory) ->
     ids = [it["patient"]["id"] for it in first_page["items"] + second_page["items"]]
     assert len(first_page["items"]) == 2 and len(ids) == len(set(ids))
     assert set(ids) <= set(kinds)
+
+
+def test_summaries_without_stored_quantiles_fall_back_to_the_value_arrays(factory) -> None:
+    with factory() as db:
+        p = _patient(db)
+        peaks = np.arange(40.0, 61.0)  # 21 values: p10 = 42, median 50, p90 = 58
+        add_session(db, p.id, NOW, {"left": {"n": 21, "peak_swing_flexion_deg": peaks[::-1]}})
+        db.commit()
+        stored = service.patient_trends(db, p, metric_name="peak_swing_flexion_deg", leg="left", bucket="day",
+                                        start=None, end=None)["buckets"][0]
+        # Rows written before migration 0003 have no p10/p90.
+        for row in db.scalars(select(TrendMetricValues)):
+            row.p10 = row.p90 = None
+        db.commit()
+        fallback = service.patient_trends(db, p, metric_name="peak_swing_flexion_deg", leg="left", bucket="day",
+                                          start=None, end=None)["buckets"][0]
+    assert (stored["p10"], stored["median"], stored["p90"]) == (42.0, 50.0, 58.0)
+    assert (fallback["p10"], fallback["median"], fallback["p90"]) == (42.0, 50.0, 58.0)
