@@ -35,13 +35,20 @@ def _errors(leg_result, vicon):
 
 
 def test_biomechzoo_strides_and_zero_mean_error(zoo) -> None:
-    """Achieved at the time of writing: 8 strides per leg, zero-mean RMSE ~4.6 (right) / ~4.9 (left) deg."""
+    """Achieved at the time of writing: 8 strides per leg; zero-mean RMSE over the strides ~3.8 (right) / ~4.8
+    (left) deg as recorded, ~3.5 / ~2.5 deg once the Xsens and Vicon clocks are aligned within the +-30 ms the data
+    README states (the best lag is 10-30 ms on both legs; the error is mostly that lag times the knee rate)."""
     res, vicon = zoo
     assert set(res.legs) == {"left", "right"}
     for lr in res.legs.values():
         assert len(lr.strides) >= 7
         _, e = _errors(lr, vicon)
         assert np.sqrt(np.mean((e - e.mean()) ** 2)) < 5.5
+        t, ref = vicon[lr.leg]
+        ok = np.isfinite(lr.angle_deg)
+        best = min(float(np.std(lr.angle_deg[ok] - np.interp(lr.t_s[ok] + lag, t, ref)))
+                   for lag in np.arange(-0.03, 0.0301, 0.005))
+        assert best < 4.0
 
 
 def test_biomechzoo_swing_peak(zoo) -> None:
@@ -66,8 +73,7 @@ def test_tan_heel_strike_and_toe_off_timing() -> None:
         assert hs.size and to.size
         hs_err.append((hs[np.argmin(np.abs(hs - w.hs_idx))] - w.hs_idx) / w.fs_hz)
         to_err.append((to[np.argmin(np.abs(to - w.to_idx))] - w.to_idx) / w.fs_hz)
-    print("HS err ms", np.round(1000 * np.array(hs_err)), "TO err ms", np.round(1000 * np.array(to_err)))
     hs_err, to_err = np.abs(hs_err), np.abs(to_err)
-    # achieved: HS within 20 ms in 17/20 windows; TO systematically ~40 ms early (shank minimum precedes lift-off)
-    assert np.mean(hs_err <= 0.03) >= 0.8
-    assert np.median(to_err) <= 0.06
+    # achieved: HS within 20 ms in all 20 windows (impact onset), TO within 20 ms (shank minimum + 40 ms)
+    assert np.mean(hs_err <= 0.02) >= 0.9
+    assert np.median(to_err) <= 0.02

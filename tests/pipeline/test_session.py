@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from pipeline.prepare import MAX_BRIDGE_S
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, SimSession, simulate_session
 from pipeline.types import RawSensorStream
@@ -17,15 +18,29 @@ def _sim(pattern: str, seed: int, **kw) -> SimSession:
                                       activities=("standing",), **kw))
 
 
-def _matched(sim: SimSession, leg_result, tol_s: float = 0.15) -> list[tuple]:
+def _matched(sim: SimSession, leg_result, tol_s: float = 0.1) -> list[tuple]:
+    """(detected, true) stride pairs whose heel strikes both agree within ``tol_s``."""
     truth = sim.truth[leg_result.leg].strides
     starts = np.array([s.t_start_s for s in truth])
+    ends = np.array([s.t_end_s for s in truth])
     pairs = []
     for s in leg_result.strides:
         k = int(np.argmin(np.abs(starts - s.t_start_s)))
-        if abs(starts[k] - s.t_start_s) < tol_s:
+        if abs(starts[k] - s.t_start_s) < tol_s and abs(ends[k] - s.t_end_s) < tol_s:
             pairs.append((s, truth[k]))
     return pairs
+
+
+def _steady_complete(sim: SimSession, leg: str) -> list:
+    """True steady strides with no unbridgeable data gap (what the pipeline can be expected to find)."""
+    gaps = []
+    for s in sim.streams:
+        if s.leg == leg:
+            dt = np.diff(s.t_s)
+            idx = np.flatnonzero(dt > MAX_BRIDGE_S)
+            gaps += [(s.t_s[i], s.t_s[i + 1]) for i in idx]
+    return [t for t in sim.truth[leg].strides
+            if t.steady and not any(a < t.t_end_s + 0.05 and b > t.t_start_s - 0.05 for a, b in gaps)]
 
 
 def _angle_rmse(sim: SimSession, lr) -> float:
@@ -36,23 +51,29 @@ def _angle_rmse(sim: SimSession, lr) -> float:
     return float(np.sqrt(np.mean(err ** 2)))
 
 
-@pytest.mark.parametrize("pattern", ["normal", "crouch", "stiff-knee"])
+@pytest.mark.parametrize("pattern", ["normal", "crouch", "stiff-knee", "slow", "fast"])
 def test_simulated_walking_patterns(pattern: str) -> None:
-    """Achieved on tuning seeds (0-9) at the time of writing: recall 0.7-0.95 (packet-loss outages and bout edges
-    cost strides), peak swing flexion bias within ~3 deg (normal up to ~7 deg on single seeds), RMSE 1-4.5 deg."""
+    """Achieved on the tuning seeds (0-9, bench.accuracy) at the time of writing: recall and precision >= 0.999,
+    |peak bias| < 0.5 deg, peak LoA about +-5 deg and ROM LoA +-3.5 deg (dominated by the simulated thigh/shank
+    timestamp sync error), RMSE 1.6-2.9 deg. Asserted here on one seed with a margin."""
     sim = _sim(pattern, seed=2)
     res = process_session(sim.streams, activity=sim.activity)
     assert set(res.legs) == {"left", "right"}
     for lr in res.legs.values():
         pairs = _matched(sim, lr)
-        n_true = len(sim.truth[lr.leg].strides)
-        assert len(pairs) >= 0.5 * n_true
-        assert len(pairs) >= 0.95 * len(lr.strides)  # precision: detected strides are real strides
+        expected = _steady_complete(sim, lr.leg)
+        found = {id(t) for _, t in pairs}
+        assert sum(id(t) in found for t in expected) >= 0.95 * len(expected)  # recall
+        assert len(pairs) >= 0.97 * len(lr.strides)  # precision: detected strides are real strides
         peak_err = np.array([s.peak_swing_flexion_deg - t.peak_swing_flexion_deg for s, t in pairs])
-        assert abs(np.median(peak_err)) < 6.0
+        assert abs(np.mean(peak_err)) < 5.0  # one leg of one seed: the sync error alone shifts it by up to ~4
+        assert np.percentile(np.abs(peak_err), 90) < 6.0
         rom_err = np.array([s.rom_deg - t.rom_deg for s, t in pairs])
-        assert np.percentile(np.abs(rom_err), 90) < 6.0
-        assert _angle_rmse(sim, lr) < 6.0
+        assert np.percentile(np.abs(rom_err), 90) < 5.0
+        hs_err = np.array([s.t_start_s - t.t_start_s for s, t in pairs])
+        to_err = np.array([s.t_toe_off_s - t.t_toe_off_s for s, t in pairs])
+        assert np.median(np.abs(hs_err)) < 0.03 and np.median(np.abs(to_err)) < 0.04
+        assert _angle_rmse(sim, lr) < 4.0
         # the trace is on a uniform grid, as the server stores it
         np.testing.assert_allclose(np.diff(lr.t_s), 1.0 / lr.fs_hz, atol=1e-9)
         assert set(np.unique(lr.estimator)) <= {"go", "cf", ""}
@@ -69,7 +90,7 @@ def test_crouch_reads_an_absolute_minimum_flexion() -> None:
         mins = np.array([s.min_flexion_deg for s in lr.strides])
         truth = np.array([t.min_flexion_deg for _, t in _matched(sim, lr)])
         assert np.median(mins) > 15.0  # GO alone would read ~0 here
-        assert abs(np.median(mins) - np.median(truth)) < 5.0
+        assert abs(np.median(mins) - np.median(truth)) < 3.0
 
 
 def test_units_and_mirrored_mounting_give_the_same_angles() -> None:
@@ -126,3 +147,15 @@ def test_missing_segment_and_empty_input() -> None:
         process_session(empty)
     with pytest.raises(ValueError):
         process_session([])
+
+
+def test_saturated_gyro_strides_fall_back_to_cf() -> None:
+    sim = simulate_session(SimConfig(pattern="fast", seed=8, n_strides=16, bout_strides=8, activities=("standing",),
+                                     gyro_range_dps=300.0))
+    res = process_session(sim.streams)
+    reasons = [r for lr in res.legs.values() for s in lr.strides for r in s.quality_reasons]
+    assert "saturation" in reasons
+    for lr in res.legs.values():
+        for s in lr.strides:
+            if "saturation" in s.quality_reasons:
+                assert s.estimator == "cf" and s.quality < 1.0
