@@ -23,7 +23,7 @@ Db = Annotated[DbSession, Depends(get_db)]
 Caller = Annotated[Principal, Depends(current_principal)]
 
 
-def get_app_settings(request: Request) -> Settings:
+async def get_app_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
