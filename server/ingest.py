@@ -136,7 +136,7 @@ def _sensor_received(rows: list, fs_hz: float) -> dict:
     """
     if not rows:
         return {"batches": 0, "samples": 0, "gaps": 0, "gap_s": 0.0, "first_t_s": None, "last_t_s": None,
-                "missing_seq": []}
+                "missing_seq": [], "observed_rate_hz": None}
     rows = sorted(rows, key=lambda r: r.seq)
     period_ms = 1000.0 / fs_hz
     limit = GAP_PERIODS * period_ms
@@ -170,6 +170,8 @@ def _sensor_received(rows: list, fs_hz: float) -> dict:
         "first_t_s": float(first.min()) / 1000.0,
         "last_t_s": float(last.max()) / 1000.0,
         "missing_seq": missing[:MAX_LISTED_MISSING_SEQ],
+        # From the median step inside batches: shows a declared rate that does not match the timestamps.
+        "observed_rate_hz": round(1000.0 / float(np.median(steps[inside])), 2) if inside.any() else None,
     }
 
 

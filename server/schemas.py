@@ -171,6 +171,7 @@ class ReceivedOut(BaseModel):
     last_t_s: float | None
     missing_seq: list[int] = Field(description="Missing seq numbers between the lowest and highest received "
                                                "(at most 100 listed)")
+    observed_rate_hz: float | None = Field(description="Sample rate implied by the timestamps (median step)")
 
 
 class SessionOut(BaseModel):

@@ -38,7 +38,8 @@ def test_create_and_retry_returns_same_session(api: Api) -> None:
     assert datetime.fromisoformat(s["started_at"]) == datetime.fromisoformat("2026-11-21T09:30:00+00:00")
     assert {x["sensor_id"] for x in s["sensors"]} == {"L-thigh", "L-shank"}
     assert s["received"]["L-thigh"] == {"batches": 0, "samples": 0, "gaps": 0, "gap_s": 0.0, "first_t_s": None,
-                                        "last_t_s": None, "missing_seq": []}
+                                        "last_t_s": None, "missing_seq": [],
+                                        "observed_rate_hz": None}
     r2 = c.post("/v1/sessions", json=_body(patient["id"]), headers=bearer(dev))
     assert datetime.fromisoformat(r2.json()["started_at"]) == datetime.fromisoformat("2026-11-21T09:30:00Z")
     assert r2.status_code == 200 and r2.json()["id"] == s["id"]

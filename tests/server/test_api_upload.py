@@ -69,6 +69,7 @@ def test_shuffled_order_with_duplicates_stores_each_sample_once(api: Api) -> Non
         rec = got["received"][sensor]
         assert (rec["batches"], rec["samples"], rec["gaps"], rec["missing_seq"]) == (n_batches, n * n_batches, 0, [])
         assert rec["first_t_s"] == 0.0 and rec["last_t_s"] == pytest.approx((n * n_batches - 1) / 100.0)
+        assert rec["observed_rate_hz"] == pytest.approx(100.0)
     with api.client.app.state.sessionmaker() as db:  # type: ignore[attr-defined]
         streams = {s.sensor_id: s for s in load_streams(db, sess["id"])}
     shank = streams["L-shank"]
