@@ -25,7 +25,8 @@ REQUIRE_PG = os.environ.get("GAITMON_REQUIRE_POSTGRES") == "1"
 
 
 def _worker_suffix() -> str:
-    return os.environ.get("PYTEST_XDIST_WORKER", "main")
+    # the pid keeps concurrent pytest runs on one machine out of each other's databases
+    return f"{os.environ.get('PYTEST_XDIST_WORKER', 'main')}_{os.getpid()}"
 
 
 @pytest.fixture(scope="session")
