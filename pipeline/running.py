@@ -318,17 +318,30 @@ def detect_running(prep: PreparedLeg) -> RunningCycles | None:
     return cycles if looks_like_running(cycles) else None
 
 
-def running_auto(data: LegData) -> tuple[np.ndarray, np.ndarray, list[tuple[str, float, tuple[str, ...]]], dict]:
-    """The ``auto`` policy for running legs: the KF (Rhudy et al. 2024 found KF and CF best, 2.7-3.6 deg; here the KF
-    gets the impact-free 40-80 % updates, quiet-standing anchoring and automatic tuning of
-    :mod:`pipeline.estimators.kf`). GO's zero-angle update does not apply: a running knee never straightens
-    (minimum ~15-25 deg). Returns angle, per-sample estimator names, one ``(estimator, quality, reasons)`` per
-    gait-event stride, and diagnostics."""
-    from pipeline.estimators.kf import acc_zero_deg, kf_leg
+RUNNING_AUTO_ESTIMATOR = "ekf"
 
-    angle = kf_leg(data)
-    labels = np.where(np.isfinite(angle), "kf", "").astype(str)
+
+def running_auto(data: LegData) -> tuple[np.ndarray, np.ndarray, list[tuple[str, float, tuple[str, ...]]], dict]:
+    """The ``auto`` policy for running legs: the EKF of Rhudy et al. Eq. 22-24 with the running inputs (impact-free
+    40-80 % updates, per-stride gyro de-biasing, quiet-standing anchoring, automatic tuning; see
+    :mod:`pipeline.estimators.kf` and :mod:`pipeline.estimators.ekf`). GO's zero-angle update does not apply: a
+    running knee never straightens (minimum ~15-25 deg).
+
+    Rhudy et al. found KF and CF slightly better than their EKF (Table 2, Vicon-tuned). With these inputs and no
+    reference tuning the EKF came out best on the simulator (bench/accuracy.py, running, TUNE seeds 0-9 at 100 and
+    200 Hz: RMSE EKF 2.17, KF 2.57, CF 3.35 deg; per-stride peak LoA EKF -6.9..5.0, KF -5.5..7.5): its update
+    ``P |a| |b| / (P |a|^2 + r) sin(alpha_acc - x)`` bounds the pull of a large accelerometer-angle error (the sine)
+    and weighs it by the acceleration magnitudes.
+
+    Returns angle, per-sample estimator names, one ``(estimator, quality, reasons)`` per gait-event stride, and
+    diagnostics."""
+    from pipeline.estimators.ekf import ekf_leg
+    from pipeline.estimators.kf import acc_zero_deg
+
+    name = RUNNING_AUTO_ESTIMATOR
+    angle = ekf_leg(data)
+    labels = np.where(np.isfinite(angle), name, "").astype(str)
     reasons: tuple[str, ...] = () if acc_zero_deg(data) != 0.0 else ("no_absolute_reference",)
     quality = 0.8 if reasons else 1.0
-    choices = [("kf", quality, reasons) for _ in data.events.strides]
-    return angle, labels, choices, {"kf_tuning": data.extras.get("kf_tuning")}
+    choices = [(name, quality, reasons) for _ in data.events.strides]
+    return angle, labels, choices, {"running_tuning": data.extras.get("ekf_tuning")}

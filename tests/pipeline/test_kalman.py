@@ -183,3 +183,18 @@ def test_lengths_are_checked() -> None:
         kf_angle(np.zeros(10), np.zeros(9), FS)
     with pytest.raises(ValueError):
         ekf_angle(np.zeros(10), np.zeros((10, 2)), np.zeros((9, 2)), FS)
+
+
+def test_isotropic_ekf_shortcut_equals_equations_22_to_24() -> None:
+    rng = np.random.default_rng(7)
+    n = 3000
+    t, angle, rate = _knee(n)
+    a_thigh = np.column_stack([9.8 + rng.normal(0, 2, n), rng.normal(0, 4, n)])
+    a_shank = _rotate(a_thigh, angle + rng.normal(0, 10, n)) + rng.normal(0, 1, (n, 2))
+    mask = (np.arange(n) % 140) > 14
+    scale = np.where(np.arange(n) < 500, 0.01, 1.0)
+    fast = ekf_angle(rate, a_thigh, a_shank, FS, update_mask=mask, r_scale=scale)
+    slow = ekf_angle(rate, a_thigh, a_shank, FS, update_mask=mask, r_scale=scale, force_general=True)
+    np.testing.assert_allclose(fast, slow, atol=1e-8)
+    aniso = ekf_angle(rate, a_thigh, a_shank, FS, update_mask=mask, r_y_mps2_sq=30.0)
+    assert np.abs(aniso - fast).max() > 0.1  # a different R does change the estimate

@@ -135,12 +135,12 @@ def test_simulated_running_strikes(running_sim: SimSession) -> None:
     assert looks_like_running(cycles)
 
 
-def test_running_session_auto_uses_the_kalman_filter(running_sim: SimSession) -> None:
+def test_running_session_auto_uses_the_extended_kalman_filter(running_sim: SimSession) -> None:
     """Target: RMSE <= 3.5 deg and peak swing flexion within a few degrees, without any reference-based tuning."""
     sim = running_sim
     res = process_session(sim.streams, activity="running")
     leg = res.legs["left"]
-    assert leg.strides and {s.estimator for s in leg.strides} == {"kf"}
+    assert leg.strides and {s.estimator for s in leg.strides} == {"ekf"}
     truth = sim.truth["left"]
     inside = np.zeros(leg.t_s.size, dtype=bool)
     for a, b in truth.bouts_s:
@@ -155,7 +155,7 @@ def test_running_session_auto_uses_the_kalman_filter(running_sim: SimSession) ->
 
 def test_unknown_activity_is_detected_as_running(running_sim: SimSession) -> None:
     res = process_session(running_sim.streams, activity="unknown")
-    assert res.legs["left"].strides[0].estimator == "kf"
+    assert res.legs["left"].strides[0].estimator == "ekf"
     assert "running" in res.legs["left"].info
 
 
