@@ -14,6 +14,7 @@ PostgreSQL: a dedicated database (``--pg-db``) is dropped and created on the loc
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import tempfile
@@ -215,6 +216,8 @@ def main(argv: list[str] | None = None) -> None:
 
     print(f"\n{args.patients} patients + one with {args.days} daily sessions x ~{args.strides} strides; "
           f"{args.repeats} repeats; target p95 < 50 ms for the trend")
+    load = os.getloadavg()
+    print(f"(load average during the run: {load[0]:.1f} / {load[1]:.1f} on {os.cpu_count()} CPUs)")
     print(f"{'database':<10} {'measure':<32} {'p50 ms':>8} {'p95 ms':>8}")
     for db, what, p50, p95 in results:
         print(f"{db:<10} {what:<32} {p50:8.1f} {p95:8.1f}")

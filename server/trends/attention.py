@@ -67,8 +67,9 @@ def _interval_moments(db: DbSession, owned: list[Any], metric: str, edges: list[
                 m.started_at >= edges[0], m.started_at < edges[-1])
          .group_by(m.patient_id, m.leg, idx))
     out: dict[str, dict] = {}
+    # Every group has >= 1 row with n_included >= 5, so no sum is NULL.
     for pid, leg, i, *mom in db.execute(q):
-        out.setdefault(pid, {}).setdefault(leg, {})[int(i)] = tuple(float(x or 0) for x in mom)
+        out.setdefault(pid, {}).setdefault(leg, {})[i] = mom
     return out
 
 
