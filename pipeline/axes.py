@@ -22,6 +22,8 @@ MAX_FIT_SAMPLES = 1500
 FIT_CHUNKS = 20
 N_RESTARTS = 2
 N_CENTRE_STARTS = 4
+MAX_LEVER_M = 0.4
+CENTRE_REG = 0.05  # [m/s^2 per m] per sample: negligible against real misfit, fixes the flat valley
 _EPS = 1e-9
 
 
@@ -149,6 +151,41 @@ def orient_axes(j1: np.ndarray, j2: np.ndarray, g1: np.ndarray, g2: np.ndarray) 
     return j1, j2
 
 
+SYNC_MAX_S = 0.06
+SYNC_CUTOFF_HZ = 15.0
+
+
+def estimate_sync_lag_s(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray, valid: np.ndarray,
+                        fs_hz: float, window: slice | None = None) -> float | None:
+    """Timestamp offset of the shank relative to the thigh [s], from Seel's hinge constraint (Eq. 2): for a hinge,
+    the angular velocity perpendicular to the axis is the same vector in both segments, so ||g1 x j1|| = ||g2 x j2||
+    sample by sample. A clock offset between the sensors shifts one against the other; the lag (within +-SYNC_MAX_S)
+    minimising the mean squared mismatch, refined by a parabola through the three best lags, estimates it.
+    Positive: shank events appear late on the common grid. None when the cost has no clear minimum (a leg that never
+    leaves its joint plane carries no timing information here). Inputs low-passed gyros [rad/s]; ``window``
+    restricts the samples compared (clock drift: one estimate per window)."""
+    if window is not None:
+        g1, g2, valid = g1[window], g2[window], valid[window]
+    m1 = np.linalg.norm(np.cross(g1, j1), axis=1)
+    m2 = np.linalg.norm(np.cross(g2, j2), axis=1)
+    k_max = max(int(round(SYNC_MAX_S * fs_hz)), 2)
+    n = m1.shape[0]
+    idx = np.flatnonzero(valid[k_max:n - k_max]) + k_max
+    if idx.size < 10 * k_max:
+        return None
+    ok2 = valid.astype(bool)
+    cost = np.empty(2 * k_max + 1)
+    for i, k in enumerate(range(-k_max, k_max + 1)):
+        sel = idx[ok2[idx + k]]
+        cost[i] = np.mean((m1[sel] - m2[sel + k]) ** 2) if sel.size else np.inf
+    b = int(np.argmin(cost))
+    if b == 0 or b == cost.size - 1 or not np.isfinite(cost).all() or cost[b] > 0.8 * np.median(cost):
+        return None
+    den = cost[b - 1] - 2 * cost[b] + cost[b + 1]
+    frac = 0.5 * (cost[b - 1] - cost[b + 1]) / den if den > 0 else 0.0
+    return float((b - k_max + frac) / fs_hz)
+
+
 def angular_acceleration(g: np.ndarray, fs_hz: float) -> np.ndarray:
     """Seel Eq. 1 (Rhudy et al. 2024, Eq. 1): five-point central difference; one-sided at the ends."""
     gd = np.gradient(g, 1.0 / fs_hz, axis=0)
@@ -177,17 +214,21 @@ def _centre_split(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray,
 
 
 def _centre_resid(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray) -> np.ndarray:
-    """Seel Eq. 5 residual: ||a1 - Gamma1(o1)|| - ||a2 - Gamma2(o2)|| per sample."""
+    """Seel Eq. 5 residual: ||a1 - Gamma1(o1)|| - ||a2 - Gamma2(o2)|| per sample, plus a weak pull of o towards 0:
+    the cost is flat when both centres slide along the axis (Eq. 5's final projection), and without the pull the
+    solver can wander along that valley to metres."""
     v1, v2 = _centre_split(x, a1, m1, a2, m2)
-    return np.linalg.norm(v1, axis=1) - np.linalg.norm(v2, axis=1)
+    reg = CENTRE_REG * np.sqrt(a1.shape[0])
+    return np.concatenate([np.linalg.norm(v1, axis=1) - np.linalg.norm(v2, axis=1), reg * x])
 
 
 def _centre_jac(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray) -> np.ndarray:
-    """d||a - M o||/do = -(v/||v||)^T M."""
+    """d||a - M o||/do = -(v/||v||)^T M (and the pull's constant rows)."""
     v1, v2 = _centre_split(x, a1, m1, a2, m2)
     n1 = np.maximum(np.linalg.norm(v1, axis=1), _EPS)[:, None]
     n2 = np.maximum(np.linalg.norm(v2, axis=1), _EPS)[:, None]
-    return np.hstack([-np.einsum("ni,nij->nj", v1 / n1, m1), np.einsum("ni,nij->nj", v2 / n2, m2)])
+    data = np.hstack([-np.einsum("ni,nij->nj", v1 / n1, m1), np.einsum("ni,nij->nj", v2 / n2, m2)])
+    return np.vstack([data, CENTRE_REG * np.sqrt(a1.shape[0]) * np.eye(6)])
 
 
 def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,
@@ -201,15 +242,21 @@ def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.nd
     # the samples, then the best one refined on all of them.
     rng = np.random.default_rng(1)
     starts = [np.full(6, 1e-3)] + [rng.uniform(-0.25, 0.25, 6) for _ in range(N_CENTRE_STARTS)]
-    sub = slice(None, None, 6) if a1.shape[0] >= 600 else slice(None)
+    sub = slice(None, None, 4) if a1.shape[0] >= 400 else slice(None)
     args_sub = (a1[sub], m1[sub], a2[sub], m2[sub])
-    best = min((least_squares(_centre_resid, x0, jac=_centre_jac, args=args_sub, method="lm", max_nfev=200)
-                for x0 in starts), key=lambda r: r.cost)
-    sol = least_squares(_centre_resid, best.x, jac=_centre_jac, args=(a1, m1, a2, m2), method="lm", max_nfev=200)
+    trials = sorted((least_squares(_centre_resid, x0, jac=_centre_jac, args=args_sub, method="lm", max_nfev=200)
+                     for x0 in starts), key=lambda r: r.cost)
+    # the two best subset solutions refined on all samples: the subset alone can prefer a mirrored minimum
+    sol = min((least_squares(_centre_resid, t.x, jac=_centre_jac, args=(a1, m1, a2, m2), method="lm", max_nfev=200)
+               for t in trials[:2]), key=lambda r: r.cost)
     o1h, o2h = sol.x[:3], sol.x[3:]
     shift = (o1h @ j1 + o2h @ j2) / 2.0
     o1, o2 = o1h - j1 * shift, o2h - j2 * shift
-    r = _centre_resid(sol.x, a1, m1, a2, m2)
+    r = _centre_resid(sol.x, a1, m1, a2, m2)[:-6]
+    if max(np.linalg.norm(o1), np.linalg.norm(o2)) > MAX_LEVER_M:
+        # not a body-worn sensor position: no lever-arm correction rather than a wrong one
+        return JointCentres(o1=np.zeros(3), o2=np.zeros(3), rms_residual_mps2=float(np.sqrt(np.mean(r ** 2))),
+                            absolute=False)
     in_plane = min(np.linalg.norm(o1 - (o1 @ j1) * j1), np.linalg.norm(o2 - (o2 @ j2) * j2))
     return JointCentres(o1=o1, o2=o2, rms_residual_mps2=float(np.sqrt(np.mean(r ** 2))),
                         absolute=bool(in_plane > 0.03))

@@ -154,13 +154,17 @@ def _mask_intervals(t_grid: np.ndarray, gaps: list[tuple[float, float]]) -> np.n
     return np.cumsum(delta)[:-1] > 0
 
 
-def prepare_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream) -> PreparedLeg:
+def prepare_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, shank_shift_s: float = 0.0,
+                shank_drift: float = 0.0) -> PreparedLeg:
     """Convert both streams to SI, put them on one uniform grid over their common time span, mark gaps.
 
-    Raises ValueError when the two streams have no usable overlap.
+    The shank's time stamps are corrected to ``t + shank_shift_s + shank_drift * t`` (a measured clock offset and
+    rate error, see :func:`pipeline.session.synchronised_leg`). Raises ValueError when the two streams have no
+    usable overlap.
     """
     t1, g1, a1 = to_si(thigh)
     t2, g2, a2 = to_si(shank)
+    t2 = t2 + shank_shift_s + shank_drift * t2
     for name, t in (("thigh", t1), ("shank", t2)):
         if t.shape[0] < 2:
             raise ValueError(f"{leg} {name} sensor has fewer than 2 usable samples")

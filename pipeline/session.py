@@ -13,8 +13,10 @@ import numpy as np
 
 from pipeline import ALGORITHM_VERSION
 from pipeline.axes import (
+    JointAxes,
     accelerometer_angle_deg,
     angular_acceleration,
+    estimate_sync_lag_s,
     fit_joint_axes,
     fit_joint_centres,
     select_fit_samples,
@@ -30,6 +32,8 @@ from pipeline.running import build_running_leg_data, detect_running, running_aut
 from pipeline.signal_utils import lowpass_runs
 from pipeline.types import LegResult, RawSensorStream, SessionResult, StrideMetrics
 
+SYNC_WINDOW_S = 40.0
+MAX_DRIFT = 300e-6  # BLE sensor crystals: tens of ppm; more is a bad estimate
 FIT_CUTOFF_HZ = 10.0  # gyro/acc smoothing for the axis and joint-centre fits and the accelerometer angle
 
 
@@ -76,14 +80,59 @@ def _dps(x: np.ndarray) -> np.ndarray:
     return np.rad2deg(x)
 
 
-def build_leg_data(prep: PreparedLeg, activity: str = "walking") -> tuple[LegData, dict]:
-    """Axes, rates, events, joint centres and accelerometer angle of one prepared leg."""
+def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream) -> tuple[PreparedLeg, JointAxes, dict]:
+    """Prepare a leg, fit its axes, and when the hinge constraint shows a thigh/shank clock offset larger than a
+    quarter sample, prepare it again with the shank's time stamps corrected (the axes do not move with the lag).
+    A 10-15 ms offset, common between two BLE sensors, would otherwise distort swing flexion by several degrees."""
+    prep = prepare_leg(leg, thigh, shank)
+    if prep.valid.sum() < max(10, int(prep.fs_hz)):
+        raise ValueError("less than one second of usable samples")
+    g1 = np.nan_to_num(lowpass_runs(prep.gyr_thigh_rps, prep.valid, FIT_CUTOFF_HZ, prep.fs_hz))
+    g2 = np.nan_to_num(lowpass_runs(prep.gyr_shank_rps, prep.valid, FIT_CUTOFF_HZ, prep.fs_hz))
+    axes = fit_joint_axes(g1, g2, prep.valid)
+    offset, drift = _clock_model(prep, g1, g2, axes)
+    info = {"shank_lag_ms": None if offset is None else round(1000 * offset, 1),
+            "shank_drift_ppm": round(1e6 * drift, 1)}
+    if offset is not None:
+        # lag(t) = offset + drift * (t - t_mid): shift the shank's stamps back by it
+        t_mid = float(prep.t_s[prep.n // 2])
+        if max(abs(offset), abs(drift) * (prep.t_s[-1] - prep.t_s[0]) / 2) * prep.fs_hz > 0.25:
+            prep = prepare_leg(leg, thigh, shank, shank_shift_s=-(offset - drift * t_mid), shank_drift=-drift)
+    return prep, axes, info
+
+
+def _clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes) -> tuple[float | None, float]:
+    """Shank-vs-thigh lag at mid-session and its drift [s/s]: one lag per SYNC_WINDOW_S window (Seel Eq. 2 hinge
+    constraint, :func:`pipeline.axes.estimate_sync_lag_s`), a straight line through them when at least two windows
+    are informative (rate error clipped to MAX_DRIFT), else the single session-wide lag."""
+    fs = prep.fs_hz
+    win = int(SYNC_WINDOW_S * fs)
+    t_mid = float(prep.t_s[prep.n // 2])
+    if prep.n >= 2 * win:
+        edges = np.linspace(0, prep.n, int(prep.n // win) + 1).astype(int)
+        pts = []
+        for a, b in zip(edges[:-1], edges[1:], strict=True):
+            lag = estimate_sync_lag_s(g1, g2, axes.j1, axes.j2, prep.valid, fs, window=slice(a, b))
+            if lag is not None:
+                pts.append((float(prep.t_s[(a + b) // 2]) - t_mid, lag))
+        if len(pts) >= 2:
+            t, lag = np.array(pts).T
+            drift, offset = np.polyfit(t, lag, 1)
+            drift = float(np.clip(drift, -MAX_DRIFT, MAX_DRIFT))
+            return float(np.median(lag - drift * t)), drift
+    return estimate_sync_lag_s(g1, g2, axes.j1, axes.j2, prep.valid, fs), 0.0
+
+
+def build_leg_data(prep: PreparedLeg, activity: str = "walking", axes: JointAxes | None = None
+                   ) -> tuple[LegData, dict]:
+    """Axes (unless given), rates, events, joint centres and accelerometer angle of one prepared leg."""
     valid = prep.valid
     fs = prep.fs_hz
     g1 = lowpass_runs(prep.gyr_thigh_rps, valid, FIT_CUTOFF_HZ, fs)
     g2 = lowpass_runs(prep.gyr_shank_rps, valid, FIT_CUTOFF_HZ, fs)
     g1, g2 = np.nan_to_num(g1), np.nan_to_num(g2)
-    axes = fit_joint_axes(g1, g2, valid)
+    if axes is None:
+        axes = fit_joint_axes(g1, g2, valid)
     rate = _dps(prep.gyr_thigh_rps @ axes.j1 - prep.gyr_shank_rps @ axes.j2)
     shank_sag = _dps(prep.gyr_shank_rps @ axes.j2)
     rate[~valid] = np.nan
@@ -111,16 +160,15 @@ def build_leg_data(prep: PreparedLeg, activity: str = "walking") -> tuple[LegDat
 
 def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str = "walking",
                 estimator: str = "auto") -> LegResult:
-    prep = prepare_leg(leg, thigh, shank)
-    if prep.valid.sum() < max(10, int(prep.fs_hz)):
-        raise ValueError("less than one second of usable samples")
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore", RuntimeWarning)
+        prep, axes, sync_info = synchronised_leg(leg, thigh, shank)
         cycles = detect_running(prep) if activity == "unknown" else None
         if activity == "running" or cycles is not None:
             data, info = build_running_leg_data(prep, cycles)
         else:
-            data, info = build_leg_data(prep, activity)
+            data, info = build_leg_data(prep, activity, axes=axes)
+        info.update(sync_info)
         strides = data.events.strides
         if estimator == "auto" and data.activity == "running":
             angle, labels, choices, auto_info = running_auto(data)
