@@ -12,6 +12,7 @@ from pipeline.types import LegResult, SessionResult, StrideMetrics
 from server.api import compare
 from server.api.compare import compare_results
 from server.config import Settings
+from server.jobs.process import run_queued
 from server.simulate_cli import session_to_requests
 from tests.server.helpers import Api, bearer, open_api
 
@@ -96,6 +97,12 @@ def test_compare_running_session_over_http(api: Api, monkeypatch: pytest.MonkeyP
     assert pairs[frozenset(("auto", "ekf"))]["rms_deg"] == 0.0  # auto is the EKF for running
     kf_ekf = pairs[frozenset(("kf", "ekf"))]
     assert kf_ekf["rms_deg"] < 10.0 and kf_ekf["n_samples"] > 1000
+
+    # the stored results of the same upload (the job runner's path) are the auto policy's
+    assert run_queued(c.app.state.sessionmaker) == 1  # type: ignore[attr-defined]
+    strides = c.get(f"/v1/sessions/{sid}/strides", headers=bearer(clin)).json()["strides"]
+    assert len(strides) == leg["estimators"]["auto"]["n_strides"] and {s["estimator"] for s in strides} == {"ekf"}
+    assert 85.0 <= float(np.median([s["peak_swing_flexion_deg"] for s in strides])) <= 125.0
 
     sub = c.get(url + "?estimators=kf,ekf", headers=bearer(clin)).json()
     assert sub["estimators"] == ["kf", "ekf"] and len(sub["legs"]["left"]["pairs"]) == 1
