@@ -122,8 +122,9 @@ def attach_values(db: DbSession, metric: Metric, leg: str, rows: list[SessionRow
     blobs: dict[str, bytes] = {}
     m = TrendMetricValues
     for i in range(0, len(ids), 500):
-        blobs.update(db.execute(select(m.session_id, m.values).where(
-            m.session_id.in_(ids[i:i + 500]), m.metric == metric.name, m.leg == leg)).tuples().all())
+        for sid, blob in db.execute(select(m.session_id, m.values).where(
+                m.session_id.in_(ids[i:i + 500]), m.metric == metric.name, m.leg == leg)):
+            blobs[sid] = blob
     for r in rows:
         if r.values is None:
             r.values = blobs.get(r.session_id, b"")
@@ -272,7 +273,7 @@ def patient_trends(db: DbSession, patient: Patient, *, metric_name: str, leg: st
             "n_low_quality": int(sum(r.n_low_quality for r in rows)),
             "n_implausible": int(sum(r.n_implausible for r in rows)),
         },
-        "method": {
+        "rules": {
             "min_quality": MIN_QUALITY, "plausible_range": [metric.lo, metric.hi if np.isfinite(metric.hi) else None],
             "min_strides_per_session": MIN_STRIDES_PER_SESSION, "trend_points": trend_basis_unit,
             "better": metric.better,
