@@ -8,6 +8,12 @@ fusion time constant ``tau_s`` (:func:`q_for_time_constant` maps it to Q).
 
 Rhudy et al. skip the measurement update +-5 % of the gait cycle around each foot strike (``update_mask``).
 
+The registered ``kf`` (:func:`kf_leg`) adds what the paper got from Vicon: no per-dataset tuning
+(:mod:`pipeline.tuning`), no motion-capture initialisation (the state starts at the first usable accelerometer
+angle carried back with the gyroscope, and R shrinks 100-fold while the leg is quiet, so standing anchors the
+level), the accelerometer angle's zero from quiet upright standing, and the gyro bias removed per stride (gait is
+periodic: a stride's rate integrates to ~0).
+
 Vectorised: the covariance recursion does not depend on the data, so the gain sequence is computed in closed form
 per run of updates (a Moebius map with two fixed points), and the state recursion ``x_k = a_k x_{k-1} + b_k`` is
 solved by cumulative products in blocks (:func:`linear_recursion`). :func:`kf_angle_loop` is the literal
@@ -25,10 +31,11 @@ from pipeline.estimators import LegData, register
 from pipeline.prepare import G_MPS2, PreparedLeg
 from pipeline.signal_utils import true_runs
 
-# Defaults: the steady-state fusion time constant is 2 s: long against a stride (~0.7 s running, ~1.1 s walking),
-# so the within-stride accelerometer-angle errors (impacts, segment accelerations: 23-32 deg RMSE in running, Rhudy
-# Table 2) average out over several strides, short against the drift of an integrated, de-biased MEMS gyro.
-# Only Q/R shapes the estimate; R = (10 deg)^2 only sets the scale of the initial variance.
+# Default for the bare filter functions (the registered estimator tunes its own): a fusion time constant of 2 s is
+# long against a stride (~0.7 s running, ~1.1 s walking), so the within-stride accelerometer-angle errors (impacts,
+# segment accelerations: 23-32 deg RMSE in running, Rhudy Table 2) average out over several strides, and short
+# against the drift of an integrated MEMS gyro. Only Q/R shapes the estimate; R = (10 deg)^2 only sets the scale of
+# the initial variance.
 DEFAULT_R_DEG2 = 100.0
 DEFAULT_TAU_S = 2.0
 
