@@ -65,7 +65,10 @@ def to_si(stream: RawSensorStream) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     elif stream.acc_unit != "m/s2":
         raise ValueError(f"sensor {stream.sensor_id}: unknown accelerometer unit {stream.acc_unit!r}")
     finite = np.isfinite(t) & np.isfinite(gyr).all(axis=1) & np.isfinite(acc).all(axis=1)
-    t, gyr, acc = t[finite], gyr[finite], acc[finite]
+    if not finite.all():
+        t, gyr, acc = t[finite], gyr[finite], acc[finite]
+    if t.shape[0] > 1 and np.all(np.diff(t) > 0):
+        return t, gyr, acc  # the usual case: already sorted and unique
     order = np.argsort(t, kind="stable")
     t, gyr, acc = t[order], gyr[order], acc[order]
     keep = np.concatenate(([True], np.diff(t) > 0))
@@ -162,13 +165,23 @@ def prepare_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, shank_
     rate error, see :func:`pipeline.session.synchronised_leg`). Raises ValueError when the two streams have no
     usable overlap.
     """
-    t1, g1, a1 = to_si(thigh)
-    t2, g2, a2 = to_si(shank)
-    t2 = t2 + shank_shift_s + shank_drift * t2
-    for name, t in (("thigh", t1), ("shank", t2)):
-        if t.shape[0] < 2:
+    si1, si2 = to_si(thigh), to_si(shank)
+    return prepare_leg_si(leg, si1, si2, nominal_fs(thigh, si1[0]), nominal_fs(shank, si2[0]),
+                          shank_shift_s, shank_drift)
+
+
+def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
+                   si2: tuple[np.ndarray, np.ndarray, np.ndarray], fs1: float, fs2: float,
+                   shank_shift_s: float = 0.0, shank_drift: float = 0.0) -> PreparedLeg:
+    """:func:`prepare_leg` on streams already converted by :func:`to_si` (``(t_s, gyr_rps, acc_mps2)`` each, at
+    nominal rates ``fs1``/``fs2``), so a second pass with corrected shank time stamps skips the conversion."""
+    for name, si in (("thigh", si1), ("shank", si2)):
+        if si[0].shape[0] < 2:
             raise ValueError(f"{leg} {name} sensor has fewer than 2 usable samples")
-    fs1, fs2 = nominal_fs(thigh, t1), nominal_fs(shank, t2)
+    t1, g1, a1 = si1
+    t2, g2, a2 = si2
+    if shank_shift_s or shank_drift:
+        t2 = t2 + shank_shift_s + shank_drift * t2
     fs_hz = float(max(fs1, fs2))
     t_start, t_stop = max(t1[0], t2[0]), min(t1[-1], t2[-1])
     if t_stop - t_start < 2.0 / fs_hz:

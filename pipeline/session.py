@@ -27,7 +27,7 @@ from pipeline.estimators.go import go_relative
 from pipeline.fusion import fuse
 from pipeline.metrics import stride_values
 from pipeline.phases import detect_gait_events
-from pipeline.prepare import PreparedLeg, prepare_leg
+from pipeline.prepare import PreparedLeg, nominal_fs, prepare_leg_si, to_si
 from pipeline.running import build_running_leg_data, detect_running, running_auto
 from pipeline.signal_utils import lowpass_runs
 from pipeline.types import LegResult, RawSensorStream, SessionResult, StrideMetrics
@@ -84,7 +84,10 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream) -
     """Prepare a leg, fit its axes, and when the hinge constraint shows a thigh/shank clock offset larger than a
     quarter sample, prepare it again with the shank's time stamps corrected (the axes do not move with the lag).
     A 10-15 ms offset, common between two BLE sensors, would otherwise distort swing flexion by several degrees."""
-    prep = prepare_leg(leg, thigh, shank)
+    si1, si2 = to_si(thigh), to_si(shank)
+    fs1 = nominal_fs(thigh, si1[0]) if si1[0].size else 0.0
+    fs2 = nominal_fs(shank, si2[0]) if si2[0].size else 0.0
+    prep = prepare_leg_si(leg, si1, si2, fs1, fs2)
     if prep.valid.sum() < max(10, int(prep.fs_hz)):
         raise ValueError("less than one second of usable samples")
     g1 = np.nan_to_num(lowpass_runs(prep.gyr_thigh_rps, prep.valid, FIT_CUTOFF_HZ, prep.fs_hz))
@@ -97,7 +100,8 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream) -
         # lag(t) = offset + drift * (t - t_mid): shift the shank's stamps back by it
         t_mid = float(prep.t_s[prep.n // 2])
         if max(abs(offset), abs(drift) * (prep.t_s[-1] - prep.t_s[0]) / 2) * prep.fs_hz > 0.25:
-            prep = prepare_leg(leg, thigh, shank, shank_shift_s=-(offset - drift * t_mid), shank_drift=-drift)
+            prep = prepare_leg_si(leg, si1, si2, fs1, fs2, shank_shift_s=-(offset - drift * t_mid),
+                                  shank_drift=-drift)
     return prep, axes, info
 
 
