@@ -47,6 +47,7 @@ def migrate_database(settings: Settings) -> None:
     if settings.is_sqlite:
         upgrade_to_head(url)
         log.info("database migrated to head (%s)", safe_url(url))
+        backfill_trend_summaries(settings)
         return
     from server.db import make_engine
     from server.jobs.worker import apply_schema
@@ -66,6 +67,18 @@ def migrate_database(settings: Settings) -> None:
         engine.dispose()
     log.info("database migrated to head%s (%s)", ", procrastinate schema installed" if installed else "",
              safe_url(url))
+    backfill_trend_summaries(settings)
+
+
+def backfill_trend_summaries(settings: Settings) -> None:
+    """Sessions processed before the trend tables (or a newer summary format) existed get their summaries now."""
+    from server.trends.summaries import backfill
+
+    factory = _sessionmaker(settings)
+    try:
+        backfill(factory)
+    finally:
+        factory.kw["bind"].dispose()
 
 
 def auto_migrate_enabled() -> bool:
