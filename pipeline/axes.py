@@ -249,6 +249,13 @@ def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.nd
     # the two best subset solutions refined on all samples: the subset alone can prefer a mirrored minimum
     sol = min((least_squares(_centre_resid, t.x, jac=_centre_jac, args=(a1, m1, a2, m2), method="lm", max_nfev=200)
                for t in trials[:2]), key=lambda r: r.cost)
+    # one trimming pass: a few samples (next to gaps, impacts) can carry metres-per-second-squared of misfit
+    r = _centre_resid(sol.x, a1, m1, a2, m2)[:-6]
+    mad = float(np.median(np.abs(r - np.median(r)))) + 1e-9
+    keep = np.abs(r - np.median(r)) < 6.0 * mad
+    if keep.sum() >= 50 and not keep.all():
+        a1, m1, a2, m2 = a1[keep], m1[keep], a2[keep], m2[keep]
+        sol = least_squares(_centre_resid, sol.x, jac=_centre_jac, args=(a1, m1, a2, m2), method="lm", max_nfev=200)
     o1h, o2h = sol.x[:3], sol.x[3:]
     shift = (o1h @ j1 + o2h @ j2) / 2.0
     o1, o2 = o1h - j1 * shift, o2h - j2 * shift

@@ -147,7 +147,10 @@ def build_leg_data(prep: PreparedLeg, activity: str = "walking", axes: JointAxes
     gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)
     # joint centres only tell standing from sitting (upright test of the standing reference, pipeline.fusion):
     # their in-plane directions are too uncertain for the absolute zero itself
-    idx = select_fit_samples(g1, g2, valid)
+    # away from masked gaps: the filters and Eq. 1 differences are unreliable within a few samples of one
+    margin = max(int(0.1 * fs), 1)
+    far = ~np.convolve(~valid, np.ones(2 * margin + 1), mode="same").astype(bool)
+    idx = select_fit_samples(g1, g2, far)
     centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], axes.j1, axes.j2)
     acc_angle = accelerometer_angle_deg(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, centres)
     acc_angle[~valid] = np.nan

@@ -10,7 +10,8 @@ from pipeline.estimators import LegData, register
 from pipeline.signal_utils import true_runs
 
 # Time constant of the accelerometer correction: lambda = dt / TAU_S (Eq. 17) keeps the filter rate-independent.
-TAU_S = 1.0
+# 0.5 s: shorter follows accelerometer noise on real data (biomechZoo), longer lets gyro bias through (simulator).
+TAU_S = 0.5
 
 
 def complementary_filter(rate_dps: np.ndarray, acc_angle_deg: np.ndarray, fs_hz: float,

@@ -38,7 +38,7 @@ def test_cf_converges_to_the_accelerometer_level_despite_gyro_bias() -> None:
     true = 20 + 30 * np.sin(2 * np.pi * t)
     rate = np.gradient(true, 1 / fs) + 5.0  # 5 deg/s gyro bias
     acc = true + np.random.default_rng(1).normal(0, 3, t.size)
-    out = complementary_filter(rate, acc, fs, np.ones(t.size, dtype=bool))
+    out = complementary_filter(rate, acc, fs, np.ones(t.size, dtype=bool), tau_s=1.0)
     # steady-state error of a first-order CF under a rate bias is bias * tau = 5 deg
     assert abs(np.mean(out[-1000:] - true[-1000:]) - 5.0) < 1.0
 
