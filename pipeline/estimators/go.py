@@ -14,7 +14,7 @@ import numpy as np
 from pipeline.estimators import LegData, register
 from pipeline.signal_utils import lowpass_runs, true_runs
 
-GO_CUTOFF_HZ = 10.0
+GO_CUTOFF_HZ = 20.0
 FIRST_ZAU_LOOKBACK_S = 0.6
 
 
