@@ -10,6 +10,7 @@ from pipeline.axes import (
     JointCentres,
     accelerometer_angle_deg,
     angular_acceleration,
+    estimate_sync_lag_s,
     fit_joint_axes,
     orient_axes,
     select_fit_samples,
@@ -92,3 +93,21 @@ def test_accelerometer_angle_on_exact_planar_kinematics() -> None:
     assert np.max(np.abs(ang - np.rad2deg(knee))) < 0.5
     gd = angular_acceleration(w1, fs)
     np.testing.assert_allclose(gd[5:-5, 1], np.gradient(w1[:, 1], 1 / fs)[5:-5], atol=0.05)
+
+
+def test_sync_lag_from_the_hinge_constraint() -> None:
+    """Shank samples delayed by 3 samples (30 ms at 100 Hz): the Eq. 2 magnitudes line up again at that lag."""
+    g1, g2, j1, j2, _ = _hinge_gyros(7, n=6000)
+    lag = 3
+    g2_late = np.vstack([g2[:lag], g2[:-lag]])  # shank events appear 3 samples late
+    est = estimate_sync_lag_s(g1, g2_late, j1, j2, np.ones(g1.shape[0], dtype=bool), 100.0)
+    assert est is not None and abs(est - 0.03) < 0.004
+    assert abs(estimate_sync_lag_s(g1, g2, j1, j2, np.ones(g1.shape[0], dtype=bool), 100.0)) < 0.004
+
+
+def test_sync_lag_is_none_without_out_of_plane_motion() -> None:
+    t = np.arange(3000) / 100.0
+    g1 = np.column_stack([0 * t, np.cos(2 * np.pi * t), 0 * t])
+    g2 = np.column_stack([0 * t, 3 * np.cos(2 * np.pi * t + 1), 0 * t])
+    j = np.array([0.0, 1.0, 0.0])
+    assert estimate_sync_lag_s(g1, g2, j, j, np.ones(t.size, dtype=bool), 100.0) is None
