@@ -172,9 +172,12 @@ def prepare_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, shank_
 
 def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
                    si2: tuple[np.ndarray, np.ndarray, np.ndarray], fs1: float, fs2: float,
-                   shank_shift_s: float = 0.0, shank_drift: float = 0.0) -> PreparedLeg:
+                   shank_shift_s: float = 0.0, shank_drift: float = 0.0, reuse: PreparedLeg | None = None
+                   ) -> PreparedLeg:
     """:func:`prepare_leg` on streams already converted by :func:`to_si` (``(t_s, gyr_rps, acc_mps2)`` each, at
-    nominal rates ``fs1``/``fs2``), so a second pass with corrected shank time stamps skips the conversion."""
+    nominal rates ``fs1``/``fs2``), so a second pass with corrected shank time stamps skips the conversion.
+    ``reuse``: a first pass of the same streams; its grid and thigh channels are kept when the re-stamped shank
+    still covers that grid (only the shank is interpolated again)."""
     for name, si in (("thigh", si1), ("shank", si2)):
         if si[0].shape[0] < 2:
             raise ValueError(f"{leg} {name} sensor has fewer than 2 usable samples")
@@ -188,6 +191,9 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
         raise ValueError(f"{leg} leg: thigh and shank recordings do not overlap in time")
     n = int(np.floor((t_stop - t_start) * fs_hz + 1e-9)) + 1
     t_grid = t_start + np.arange(n) / fs_hz
+    keep_grid = reuse is not None and reuse.t_s[0] >= t2[0] and reuse.t_s[-1] <= t2[-1] and reuse.fs_hz == fs_hz
+    if keep_grid:
+        t_grid, t_start = reuse.t_s, float(reuse.t_s[0])
     gaps1, br1, noted1 = find_gaps(t1, fs1)
     gaps2, br2, noted2 = find_gaps(t2, fs2)
     gaps = sorted(gaps1 + gaps2)
@@ -196,7 +202,10 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
     sat2 = saturation_mask(g2)
     saturated = (np.interp(t_grid, t1, sat1.astype(float)) > 0) | (np.interp(t_grid, t2, sat2.astype(float)) > 0)
     merged = _merge_intervals(gaps)
-    thigh6 = _interp_columns(t_grid, t1, np.hstack([g1, a1]))
+    if keep_grid:
+        thigh6 = np.hstack([reuse.gyr_thigh_rps, reuse.acc_thigh_mps2])
+    else:
+        thigh6 = _interp_columns(t_grid, t1, np.hstack([g1, a1]))
     shank6 = _interp_columns(t_grid, t2, np.hstack([g2, a2]))
     return PreparedLeg(
         leg=leg, fs_hz=fs_hz, t0_s=float(t_start), t_s=t_grid,

@@ -102,7 +102,7 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream) -
         t_mid = float(prep.t_s[prep.n // 2])
         if max(abs(offset), abs(drift) * (prep.t_s[-1] - prep.t_s[0]) / 2) * prep.fs_hz > 0.25:
             prep = prepare_leg_si(leg, si1, si2, fs1, fs2, shank_shift_s=-(offset - drift * t_mid),
-                                  shank_drift=-drift)
+                                  shank_drift=-drift, reuse=prep)
     return prep, axes, info
 
 
