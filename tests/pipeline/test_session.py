@@ -53,9 +53,10 @@ def _angle_rmse(sim: SimSession, lr) -> float:
 
 @pytest.mark.parametrize("pattern", ["normal", "crouch", "stiff-knee", "slow", "fast"])
 def test_simulated_walking_patterns(pattern: str) -> None:
-    """Achieved on the tuning seeds (0-9, bench.accuracy) at the time of writing: recall and precision >= 0.999,
-    |peak bias| < 0.5 deg, peak LoA about +-5 deg and ROM LoA +-3.5 deg (dominated by the simulated thigh/shank
-    timestamp sync error), RMSE 1.6-2.9 deg. Asserted here on one seed with a margin."""
+    """Achieved on the tuning seeds (0-9, bench.accuracy, 2.5 min sessions) at the time of writing: recall and
+    precision >= 0.999, |peak bias| < 0.5 deg, peak LoA about +-3 deg (the standing posture is assumed 4 deg, the
+    simulator draws 2-6), ROM LoA within +-2 deg, RMSE 1.4-1.8 deg. Asserted here on one short seed with a margin
+    (its 40 s clock-sync windows are too few to correct the simulated sync error, which costs a few degrees)."""
     sim = _sim(pattern, seed=2)
     res = process_session(sim.streams, activity=sim.activity)
     assert set(res.legs) == {"left", "right"}
@@ -69,7 +70,7 @@ def test_simulated_walking_patterns(pattern: str) -> None:
         assert abs(np.mean(peak_err)) < 5.0  # one leg of one seed: the sync error alone shifts it by up to ~4
         assert np.percentile(np.abs(peak_err), 90) < 6.0
         rom_err = np.array([s.rom_deg - t.rom_deg for s, t in pairs])
-        assert np.percentile(np.abs(rom_err), 90) < 5.0
+        assert np.percentile(np.abs(rom_err), 90) < 4.0
         hs_err = np.array([s.t_start_s - t.t_start_s for s, t in pairs])
         to_err = np.array([s.t_toe_off_s - t.t_toe_off_s for s, t in pairs])
         assert np.median(np.abs(hs_err)) < 0.03 and np.median(np.abs(to_err)) < 0.04
