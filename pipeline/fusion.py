@@ -232,9 +232,10 @@ def fuse(data: LegData, go_rel: np.ndarray, go_diag: dict, cf: np.ndarray) -> Fu
                                     reasons=tuple(reasons)))
     use = np.array([c.estimator == "go" for c in choices])
     cover = np.zeros(n + 1, dtype=int)
-    np.add.at(cover, lo[use], 1)
-    np.add.at(cover, hi[use], -1)
-    go_mask = np.cumsum(cover)[:-1] > 0
+    np.add.at(cover, lo[~use], 1)
+    np.add.at(cover, hi[~use], -1)
+    # GO wherever it is anchored (strides and the bout edges around them) except in the strides that fell back
+    go_mask = np.isfinite(go_abs) & ~(np.cumsum(cover)[:-1] > 0)
     angle[go_mask] = go_abs[go_mask]
     labels = np.where(go_mask, "go", labels)
     labels = np.where(np.isfinite(angle), labels, "")
