@@ -33,7 +33,7 @@ from pipeline.signal_utils import lowpass_runs
 from pipeline.types import LegResult, RawSensorStream, SessionResult, StrideMetrics
 
 SYNC_WINDOW_S = 40.0
-MAX_DRIFT = 300e-6  # BLE sensor crystals: tens of ppm; more is a bad estimate
+MAX_DRIFT = 150e-6  # BLE sensor crystals: tens of ppm; more is a bad estimate
 SYNC_AGREE_S = 0.006
 FIT_CUTOFF_HZ = 10.0  # gyro/acc smoothing for the axis and joint-centre fits and the accelerometer angle
 
@@ -126,7 +126,8 @@ def _clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointA
     if len(pts) < 2:
         return None, 0.0
     t, lag = np.array(pts).T
-    drift = float(np.clip(np.polyfit(t, lag, 1)[0], -MAX_DRIFT, MAX_DRIFT))
+    # a line through two points always "agrees": two windows give a constant offset, three or more a drift too
+    drift = float(np.clip(np.polyfit(t, lag, 1)[0], -MAX_DRIFT, MAX_DRIFT)) if len(pts) >= 3 else 0.0
     offset = float(np.median(lag - drift * t))
     if np.max(np.abs(lag - offset - drift * t)) > SYNC_AGREE_S:
         return None, 0.0
