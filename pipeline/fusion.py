@@ -3,17 +3,18 @@
 
 No paper does this part. GO's zero-angle update assumes the knee is straight at the minimum before swing, so a
 crouch or contracture knee that never extends would read 0 deg there. Each stride's GO curve is therefore shifted by
-the median of (accelerometer angle - GO) over the quiet samples of its stance (Seel Eq. 6-7 angle).
+the mean of (accelerometer angle - GO) over the quiet samples of its stance (Seel Eq. 6-7 angle).
 
 The accelerometer angle's own zero is NOT taken from the joint-centre geometry: sensors sit a few cm anterior or
 posterior of the segment axis, which tilts the sensor->knee directions by 10-30 deg (seen on the real biomechZoo trial
 and in the simulator). Instead the zero is the quiet STANDING posture found in the session (both segments still,
 upright: gravity along the segments as in walking stance), assumed to be STANDING_KNEE_DEG of flexion
-(:func:`standing_reference`).
-Healthy standing is 0-6 deg, so absolute values carry that uncertainty; a crouch gait still reads its true crouch.
-The per-stride offsets are smoothed with a running median over neighbouring strides (the accelerometer angle is
-noisy, the true minimum flexion changes slowly) and interpolated between stride centres so the trace is continuous.
-Without standing in the session the offset stays 0 (Allseits' assumption) and the stride says so.
+(:func:`standing_reference`). Healthy standing is 0-6 deg, so absolute values carry that uncertainty; a crouch gait
+still reads its true crouch. The per-stride offsets are smoothed with a running median over neighbouring strides (the
+accelerometer angle is noisy, the true minimum flexion changes slowly) and interpolated between stride centres so the
+trace is continuous. Without standing in the session the offset stays 0 (Allseits' assumption) and the stride says
+so ("no_absolute_reference"). The trace is GO wherever GO is anchored (strides and bout edges) except in strides
+that fell back; CF (shifted to the same zero) elsewhere: standing, sitting, transitions.
 """
 
 from __future__ import annotations
