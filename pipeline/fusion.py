@@ -13,8 +13,8 @@ upright: gravity along the segments as in walking stance), assumed to be STANDIN
 still reads its true crouch. The per-stride offsets are smoothed with a running median over neighbouring strides (the
 accelerometer angle is noisy, the true minimum flexion changes slowly) and interpolated between stride centres so the
 trace is continuous. Without standing in the session the offset stays 0 (Allseits' assumption) and the stride says
-so ("no_absolute_reference"). The trace is GO wherever GO is anchored (strides and bout edges) except in strides
-that fell back; CF (shifted to the same zero) elsewhere: standing, sitting, transitions.
+so ("no_absolute_reference"). The trace is GO inside the strides that kept it, CF (shifted to the same zero)
+elsewhere: fallback strides, bout edges, standing, sitting, transitions.
 """
 
 from __future__ import annotations
@@ -233,10 +233,11 @@ def fuse(data: LegData, go_rel: np.ndarray, go_diag: dict, cf: np.ndarray) -> Fu
                                     reasons=tuple(reasons)))
     use = np.array([c.estimator == "go" for c in choices])
     cover = np.zeros(n + 1, dtype=int)
-    np.add.at(cover, lo[~use], 1)
-    np.add.at(cover, hi[~use], -1)
-    # GO wherever it is anchored (strides and the bout edges around them) except in the strides that fell back
-    go_mask = np.isfinite(go_abs) & ~(np.cumsum(cover)[:-1] > 0)
+    np.add.at(cover, lo[use], 1)
+    np.add.at(cover, hi[use], -1)
+    # GO inside the strides that kept it; extending it to the bout edges (gait initiation and termination, where
+    # its drift line is extrapolated) was worse on the simulator (crouch) and mixed on the real trial
+    go_mask = np.cumsum(cover)[:-1] > 0
     angle[go_mask] = go_abs[go_mask]
     labels = np.where(go_mask, "go", labels)
     labels = np.where(np.isfinite(angle), labels, "")
