@@ -145,7 +145,8 @@ def stance_offsets(data: LegData, go_rel: np.ndarray, strides: list[tuple[int, i
     return offs, n_quiet.astype(int)
 
 
-def _in_bouts(data: LegData) -> np.ndarray:
+def in_bouts(data: LegData) -> np.ndarray:
+    """Samples within a second of a walking bout's first and last mid-swing (not standing)."""
     ev = data.events
     mask = np.zeros(data.prep.n, dtype=bool)
     for b in np.unique(ev.bout[ev.bout >= 0]):
@@ -159,7 +160,7 @@ def fuse(data: LegData, go_rel: np.ndarray, go_diag: dict, cf: np.ndarray) -> Fu
     ``data.events.strides``. Outside strides (standing, sitting, turning without strides) the CF estimate is used."""
     strides = data.events.strides
     n = go_rel.shape[0]
-    ref = standing_reference(data, data.acc_angle_deg, _in_bouts(data))
+    ref = standing_reference(data, data.acc_angle_deg, in_bouts(data))
     absolute_ok = ref is not None
     # acc - ref reads 0 when standing; standing itself is STANDING_KNEE_DEG of flexion
     ref_deg = ref - STANDING_KNEE_DEG if ref is not None else 0.0

@@ -31,8 +31,16 @@ def complementary_filter(rate_dps: np.ndarray, acc_angle_deg: np.ndarray, fs_hz:
 
 @register("cf")
 def cf_estimator(data: LegData) -> np.ndarray:
+    """Eq. 17. Walking: the accelerometer angle zeroed on quiet standing, as Allseits et al. 2018 (Sect. 2.4.2) did
+    for their CF comparison (:func:`pipeline.fusion.standing_reference`); without standing the offset of the
+    joint-plane frames stays in."""
     if data.activity == "running":  # impact-free updates and the KF's inputs (pipeline.running)
         from pipeline.estimators.kf import cf_running_leg
 
         return cf_running_leg(data)
-    return complementary_filter(data.rate_dps, data.acc_angle_deg, data.fs_hz, data.prep.valid)
+    from pipeline.fusion import STANDING_KNEE_DEG, in_bouts, standing_reference
+
+    angle = complementary_filter(data.rate_dps, data.acc_angle_deg, data.fs_hz, data.prep.valid)
+    ref = standing_reference(data, data.acc_angle_deg, in_bouts(data))
+    data.extras["cf_standing_ref_deg"] = ref
+    return angle if ref is None else angle - (ref - STANDING_KNEE_DEG)
