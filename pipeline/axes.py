@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-MAX_FIT_SAMPLES = 1500
+MAX_FIT_SAMPLES = 1000
 FIT_CHUNKS = 20
 N_RESTARTS = 2
 N_CENTRE_STARTS = 4
