@@ -9,10 +9,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from sqlalchemy import create_engine, text
-from sqlalchemy.engine import make_url
 
-from tests.conftest import PG_URL, REQUIRE_PG
+from tests.conftest import fresh_postgres_database
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -42,24 +40,8 @@ def server_env(tmp_path: Path, database_url: str | None) -> dict[str, str]:
 @pytest.fixture
 def empty_pg_url() -> Iterator[str]:
     """A database of its own with nothing in it, so `gaitmon serve` migrates it from scratch."""
-    admin = create_engine(PG_URL, isolation_level="AUTOCOMMIT")
-    try:
-        with admin.connect() as conn:
-            conn.execute(text("select 1"))
-    except Exception as exc:  # noqa: BLE001
-        admin.dispose()
-        reason = f"PostgreSQL not reachable at {PG_URL}: {type(exc).__name__}"
-        if REQUIRE_PG:
-            pytest.fail(reason)
-        pytest.skip(reason)
-    name = f"gaitmon_walk_{os.environ.get('PYTEST_XDIST_WORKER', 'main')}"
-    with admin.connect() as conn:
-        conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-        conn.execute(text(f'CREATE DATABASE "{name}"'))
-    yield make_url(PG_URL).set(database=name).render_as_string(hide_password=False)
-    with admin.connect() as conn:
-        conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-    admin.dispose()
+    with fresh_postgres_database("gaitmon_walk") as url:
+        yield url
 
 
 def insert_simulated_session(url: str, *, n_strides: int = 16, seed: int = 4) -> tuple[str, int]:
