@@ -181,9 +181,11 @@ def real_tables(estimators: list[str]) -> list[str]:
                 f"Targets: swing-peak error (mean abs) <= {TARGETS['zoo_peak']:g} deg, zero-mean RMSE <= "
                 f"{TARGETS['zoo_zero_mean_rmse']:g} deg. The left Vicon reference likely carries an offset "
                 "(its minimum is -10 deg): judge that leg by the zero-mean figures.", "",
-                "| estimator | leg | strides | RMSE (deg) | zero-mean RMSE (deg) | offset (deg) | swing-peak err mean "
-                "(deg) | swing-peak err mean abs (deg) | max abs (deg) |",
-                "|---|---|---|---|---|---|---|---|---|"]
+                "Zero-mean RMSE is given as recorded and after the best Xsens-Vicon clock shift within the "
+                "+-30 ms the data README states (the shift is the only thing fitted to the reference).", "",
+                "| estimator | leg | strides | RMSE (deg) | zero-mean RMSE (deg) | zero-mean RMSE, aligned (deg) "
+                "| offset (deg) | swing-peak err mean (deg) | swing-peak err mean abs (deg) | max abs (deg) |",
+                "|---|---|---|---|---|---|---|---|---|---|"]
         for est in estimators:
             try:
                 res = process_session(streams, activity="walking", estimator=est)
@@ -193,13 +195,16 @@ def real_tables(estimators: list[str]) -> list[str]:
             for leg in ("left", "right"):
                 lr = res.legs.get(leg)
                 if lr is None:
-                    out.append(f"| `{est}` | {leg} | 0 | - | - | - | - | - | - |")
+                    out.append(f"| `{est}` | {leg} | 0 | - | - | - | - | - | - | - |")
                     continue
                 t_ref, ref = vicon[leg]
                 ok = np.isfinite(lr.angle_deg) & (lr.t_s >= t_ref[0]) & (lr.t_s <= t_ref[-1])
                 e = lr.angle_deg[ok] - np.interp(lr.t_s[ok], t_ref, ref)
                 rmse = float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
                 zm = float(np.sqrt(np.mean((e - e.mean()) ** 2))) if e.size else float("nan")
+                zm_aligned = min((float(np.std(lr.angle_deg[ok] - np.interp(lr.t_s[ok] + lag, t_ref, ref)))
+                                  for lag in np.arange(-0.03, 0.0301, 0.005)), default=float("nan")) \
+                    if e.size else float("nan")
                 peak_err = []
                 for s in lr.strides:
                     m = (t_ref >= s.t_toe_off_s) & (t_ref <= s.t_end_s)
@@ -209,7 +214,9 @@ def real_tables(estimators: list[str]) -> list[str]:
                 mean_abs = float(np.mean(np.abs(pe))) if pe.size else float("nan")
                 out.append(
                     f"| `{est}` | {leg} | {len(lr.strides)} | {_f(rmse, '{:.2f}')} | "
-                    + _miss(_f(zm, "{:.2f}"), not math.isnan(zm) and zm > TARGETS["zoo_zero_mean_rmse"])
+                    + _miss(_f(zm, "{:.2f}"), not math.isnan(zm) and zm > TARGETS["zoo_zero_mean_rmse"]) + " | "
+                    + _miss(_f(zm_aligned, "{:.2f}"),
+                            not math.isnan(zm_aligned) and zm_aligned > TARGETS["zoo_zero_mean_rmse"])
                     + f" | {_f(float(e.mean()) if e.size else float('nan'), '{:+.1f}')}"
                     + f" | {_f(float(pe.mean()) if pe.size else float('nan'), '{:+.2f}')} | "
                     + _miss(_f(mean_abs, "{:.2f}"), leg == "right" and mean_abs > TARGETS["zoo_peak"])
@@ -220,7 +227,8 @@ def real_tables(estimators: list[str]) -> list[str]:
     if real_data_available(TAN_DIR):
         by_subject: dict[str, tuple[list[float], list[float], int]] = {}
         for w in load_tan_steps():
-            ev = detect_gait_events(shank_sagittal_dps(w.shank_gyr_dps), w.fs_hz, min_bout_peaks=1)
+            ev = detect_gait_events(shank_sagittal_dps(w.shank_gyr_dps), w.fs_hz, min_bout_peaks=1,
+                                    shank_acc_mps2=w.shank_acc_mps2)
             hs, to = ev.hs[ev.hs >= 0], ev.to[ev.to >= 0]
             hs_l, to_l, n = by_subject.setdefault(w.subject, ([], [], 0))
             by_subject[w.subject] = (hs_l, to_l, n + 1)

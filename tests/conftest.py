@@ -23,6 +23,17 @@ from server.migrate import upgrade_to_head
 
 PG_URL = os.environ.get("GAITMON_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 REQUIRE_PG = os.environ.get("GAITMON_REQUIRE_POSTGRES") == "1"
+REQUIRE_REAL_DATA = os.environ.get("GAITMON_REQUIRE_REAL_DATA") == "1"
+
+
+def skip_without_real_data(available: bool, what: str) -> None:
+    """Skip when a shared real recording is absent; fail instead under GAITMON_REQUIRE_REAL_DATA=1 (CI)."""
+    if available:
+        return
+    reason = f"real data folder ../shared/data/real ({what}) is absent"
+    if REQUIRE_REAL_DATA:
+        pytest.fail(reason + " (GAITMON_REQUIRE_REAL_DATA=1)")
+    pytest.skip(reason)
 
 
 def _worker_suffix() -> str:

@@ -8,14 +8,14 @@ import pytest
 from bench.real_data import BIOMECHZOO_CSV, TAN_DIR, load_biomechzoo, load_tan_steps, real_data_available
 from pipeline.phases import detect_gait_events, shank_sagittal_dps
 from pipeline.session import process_session
+from tests.conftest import skip_without_real_data
 
 pytestmark = pytest.mark.realdata
 
 
 @pytest.fixture(scope="module")
 def zoo():
-    if not real_data_available(BIOMECHZOO_CSV):
-        pytest.skip("real data folder ../shared/data/real (biomechZoo trial) is absent")
+    skip_without_real_data(real_data_available(BIOMECHZOO_CSV), "biomechZoo trial")
     streams, vicon = load_biomechzoo()
     return process_session(streams), vicon
 
@@ -63,8 +63,7 @@ def test_biomechzoo_swing_peak(zoo) -> None:
 
 
 def test_tan_heel_strike_and_toe_off_timing() -> None:
-    if not real_data_available(TAN_DIR):
-        pytest.skip("real data folder ../shared/data/real (Tan et al. steps) is absent")
+    skip_without_real_data(real_data_available(TAN_DIR), "Tan et al. steps")
     hs_err, to_err = [], []
     for w in load_tan_steps():
         ev = detect_gait_events(shank_sagittal_dps(w.shank_gyr_dps), w.fs_hz, min_bout_peaks=1,
