@@ -29,7 +29,7 @@ from pipeline.metrics import stride_values
 from pipeline.phases import detect_gait_events
 from pipeline.prepare import PreparedLeg, nominal_fs, prepare_leg_si, to_si
 from pipeline.running import build_running_leg_data, detect_running, running_auto
-from pipeline.signal_utils import lowpass_runs
+from pipeline.signal_utils import lowpass_runs_many
 from pipeline.types import LegResult, RawSensorStream, SessionResult, StrideMetrics
 
 SYNC_WINDOW_S = 40.0
@@ -81,18 +81,22 @@ def _dps(x: np.ndarray) -> np.ndarray:
     return np.rad2deg(x)
 
 
-def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream) -> tuple[PreparedLeg, JointAxes, dict]:
+def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream
+                     ) -> tuple[PreparedLeg, JointAxes, dict, tuple[np.ndarray, np.ndarray] | None]:
     """Prepare a leg, fit its axes, and when the hinge constraint shows a thigh/shank clock offset larger than a
     quarter sample, prepare it again with the shank's time stamps corrected (the axes do not move with the lag).
-    A 10-15 ms offset, common between two BLE sensors, would otherwise distort swing flexion by several degrees."""
+    A 10-15 ms offset, common between two BLE sensors, would otherwise distort swing flexion by several degrees.
+    The last item: the FIT_CUTOFF_HZ-filtered gyros of the returned ``prep`` when they were already computed
+    (no re-preparation), for :func:`build_leg_data` to reuse; None otherwise."""
     si1, si2 = to_si(thigh), to_si(shank)
     fs1 = nominal_fs(thigh, si1[0]) if si1[0].size else 0.0
     fs2 = nominal_fs(shank, si2[0]) if si2[0].size else 0.0
     prep = prepare_leg_si(leg, si1, si2, fs1, fs2)
     if prep.valid.sum() < max(10, int(prep.fs_hz)):
         raise ValueError("less than one second of usable samples")
-    g1 = np.nan_to_num(lowpass_runs(prep.gyr_thigh_rps, prep.valid, FIT_CUTOFF_HZ, prep.fs_hz))
-    g2 = np.nan_to_num(lowpass_runs(prep.gyr_shank_rps, prep.valid, FIT_CUTOFF_HZ, prep.fs_hz))
+    g1, g2 = (np.nan_to_num(g) for g in lowpass_runs_many((prep.gyr_thigh_rps, prep.gyr_shank_rps), prep.valid,
+                                                            FIT_CUTOFF_HZ, prep.fs_hz))
+    fit_gyr: tuple[np.ndarray, np.ndarray] | None = (g1, g2)
     axes = fit_joint_axes(g1, g2, prep.valid)
     offset, drift = _clock_model(prep, g1, g2, axes)
     info = {"shank_lag_ms": None if offset is None else round(1000 * offset, 1),
@@ -103,7 +107,8 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream) -
         if max(abs(offset), abs(drift) * (prep.t_s[-1] - prep.t_s[0]) / 2) * prep.fs_hz > 0.25:
             prep = prepare_leg_si(leg, si1, si2, fs1, fs2, shank_shift_s=-(offset - drift * t_mid),
                                   shank_drift=-drift, reuse=prep)
-    return prep, axes, info
+            fit_gyr = None
+    return prep, axes, info, fit_gyr
 
 
 def _clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes) -> tuple[float | None, float]:
@@ -134,14 +139,18 @@ def _clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointA
     return offset, drift
 
 
-def build_leg_data(prep: PreparedLeg, activity: str = "walking", axes: JointAxes | None = None
-                   ) -> tuple[LegData, dict]:
-    """Axes (unless given), rates, events, joint centres and accelerometer angle of one prepared leg."""
+def build_leg_data(prep: PreparedLeg, activity: str = "walking", axes: JointAxes | None = None,
+                   fit_gyr: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[LegData, dict]:
+    """Axes (unless given), rates, events, joint centres and accelerometer angle of one prepared leg.
+    ``fit_gyr``: the FIT_CUTOFF_HZ-filtered thigh and shank gyros of this very ``prep`` (NaN-free), when already
+    computed (:func:`synchronised_leg`), so the same filter is not run twice."""
     valid = prep.valid
     fs = prep.fs_hz
-    g1 = lowpass_runs(prep.gyr_thigh_rps, valid, FIT_CUTOFF_HZ, fs)
-    g2 = lowpass_runs(prep.gyr_shank_rps, valid, FIT_CUTOFF_HZ, fs)
-    g1, g2 = np.nan_to_num(g1), np.nan_to_num(g2)
+    if fit_gyr is None:
+        g1, g2 = (np.nan_to_num(g) for g in lowpass_runs_many((prep.gyr_thigh_rps, prep.gyr_shank_rps), valid,
+                                                                FIT_CUTOFF_HZ, fs))
+    else:
+        g1, g2 = fit_gyr
     if axes is None:
         axes = fit_joint_axes(g1, g2, valid)
     rate = _dps(prep.gyr_thigh_rps @ axes.j1 - prep.gyr_shank_rps @ axes.j2)
@@ -149,8 +158,8 @@ def build_leg_data(prep: PreparedLeg, activity: str = "walking", axes: JointAxes
     rate[~valid] = np.nan
     shank_sag[~valid] = np.nan
     events = detect_gait_events(shank_sag, fs, valid, shank_acc_mps2=prep.acc_shank_mps2)
-    a1 = np.nan_to_num(lowpass_runs(prep.acc_thigh_mps2, valid, FIT_CUTOFF_HZ, fs))
-    a2 = np.nan_to_num(lowpass_runs(prep.acc_shank_mps2, valid, FIT_CUTOFF_HZ, fs))
+    a1, a2 = (np.nan_to_num(a) for a in lowpass_runs_many((prep.acc_thigh_mps2, prep.acc_shank_mps2), valid,
+                                                            FIT_CUTOFF_HZ, fs))
     gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)
     # joint centres only tell standing from sitting (upright test of the standing reference, pipeline.fusion):
     # their in-plane directions are too uncertain for the absolute zero itself
@@ -176,12 +185,12 @@ def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activi
                 estimator: str = "auto") -> LegResult:
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore", RuntimeWarning)
-        prep, axes, sync_info = synchronised_leg(leg, thigh, shank)
+        prep, axes, sync_info, fit_gyr = synchronised_leg(leg, thigh, shank)
         cycles = detect_running(prep) if activity == "unknown" else None
         if activity == "running" or cycles is not None:
             data, info = build_running_leg_data(prep, cycles)
         else:
-            data, info = build_leg_data(prep, activity, axes=axes)
+            data, info = build_leg_data(prep, activity, axes=axes, fit_gyr=fit_gyr)
         info.update(sync_info)
         strides = data.events.strides
         if estimator == "auto" and data.activity == "running":
