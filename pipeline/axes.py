@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from pipeline.signal_utils import row_norm
+
 MAX_FIT_SAMPLES = 1000
 FIT_CHUNKS = 20
 N_RESTARTS = 2
@@ -50,7 +52,7 @@ def select_fit_samples(g1: np.ndarray, g2: np.ndarray, valid: np.ndarray,
     idx = np.flatnonzero(valid)
     if idx.size <= max_samples:
         return idx
-    mag = np.linalg.norm(g1[idx], axis=1) + np.linalg.norm(g2[idx], axis=1)
+    mag = row_norm(g1[idx]) + row_norm(g2[idx])
     per_chunk = int(np.ceil(max_samples / chunks))
     picked = []
     for part, m in zip(np.array_split(idx, chunks), np.array_split(mag, chunks), strict=True):
@@ -166,8 +168,8 @@ def estimate_sync_lag_s(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.n
     restricts the samples compared (clock drift: one estimate per window)."""
     if window is not None:
         g1, g2, valid = g1[window], g2[window], valid[window]
-    m1 = np.linalg.norm(np.cross(g1, j1), axis=1)
-    m2 = np.linalg.norm(np.cross(g2, j2), axis=1)
+    m1 = row_norm(np.cross(g1, j1))
+    m2 = row_norm(np.cross(g2, j2))
     k_max = max(int(round(SYNC_MAX_S * fs_hz)), 2)
     n = m1.shape[0]
     idx = np.flatnonzero(valid[k_max:n - k_max]) + k_max
@@ -221,14 +223,14 @@ def _centre_resid(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray,
     solver can wander along that valley to metres."""
     v1, v2 = _centre_split(x, a1, m1, a2, m2)
     reg = CENTRE_REG * np.sqrt(a1.shape[0])
-    return np.concatenate([np.linalg.norm(v1, axis=1) - np.linalg.norm(v2, axis=1), reg * x])
+    return np.concatenate([row_norm(v1) - row_norm(v2), reg * x])
 
 
 def _centre_jac(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray) -> np.ndarray:
     """d||a - M o||/do = -(v/||v||)^T M (and the pull's constant rows)."""
     v1, v2 = _centre_split(x, a1, m1, a2, m2)
-    n1 = np.maximum(np.linalg.norm(v1, axis=1), _EPS)[:, None]
-    n2 = np.maximum(np.linalg.norm(v2, axis=1), _EPS)[:, None]
+    n1 = np.maximum(row_norm(v1), _EPS)[:, None]
+    n2 = np.maximum(row_norm(v2), _EPS)[:, None]
     data = np.hstack([-np.einsum("ni,nij->nj", v1 / n1, m1), np.einsum("ni,nij->nj", v2 / n2, m2)])
     return np.vstack([data, CENTRE_REG * np.sqrt(a1.shape[0]) * np.eye(6)])
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.estimators import LegData
-from pipeline.signal_utils import true_runs
+from pipeline.signal_utils import row_norm, true_runs
 
 CALM_DPS = 90.0  # both segments slower than this: accelerometer angle usable (little lever-arm acceleration)
 OFFSET_SMOOTH = 11
@@ -76,7 +76,7 @@ def _stance_up_directions(data: LegData) -> list[np.ndarray] | None:
     out = []
     for acc, j in ((data.prep.acc_thigh_mps2, data.axes.j1), (data.prep.acc_shank_mps2, data.axes.j2)):
         f = acc[idx] - np.outer(acc[idx] @ j, j)
-        f /= np.maximum(np.linalg.norm(f, axis=1, keepdims=True), 1e-9)
+        f /= np.maximum(row_norm(f)[:, None], 1e-9)
         m = f.mean(axis=0)
         if np.linalg.norm(m) < 0.5:  # no consistent direction: not gait-like stance
             return None
@@ -95,12 +95,11 @@ def standing_reference(data: LegData, acc_angle_deg: np.ndarray, exclude: np.nda
     if ups is None:
         return None
     fs = prep.fs_hz
-    speed = np.rad2deg(np.maximum(np.linalg.norm(prep.gyr_thigh_rps, axis=1),
-                                  np.linalg.norm(prep.gyr_shank_rps, axis=1)))
+    speed = np.rad2deg(np.maximum(row_norm(prep.gyr_thigh_rps), row_norm(prep.gyr_shank_rps)))
     g = 9.80665
     still = (speed < STAND_DPS) & prep.valid & ~exclude
     for acc, up, j in ((prep.acc_thigh_mps2, ups[0], data.axes.j1), (prep.acc_shank_mps2, ups[1], data.axes.j2)):
-        still &= np.abs(np.linalg.norm(acc, axis=1) - g) < 0.1 * g
+        still &= np.abs(row_norm(acc) - g) < 0.1 * g
         y = np.cross(j, up)
         ang = np.degrees(np.arctan2(acc @ y, acc @ up))
         still &= np.abs(ang) < UPRIGHT_DEG
@@ -127,8 +126,7 @@ def stance_offsets(data: LegData, go_rel: np.ndarray, strides: list[tuple[int, i
     if not strides:
         return np.zeros(0), np.zeros(0, dtype=int)
     prep = data.prep
-    speed = np.rad2deg(np.maximum(np.linalg.norm(prep.gyr_thigh_rps, axis=1),
-                                  np.linalg.norm(prep.gyr_shank_rps, axis=1)))
+    speed = np.rad2deg(np.maximum(row_norm(prep.gyr_thigh_rps), row_norm(prep.gyr_shank_rps)))
     diff = data.acc_angle_deg - go_rel
     ok = np.isfinite(diff)
     d0 = np.where(ok, diff, 0.0)

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.signal_utils import lowpass
+from pipeline.signal_utils import lowpass, row_norm
 
 LOBE_CUTOFF_HZ = 4.0  # smooth version for lobes and MS peaks
 EVENT_CUTOFF_HZ = 15.0  # light smoothing for TO/HS minima
@@ -156,7 +156,7 @@ def detect_gait_events(shank_sag_dps: np.ndarray, fs_hz: float, valid: np.ndarra
     jerk = None
     if shank_acc_mps2 is not None:
         acc = np.asarray(shank_acc_mps2, dtype=float)
-        jerk = np.concatenate(([0.0], np.linalg.norm(np.diff(acc, axis=0), axis=1)))
+        jerk = np.concatenate(([0.0], row_norm(np.diff(acc, axis=0))))
         jerk[~valid | ~np.isfinite(jerk)] = 0.0
     ms, to = [], []
     for a, p, _ in lobes:

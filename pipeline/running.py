@@ -38,7 +38,7 @@ from pipeline.estimators import LegData
 from pipeline.estimators.kf import quiet_mask
 from pipeline.phases import detect_gait_events
 from pipeline.prepare import PreparedLeg
-from pipeline.signal_utils import true_runs
+from pipeline.signal_utils import row_norm, true_runs
 
 G_MPS2 = 9.80665
 FIT_WINDOW = (0.40, 0.80)  # fraction of the gait cycle used for the axis and centre optimisation
@@ -72,7 +72,7 @@ class RunningCycles:
 
 
 def acc_magnitude(acc_mps2: np.ndarray) -> np.ndarray:
-    return np.linalg.norm(np.asarray(acc_mps2, dtype=float).reshape(-1, 3), axis=1)
+    return row_norm(np.asarray(acc_mps2, dtype=float).reshape(-1, 3))
 
 
 def impact_signal(acc_shank_mps2: np.ndarray, fs_hz: float, valid: np.ndarray | None = None) -> np.ndarray:
