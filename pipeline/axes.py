@@ -16,7 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 
 from pipeline.signal_utils import row_norm
 
@@ -78,27 +78,54 @@ def _to_sph(j: np.ndarray) -> tuple[float, float]:
     return float(np.arcsin(np.clip(j[2], -1.0, 1.0))), float(np.arctan2(j[1], j[0]))
 
 
+class _AxisProblem:
+    """Seel Eq. 2 residuals and their analytic Jacobian on one sample set, sharing work between the two: MINPACK
+    asks for the Jacobian at the point whose residuals it has just evaluated, so ``g.j`` and ``||g x j||`` are kept
+    from that call, and ``|g|^2`` is computed once per sample set instead of once per evaluation. Same arithmetic
+    as evaluating each from scratch, so the same solver path and result."""
+
+    def __init__(self, g1: np.ndarray, g2: np.ndarray) -> None:
+        self.g = (g1, g2)
+        self.gg = (np.einsum("ij,ij->i", g1, g1), np.einsum("ij,ij->i", g2, g2))
+        self._x: np.ndarray | None = None
+        self._parts: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def _eval(self, x: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        if self._x is None or not np.array_equal(x, self._x):
+            parts = []
+            for k in range(2):
+                gj = self.g[k] @ _sph(x[2 * k], x[2 * k + 1])
+                parts.append((gj, np.sqrt(np.maximum(self.gg[k] - gj ** 2, _EPS))))
+            self._x, self._parts = np.array(x, dtype=float), parts
+        return self._parts
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """||g1 x j1|| - ||g2 x j2|| per sample, via ||g x j||^2 = |g|^2 - (g.j)^2 for unit j."""
+        (_, n1), (_, n2) = self._eval(x)
+        return n1 - n2
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """d||g x j||/dj = -(g.j) g / ||g x j||, chained with the spherical map."""
+        parts = self._eval(x)
+        jac = np.empty((self.g[0].shape[0], 4))
+        for k, sign in ((0, 1.0), (1, -1.0)):
+            g = self.g[k]
+            gj, norm = parts[k]
+            d_phi, d_theta = _sph_derivs(x[2 * k], x[2 * k + 1])
+            coef = -sign * gj / norm
+            jac[:, 2 * k] = coef * (g @ d_phi)
+            jac[:, 2 * k + 1] = coef * (g @ d_theta)
+        return jac
+
+
 def _axis_residuals(x: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> np.ndarray:
-    """Seel Eq. 2: ||g1 x j1|| - ||g2 x j2|| per sample, via ||g x j||^2 = |g|^2 - (g.j)^2 for unit j."""
-    j1, j2 = _sph(x[0], x[1]), _sph(x[2], x[3])
-    n1 = np.sqrt(np.maximum(np.einsum("ij,ij->i", g1, g1) - (g1 @ j1) ** 2, _EPS))
-    n2 = np.sqrt(np.maximum(np.einsum("ij,ij->i", g2, g2) - (g2 @ j2) ** 2, _EPS))
-    return n1 - n2
+    """Seel Eq. 2: ||g1 x j1|| - ||g2 x j2|| per sample (:class:`_AxisProblem`)."""
+    return _AxisProblem(g1, g2).residuals(x)
 
 
 def _axis_jacobian(x: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> np.ndarray:
-    """Analytic Jacobian of Eq. 2: d||g x j||/dj = -(g.j) g / ||g x j||, chained with the spherical map."""
-    jac = np.empty((g1.shape[0], 4))
-    for k, (g, sign) in enumerate(((g1, 1.0), (g2, -1.0))):
-        phi, theta = x[2 * k], x[2 * k + 1]
-        j = _sph(phi, theta)
-        d_phi, d_theta = _sph_derivs(phi, theta)
-        gj = g @ j
-        norm = np.sqrt(np.maximum(np.einsum("ij,ij->i", g, g) - gj ** 2, _EPS))
-        coef = -sign * gj / norm
-        jac[:, 2 * k] = coef * (g @ d_phi)
-        jac[:, 2 * k + 1] = coef * (g @ d_theta)
-    return jac
+    """Analytic Jacobian of Eq. 2 (:class:`_AxisProblem`)."""
+    return _AxisProblem(g1, g2).jacobian(x)
 
 
 def _principal_axis(g: np.ndarray) -> np.ndarray:
@@ -128,13 +155,14 @@ def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | N
     # restarts on a quarter of the set, then the winner refined on all of it (bounded, deterministic cost)
     sub = slice(None, None, 4) if idx.size >= 400 else slice(None)
     best = None
+    prob_sub = _AxisProblem(g1[sub], g2[sub])
     for x0 in starts:
-        sol = least_squares(_axis_residuals, x0, jac=_axis_jacobian, args=(g1[sub], g2[sub]), method="lm",
-                            max_nfev=200)
+        sol = least_squares(prob_sub.residuals, x0, jac=prob_sub.jacobian, method="lm", max_nfev=200)
         if best is None or sol.cost < best.cost - 1e-12:
             best = sol
     assert best is not None
-    best = least_squares(_axis_residuals, best.x, jac=_axis_jacobian, args=(g1, g2), method="lm", max_nfev=200)
+    prob = _AxisProblem(g1, g2)
+    best = least_squares(prob.residuals, best.x, jac=prob.jacobian, method="lm", max_nfev=200)
     j1, j2 = _sph(best.x[0], best.x[1]), _sph(best.x[2], best.x[3])
     j1, j2 = orient_axes(j1, j2, g1_rps[valid], g2_rps[valid])
     rms = float(np.rad2deg(np.sqrt(2.0 * best.cost / idx.size)))
@@ -217,22 +245,49 @@ def _centre_split(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray,
     return a1 - np.einsum("nij,j->ni", m1, x[:3]), a2 - np.einsum("nij,j->ni", m2, x[3:])
 
 
+class _CentreProblem:
+    """Seel Eq. 5 residual and Jacobian on one sample set, sharing ``a - M o`` and its norms between the two (MINPACK
+    evaluates the Jacobian where it last evaluated the residuals); same arithmetic, same result."""
+
+    def __init__(self, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray) -> None:
+        self.args = (a1, m1, a2, m2)
+        self.reg = CENTRE_REG * np.sqrt(a1.shape[0])
+        self._x: np.ndarray | None = None
+        self._parts: tuple[np.ndarray, ...] = ()
+
+    def _eval(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
+        if self._x is None or not np.array_equal(x, self._x):
+            v1, v2 = _centre_split(x, *self.args)
+            self._x, self._parts = np.array(x, dtype=float), (v1, v2, row_norm(v1), row_norm(v2))
+        return self._parts
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        _, _, n1, n2 = self._eval(x)
+        return np.concatenate([n1 - n2, self.reg * x])
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        v1, v2, n1, n2 = self._eval(x)
+        _, m1, _, m2 = self.args
+        n1, n2 = np.maximum(n1, _EPS)[:, None], np.maximum(n2, _EPS)[:, None]
+        data = np.hstack([-np.einsum("ni,nij->nj", v1 / n1, m1), np.einsum("ni,nij->nj", v2 / n2, m2)])
+        return np.vstack([data, CENTRE_REG * np.sqrt(self.args[0].shape[0]) * np.eye(6)])
+
+
 def _centre_resid(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray) -> np.ndarray:
     """Seel Eq. 5 residual: ||a1 - Gamma1(o1)|| - ||a2 - Gamma2(o2)|| per sample, plus a weak pull of o towards 0:
     the cost is flat when both centres slide along the axis (Eq. 5's final projection), and without the pull the
     solver can wander along that valley to metres."""
-    v1, v2 = _centre_split(x, a1, m1, a2, m2)
-    reg = CENTRE_REG * np.sqrt(a1.shape[0])
-    return np.concatenate([row_norm(v1) - row_norm(v2), reg * x])
+    return _CentreProblem(a1, m1, a2, m2).residuals(x)
 
 
 def _centre_jac(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray) -> np.ndarray:
     """d||a - M o||/do = -(v/||v||)^T M (and the pull's constant rows)."""
-    v1, v2 = _centre_split(x, a1, m1, a2, m2)
-    n1 = np.maximum(row_norm(v1), _EPS)[:, None]
-    n2 = np.maximum(row_norm(v2), _EPS)[:, None]
-    data = np.hstack([-np.einsum("ni,nij->nj", v1 / n1, m1), np.einsum("ni,nij->nj", v2 / n2, m2)])
-    return np.vstack([data, CENTRE_REG * np.sqrt(a1.shape[0]) * np.eye(6)])
+    return _CentreProblem(a1, m1, a2, m2).jacobian(x)
+
+
+def _lsq_centres(x0: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray) -> OptimizeResult:
+    prob = _CentreProblem(a1, m1, a2, m2)
+    return least_squares(prob.residuals, x0, jac=prob.jacobian, method="lm", max_nfev=200)
 
 
 def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,
@@ -248,18 +303,16 @@ def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.nd
     starts = [np.full(6, 1e-3)] + [rng.uniform(-0.25, 0.25, 6) for _ in range(N_CENTRE_STARTS)]
     sub = slice(None, None, 4) if a1.shape[0] >= 400 else slice(None)
     args_sub = (a1[sub], m1[sub], a2[sub], m2[sub])
-    trials = sorted((least_squares(_centre_resid, x0, jac=_centre_jac, args=args_sub, method="lm", max_nfev=200)
-                     for x0 in starts), key=lambda r: r.cost)
+    trials = sorted((_lsq_centres(x0, *args_sub) for x0 in starts), key=lambda r: r.cost)
     # the two best subset solutions refined on all samples: the subset alone can prefer a mirrored minimum
-    sol = min((least_squares(_centre_resid, t.x, jac=_centre_jac, args=(a1, m1, a2, m2), method="lm", max_nfev=200)
-               for t in trials[:2]), key=lambda r: r.cost)
+    sol = min((_lsq_centres(t.x, a1, m1, a2, m2) for t in trials[:2]), key=lambda r: r.cost)
     # one trimming pass: a few samples (next to gaps, impacts) can carry metres-per-second-squared of misfit
     r = _centre_resid(sol.x, a1, m1, a2, m2)[:-6]
     mad = float(np.median(np.abs(r - np.median(r)))) + 1e-9
     keep = np.abs(r - np.median(r)) < 6.0 * mad
     if keep.sum() >= 50 and not keep.all():
         a1, m1, a2, m2 = a1[keep], m1[keep], a2[keep], m2[keep]
-        sol = least_squares(_centre_resid, sol.x, jac=_centre_jac, args=(a1, m1, a2, m2), method="lm", max_nfev=200)
+        sol = _lsq_centres(sol.x, a1, m1, a2, m2)
     o1h, o2h = sol.x[:3], sol.x[3:]
     shift = (o1h @ j1 + o2h @ j2) / 2.0
     o1, o2 = o1h - j1 * shift, o2h - j2 * shift
