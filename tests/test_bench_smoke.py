@@ -121,3 +121,17 @@ def test_speed_bench_runs() -> None:
     row = _cells(lines[lines.index("|---|---|---|---|---|") + 1])
     assert row[0] == "1" and float(row[1].split()[0]) > 0 and float(row[2]) > 0
     assert sum(1 for x in lines if x.startswith("| `pipeline.")) == 3
+
+
+def test_ingest_bench_uploads_through_a_real_server(capsys: pytest.CaptureFixture[str]) -> None:
+    """bench.ingest end to end on SQLite: one phone, a short session, every batch stored, the session processed."""
+    from bench.ingest import main
+
+    assert main(["--phones", "1", "--minutes", "0.3", "--timeout-s", "120"]) == 0
+    out = capsys.readouterr().out
+    rows = {c[0]: c[1] for c in (_cells(line) for line in out.splitlines() if line.startswith("| ")) if len(c) == 2}
+    stored = int(rows["batches stored"].split()[0])
+    assert stored > 50
+    assert float(rows["throughput"].split()[0]) > 0
+    done = rows["complete -> all 1 sessions done"]  # e.g. "0.9 s (12 strides)"
+    assert int(done.split("(")[1].split()[0]) > 0
