@@ -52,7 +52,7 @@ def select_fit_samples(g1: np.ndarray, g2: np.ndarray, valid: np.ndarray,
     idx = np.flatnonzero(valid)
     if idx.size <= max_samples:
         return idx
-    mag = row_norm(g1[idx]) + row_norm(g2[idx])
+    mag = row_norm(g1)[idx] + row_norm(g2)[idx]  # row-wise, so norming first and gathering once is the same
     per_chunk = int(np.ceil(max_samples / chunks))
     picked = []
     for part, m in zip(np.array_split(idx, chunks), np.array_split(mag, chunks), strict=True):
@@ -185,29 +185,45 @@ SYNC_MAX_S = 0.06
 SYNC_CUTOFF_HZ = 15.0
 
 
+def hinge_rates(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-sample ``||g1 x j1||`` and ``||g2 x j2||`` (Seel Eq. 2): the angular speed perpendicular to the axis."""
+    return row_norm(np.cross(g1, j1)), row_norm(np.cross(g2, j2))
+
+
 def estimate_sync_lag_s(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray, valid: np.ndarray,
-                        fs_hz: float, window: slice | None = None) -> float | None:
+                        fs_hz: float, window: slice | None = None,
+                        rates: tuple[np.ndarray, np.ndarray] | None = None) -> float | None:
     """Timestamp offset of the shank relative to the thigh [s], from Seel's hinge constraint (Eq. 2): for a hinge,
     the angular velocity perpendicular to the axis is the same vector in both segments, so ||g1 x j1|| = ||g2 x j2||
     sample by sample. A clock offset between the sensors shifts one against the other; the lag (within +-SYNC_MAX_S)
     minimising the mean squared mismatch, refined by a parabola through the three best lags, estimates it.
     Positive: shank events appear late on the common grid. None when the cost has no clear minimum (a leg that never
     leaves its joint plane carries no timing information here). Inputs low-passed gyros [rad/s]; ``window``
-    restricts the samples compared (clock drift: one estimate per window)."""
+    restricts the samples compared (clock drift: one estimate per window). ``rates``: :func:`hinge_rates` of the
+    whole ``g1``/``g2`` when already computed (several windows of one session), else computed here."""
     if window is not None:
-        g1, g2, valid = g1[window], g2[window], valid[window]
-    m1 = row_norm(np.cross(g1, j1))
-    m2 = row_norm(np.cross(g2, j2))
+        valid = valid[window]
+        if rates is None:
+            g1, g2 = g1[window], g2[window]
+        else:
+            rates = (rates[0][window], rates[1][window])
+    m1, m2 = hinge_rates(g1, g2, j1, j2) if rates is None else rates
     k_max = max(int(round(SYNC_MAX_S * fs_hz)), 2)
     n = m1.shape[0]
     idx = np.flatnonzero(valid[k_max:n - k_max]) + k_max
     if idx.size < 10 * k_max:
         return None
     ok2 = valid.astype(bool)
-    cost = np.empty(2 * k_max + 1)
-    for i, k in enumerate(range(-k_max, k_max + 1)):
-        sel = idx[ok2[idx + k]]
-        cost[i] = np.mean((m1[sel] - m2[sel + k]) ** 2) if sel.size else np.inf
+    if idx.size == n - 2 * k_max and ok2.all():
+        # no masked sample in the window: every lag compares the same samples, so all lags at once as rows of one
+        # matrix (a row-wise mean sums each row exactly as the per-lag mean does)
+        shifted = np.lib.stride_tricks.sliding_window_view(m2, n - 2 * k_max)
+        cost = np.mean((m1[k_max:n - k_max][None, :] - shifted) ** 2, axis=1)
+    else:
+        cost = np.empty(2 * k_max + 1)
+        for i, k in enumerate(range(-k_max, k_max + 1)):
+            sel = idx[ok2[idx + k]]
+            cost[i] = np.mean((m1[sel] - m2[sel + k]) ** 2) if sel.size else np.inf
     b = int(np.argmin(cost))
     # an interior minimum that stands clearly below the ends of the search range (noise and model misfit leave a
     # floor under the whole curve, so compare depths, not ratios to the median)

@@ -64,8 +64,9 @@ def to_si(stream: RawSensorStream) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         acc = acc * G_MPS2
     elif stream.acc_unit != "m/s2":
         raise ValueError(f"sensor {stream.sensor_id}: unknown accelerometer unit {stream.acc_unit!r}")
-    finite = np.isfinite(t) & np.isfinite(gyr).all(axis=1) & np.isfinite(acc).all(axis=1)
-    if not finite.all():
+    # whole-array finiteness first: the row-wise all(axis=1) over (N, 3) is slow and rarely needed
+    if not (np.isfinite(t).all() and np.isfinite(gyr).all() and np.isfinite(acc).all()):
+        finite = np.isfinite(t) & np.isfinite(gyr).all(axis=1) & np.isfinite(acc).all(axis=1)
         t, gyr, acc = t[finite], gyr[finite], acc[finite]
     if t.shape[0] > 1 and np.all(np.diff(t) > 0):
         return t, gyr, acc  # the usual case: already sorted and unique

@@ -19,6 +19,7 @@ from pipeline.axes import (
     estimate_sync_lag_s,
     fit_joint_axes,
     fit_joint_centres,
+    hinge_rates,
     select_fit_samples,
 )
 from pipeline.estimators import LegData, get_estimator
@@ -124,8 +125,9 @@ def _clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointA
         return None, 0.0
     edges = np.linspace(0, prep.n, int(prep.n // win) + 1).astype(int)
     pts = []
+    rates = hinge_rates(g1, g2, axes.j1, axes.j2)  # once for all windows
     for a, b in zip(edges[:-1], edges[1:], strict=True):
-        lag = estimate_sync_lag_s(g1, g2, axes.j1, axes.j2, prep.valid, fs, window=slice(a, b))
+        lag = estimate_sync_lag_s(g1, g2, axes.j1, axes.j2, prep.valid, fs, window=slice(a, b), rates=rates)
         if lag is not None:
             pts.append((float(prep.t_s[(a + b) // 2]) - t_mid, lag))
     if len(pts) < 2:
