@@ -72,10 +72,14 @@ def _stance_up_directions(data: LegData) -> list[np.ndarray] | None:
     strides = data.events.strides
     if not strides:
         return None
-    idx = np.concatenate([np.arange(a, t + 1) for a, t, _ in strides])
+    arr = np.asarray(strides)
+    lens = arr[:, 1] - arr[:, 0] + 1
+    # the stance indices a..t of every stride, concatenated, without a Python loop over strides
+    idx = np.repeat(arr[:, 0] - np.concatenate(([0], np.cumsum(lens)[:-1])), lens) + np.arange(int(lens.sum()))
     out = []
     for acc, j in ((data.prep.acc_thigh_mps2, data.axes.j1), (data.prep.acc_shank_mps2, data.axes.j2)):
-        f = acc[idx] - np.outer(acc[idx] @ j, j)
+        a = acc[idx]
+        f = a - np.outer(a @ j, j)
         f /= np.maximum(row_norm(f)[:, None], 1e-9)
         m = f.mean(axis=0)
         if np.linalg.norm(m) < 0.5:  # no consistent direction: not gait-like stance

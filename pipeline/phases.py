@@ -184,10 +184,9 @@ def _bouts(ms: np.ndarray, ws: np.ndarray, valid: np.ndarray, fs_hz: float, min_
     period = np.diff(ms) / fs_hz
     link = (period >= MIN_PERIOD_S) & (period <= MAX_PERIOD_S)
     inv_cum = np.concatenate(([0], np.cumsum(~valid)))
-    for k in range(ms.size - 1):
-        if link[k]:
-            seg = ws[ms[k]:ms[k + 1]]
-            link[k] = seg.min() < -STANCE_NEG_DPS and inv_cum[ms[k + 1]] == inv_cum[ms[k]]
+    # minimum of ws between consecutive peaks, all at once (peaks are increasing; the last entry is unused)
+    dip = np.minimum.reduceat(ws, ms)[:-1]
+    link &= (dip < -STANCE_NEG_DPS) & (inv_cum[ms[1:]] == inv_cum[ms[:-1]])
     # period consistency: compare each link with the median of its linked neighbourhood
     if period.size >= 3:
         padded = np.pad(np.where(link, period, np.nan), 2, constant_values=np.nan)

@@ -37,16 +37,19 @@ def zau_points(rate_f: np.ndarray, integral: np.ndarray, data: LegData) -> tuple
     ev = data.events
     fs = data.fs_hz
     idx, bouts, found = [], [], []
+    # crossings and non-finite samples located once for the whole signal, then looked up per window (the same
+    # crossings a per-window scan finds: a crossing at i needs samples i-1 and i, both inside [lo, hi))
+    cross_all = np.flatnonzero((rate_f[:-1] < 0) & (rate_f[1:] >= 0)) + 1
+    bad_cum = np.concatenate(([0], np.cumsum(~np.isfinite(integral))))
     for k in range(ev.ms.size):
         if ev.bout[k] < 0 or ev.to[k] < 0:
             continue
         hi = min(int(ev.to[k]) + int(0.05 * fs) + 1, int(ev.ms[k]))
         prev_ok = k > 0 and ev.bout[k - 1] == ev.bout[k] and ev.mst[k - 1] >= 0
         lo = int(ev.mst[k - 1]) if prev_ok else max(int(ev.to[k] - FIRST_ZAU_LOOKBACK_S * fs), 0)
-        if hi - lo < 3 or not np.isfinite(integral[lo:hi]).all():
+        if hi - lo < 3 or bad_cum[hi] != bad_cum[lo]:
             continue
-        r = rate_f[lo:hi]
-        cross = np.flatnonzero((r[:-1] < 0) & (r[1:] >= 0)) + lo + 1
+        cross = cross_all[np.searchsorted(cross_all, lo + 1):np.searchsorted(cross_all, hi - 1, side="right")]
         if cross.size:
             best = int(cross[np.argmin(integral[cross])])
             found.append(True)
