@@ -28,7 +28,7 @@ try:  # MINPACK's lmder, which least_squares(method="lm") wraps; private, hence 
 except Exception:  # pragma: no cover - other scipy layouts
     _DIRECT_LM = False
 
-from pipeline.signal_utils import row_norm
+from pipeline.signal_utils import cross_rows, row_norm
 
 MAX_FIT_SAMPLES = 1000
 FIT_CHUNKS = 20
@@ -190,18 +190,24 @@ def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | N
     prob = _AxisProblem(g1, g2)
     best = _lm(prob.residuals, prob.jacobian, best.x)
     j1, j2 = _sph(best.x[0], best.x[1]), _sph(best.x[2], best.x[3])
-    j1, j2 = orient_axes(j1, j2, g1_rps[valid], g2_rps[valid])
+    j1, j2 = orient_axes(j1, j2, g1_rps, g2_rps, mask=valid)
     rms = float(np.rad2deg(np.sqrt(2.0 * best.cost / idx.size)))
     return JointAxes(j1=j1, j2=j2, rms_residual_dps=rms, n_samples=int(idx.size))
 
 
-def orient_axes(j1: np.ndarray, j2: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Apply the module sign convention: largest excursions of ``g2.j2`` positive, ``g1.j1`` correlated with it."""
+def orient_axes(j1: np.ndarray, j2: np.ndarray, g1: np.ndarray, g2: np.ndarray,
+                mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Apply the module sign convention: largest excursions of ``g2.j2`` positive, ``g1.j1`` correlated with it.
+    ``mask``: use only these samples (projecting first and selecting after saves copying the (N, 3) gyros)."""
     w2 = g2 @ j2
-    if w2.size and -np.percentile(w2, 0.5) > np.percentile(w2, 99.5):
-        j2 = -j2
-        w2 = -w2
     w1 = g1 @ j1
+    if mask is not None:
+        w1, w2 = w1[mask], w2[mask]
+    if w2.size:
+        lo, hi = np.percentile(w2, [0.5, 99.5])  # one partition for both order statistics
+        if -lo > hi:
+            j2 = -j2
+            w2 = -w2
     if w1.size and float(np.dot(w1 - w1.mean(), w2 - w2.mean())) < 0:
         j1 = -j1
     return j1, j2
@@ -213,7 +219,7 @@ SYNC_CUTOFF_HZ = 15.0
 
 def hinge_rates(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-sample ``||g1 x j1||`` and ``||g2 x j2||`` (Seel Eq. 2): the angular speed perpendicular to the axis."""
-    return row_norm(np.cross(g1, j1)), row_norm(np.cross(g2, j2))
+    return row_norm(cross_rows(g1, j1)), row_norm(cross_rows(g2, j2))
 
 
 def estimate_sync_lag_s(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray, valid: np.ndarray,
@@ -387,7 +393,7 @@ def joint_plane_frames(centres: JointCentres, j1: np.ndarray, j2: np.ndarray) ->
 
 def gamma_apply(g: np.ndarray, gd: np.ndarray, o: np.ndarray) -> np.ndarray:
     """Gamma_g(o) = g x (g x o) + gdot x o = g (g.o) - o |g|^2 + gdot x o, for one o and all samples."""
-    return g * (g @ o)[:, None] - np.einsum("ij,ij->i", g, g)[:, None] * o[None, :] + np.cross(gd, o)
+    return g * (g @ o)[:, None] - np.einsum("ij,ij->i", g, g)[:, None] * o[None, :] + cross_rows(gd, o)
 
 
 def accelerometer_angle_deg(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,

@@ -84,8 +84,12 @@ def _swing_lobes(ws: np.ndarray, min_height: float) -> list[tuple[int, int, int]
     starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
     heights = np.maximum.reduceat(ws, starts)
     keep = heights >= min_height
-    return [(int(a), int(a + np.argmax(ws[a:b])), int(b))
-            for a, b in zip(starts[keep], stops[keep], strict=True)]
+    # each lobe's peak = its first sample equal to the lobe maximum (what argmax per lobe returns), found for all
+    # lobes at once: the positive samples are exactly the lobes, in order
+    pos_idx = np.flatnonzero(pos)
+    at_max = pos_idx[ws[pos_idx] == np.repeat(heights, stops - starts)]
+    peaks = at_max[np.searchsorted(at_max, starts[keep])]
+    return list(zip(starts[keep].tolist(), peaks.tolist(), stops[keep].tolist(), strict=True))
 
 
 def _merge_lobes(ws: np.ndarray, lobes: list[tuple[int, int, int]], fs_hz: float) -> list[tuple[int, int, int]]:

@@ -214,14 +214,16 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
     saturated = (np.interp(t_grid, t1, sat1.astype(float)) > 0) | (np.interp(t_grid, t2, sat2.astype(float)) > 0)
     merged = _merge_intervals(gaps)
     if keep_grid:
-        thigh6 = np.hstack([reuse.gyr_thigh_rps, reuse.acc_thigh_mps2])
+        # the first pass's arrays themselves (never modified in place): same values and memory layout
+        gyr_thigh, acc_thigh = reuse.gyr_thigh_rps, reuse.acc_thigh_mps2
     else:
         thigh6 = _interp_columns(t_grid, t1, np.hstack([g1, a1]))
+        gyr_thigh, acc_thigh = thigh6[:, :3], thigh6[:, 3:]
     shank6 = _interp_columns(t_grid, t2, np.hstack([g2, a2]))
     return PreparedLeg(
         leg=leg, fs_hz=fs_hz, t0_s=float(t_start), t_s=t_grid,
-        gyr_thigh_rps=thigh6[:, :3], gyr_shank_rps=shank6[:, :3],
-        acc_thigh_mps2=thigh6[:, 3:], acc_shank_mps2=shank6[:, 3:],
+        gyr_thigh_rps=gyr_thigh, gyr_shank_rps=shank6[:, :3],
+        acc_thigh_mps2=acc_thigh, acc_shank_mps2=shank6[:, 3:],
         valid=valid, saturated=saturated, gaps_s=merged, bridged_gaps=br1 + br2,
         bridged_s=_merge_intervals(noted1 + noted2),
     )
