@@ -117,7 +117,7 @@ class _AxisProblem:
         self._parts: list[tuple[np.ndarray, np.ndarray]] = []
 
     def _eval(self, x: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-        if self._x is None or not np.array_equal(x, self._x):
+        if self._x is None or x.shape != self._x.shape or not (x == self._x).all():
             parts = []
             for k in range(2):
                 gj = self.g[k] @ _sph(x[2 * k], x[2 * k + 1])
@@ -304,7 +304,7 @@ class _CentreProblem:
         self._parts: tuple[np.ndarray, ...] = ()
 
     def _eval(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
-        if self._x is None or not np.array_equal(x, self._x):
+        if self._x is None or x.shape != self._x.shape or not (x == self._x).all():
             v1, v2 = _centre_split(x, *self.args)
             self._x, self._parts = np.array(x, dtype=float), (v1, v2, row_norm(v1), row_norm(v2))
         return self._parts

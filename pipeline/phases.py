@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from pipeline.signal_utils import lowpass, row_norm
 
@@ -162,12 +163,14 @@ def detect_gait_events(shank_sag_dps: np.ndarray, fs_hz: float, valid: np.ndarra
         acc = np.asarray(shank_acc_mps2, dtype=float)
         jerk = np.concatenate(([0.0], row_norm(np.diff(acc, axis=0))))
         jerk[~valid | ~np.isfinite(jerk)] = 0.0
-    ms, to = [], []
-    for a, p, _ in lobes:
-        ms.append(p)
-        to.append(min(int(max(a - search, 0) + np.argmin(we[max(a - search, 0):a + 1])) + to_delay, p - 1)
-                  if a > 0 else -1)
-    ms_a, to_a = np.array(ms, dtype=int), np.array(to, dtype=int)
+    ms_a = np.array([p for _, p, _ in lobes], dtype=int)
+    starts = np.array([a for a, _, _ in lobes], dtype=int)
+    # toe-off: minimum of ``we`` over [a - search, a] before each lobe start a, all lobes at once; the +inf padding
+    # before the signal start is never the minimum, so each window's argmin (first minimum) is the clipped
+    # window's: the same index as a per-lobe argmin
+    padded = np.concatenate((np.full(search, np.inf), we))
+    first = starts - search + np.argmin(sliding_window_view(padded, search + 1)[starts], axis=1) if lobes else starts
+    to_a = np.where(starts > 0, np.minimum(first + to_delay, ms_a - 1), -1).astype(int)
     ends = np.array([b for _, _, b in lobes], dtype=int)
     hs_a = np.where(ends < n, _heel_strikes(np.minimum(ends, n - 1), n, fs_hz, jerk), -1)
     bout = _bouts(ms_a, ws, valid, fs_hz, min_bout_peaks)

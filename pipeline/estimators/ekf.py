@@ -36,7 +36,7 @@ from pipeline.estimators.kf import (
     q_for_time_constant,
     run_per_segment,
 )
-from pipeline.signal_utils import lowpass_runs
+from pipeline.signal_utils import lowpass_runs_many
 
 G_MPS2 = 9.80665
 DEG2_TO_RAD2 = math.radians(1.0) ** 2
@@ -161,8 +161,9 @@ def plane_accelerations(data: LegData) -> tuple[np.ndarray, np.ndarray]:
     if data.extras.get("running_cycles") is not None:
         g1, g2, a1, a2 = prep.gyr_thigh_rps, prep.gyr_shank_rps, prep.acc_thigh_mps2, prep.acc_shank_mps2
     else:
-        g1, g2, a1, a2 = (np.nan_to_num(lowpass_runs(x, prep.valid, FIT_CUTOFF_HZ, fs)) for x in (
-            prep.gyr_thigh_rps, prep.gyr_shank_rps, prep.acc_thigh_mps2, prep.acc_shank_mps2))
+        g1, g2, a1, a2 = (np.nan_to_num(x) for x in lowpass_runs_many(
+            (prep.gyr_thigh_rps, prep.gyr_shank_rps, prep.acc_thigh_mps2, prep.acc_shank_mps2), prep.valid,
+            FIT_CUTOFF_HZ, fs))
     centres = data.centres
     if centres is None:
         raise ValueError("the EKF needs joint centres")
