@@ -18,16 +18,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import OptimizeResult, least_squares
 
-try:  # MINPACK's lmder, which least_squares(method="lm") wraps; private, hence the guarded import (see _lm)
-    from scipy.optimize._lsq.least_squares import check_x_scale as _check_x_scale
-    from scipy.optimize._minpack import _lmder
-
-    # least_squares passes diag=None (MINPACK's own Jacobian scaling) only where its lm default x_scale is "jac"
-    # (scipy >= 1.16); elsewhere the wrapper is used so results match the installed scipy's least_squares exactly
-    _DIRECT_LM = _check_x_scale(None, np.zeros(1), "lm") == "jac"
-except Exception:  # pragma: no cover - other scipy layouts
-    _DIRECT_LM = False
-
 from pipeline.signal_utils import cross_rows, row_norm
 
 MAX_FIT_SAMPLES = 1000
@@ -71,22 +61,6 @@ def select_fit_samples(g1: np.ndarray, g2: np.ndarray, valid: np.ndarray,
         else:
             picked.append(part[np.argpartition(-m, per_chunk - 1)[:per_chunk]])
     return np.sort(np.concatenate(picked))
-
-
-def _lm(fun, jac, x0: np.ndarray, max_nfev: int = 200) -> OptimizeResult:
-    """``least_squares(fun, x0, jac=jac, method="lm", max_nfev=max_nfev)``'s ``x`` and ``cost``, from the same
-    MINPACK lmder call with the same tolerances (ftol = xtol = gtol = 1e-8, factor 100), hence the same iterates,
-    minus the wrapper's overhead: it evaluates residuals and Jacobian once more at the start and the Jacobian
-    again at the end, and copies every point through its caching layer (a third of the fits' time here)."""
-    x0 = np.atleast_1d(np.asarray(x0, dtype=float))
-    if not _DIRECT_LM:
-        sol = least_squares(fun, x0, jac=jac, method="lm", max_nfev=max_nfev)
-        return OptimizeResult(x=sol.x, cost=sol.cost)
-    if not np.all(np.isfinite(fun(x0))):
-        raise ValueError("Residuals are not finite in the initial point.")  # as least_squares
-    x, info, _ = _lmder(fun, jac, x0.copy(), (), True, False, 1e-8, 1e-8, 1e-8, max_nfev, 100.0, None)
-    f = info["fvec"]
-    return OptimizeResult(x=x, cost=0.5 * np.dot(f, f))
 
 
 def _sph(phi: float, theta: float) -> np.ndarray:
@@ -183,12 +157,12 @@ def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | N
     best = None
     prob_sub = _AxisProblem(g1[sub], g2[sub])
     for x0 in starts:
-        sol = _lm(prob_sub.residuals, prob_sub.jacobian, x0)
+        sol = least_squares(prob_sub.residuals, x0, jac=prob_sub.jacobian, method="lm", max_nfev=200)
         if best is None or sol.cost < best.cost - 1e-12:
             best = sol
     assert best is not None
     prob = _AxisProblem(g1, g2)
-    best = _lm(prob.residuals, prob.jacobian, best.x)
+    best = least_squares(prob.residuals, best.x, jac=prob.jacobian, method="lm", max_nfev=200)
     j1, j2 = _sph(best.x[0], best.x[1]), _sph(best.x[2], best.x[3])
     j1, j2 = orient_axes(j1, j2, g1_rps, g2_rps, mask=valid)
     rms = float(np.rad2deg(np.sqrt(2.0 * best.cost / idx.size)))
@@ -335,7 +309,7 @@ def _centre_jac(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m
 
 def _lsq_centres(x0: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray) -> OptimizeResult:
     prob = _CentreProblem(a1, m1, a2, m2)
-    return _lm(prob.residuals, prob.jacobian, x0)
+    return least_squares(prob.residuals, x0, jac=prob.jacobian, method="lm", max_nfev=200)
 
 
 def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,
