@@ -77,12 +77,13 @@ def to_si(stream: RawSensorStream) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def nominal_fs(stream: RawSensorStream, t_s: np.ndarray) -> float:
-    """The declared rate, unless the time stamps clearly disagree (then the median sample spacing wins)."""
+    """The declared rate, unless the time stamps clearly disagree (then the median sample spacing wins, but never
+    above twice the declared rate: near-duplicate stamps must not blow the grid up to millions of samples)."""
     declared = float(stream.fs_hz) if stream.fs_hz and stream.fs_hz > 0 else 0.0
     if t_s.shape[0] < 2:
         return declared or 100.0
     measured = 1.0 / float(np.median(np.diff(t_s)))
-    if declared and abs(measured - declared) / declared < 0.2:
+    if declared and (abs(measured - declared) / declared < 0.2 or measured > 2.0 * declared):
         return declared
     return measured
 

@@ -103,7 +103,9 @@ def _field_name(loc: tuple[Any, ...]) -> str:
 
 def validation_errors(exc: RequestValidationError) -> list[dict[str, str]]:
     errs = exc.errors()
-    out = [{"field": _field_name(tuple(e.get("loc", ()))), "message": str(e.get("msg", "invalid"))}
+    # a JSON syntax error's location is ("body", <byte offset>): the field is the body itself
+    out = [{"field": "body" if e.get("type") == "json_invalid" else _field_name(tuple(e.get("loc", ()))),
+            "message": str(e.get("msg", "invalid"))}
            for e in errs[:MAX_FIELD_ERRORS]]
     if len(errs) > MAX_FIELD_ERRORS:
         out.append({"field": "", "message": f"... and {len(errs) - MAX_FIELD_ERRORS} more errors"})

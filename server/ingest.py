@@ -47,9 +47,14 @@ def validate_times(t_ms: np.ndarray, t0_ms: float, sample_rate_hz: float) -> Non
     bad = np.flatnonzero(steps <= 0)
     if bad.size:
         i = int(bad[0]) + 1
-        raise invalid(f"timestamps_ms[{i}]", f"timestamps must be strictly increasing ({t_ms[i - 1]!r} then "
-                                             f"{t_ms[i]!r})")
+        raise invalid(f"timestamps_ms[{i}]", f"timestamps must be strictly increasing ({float(t_ms[i - 1])} then "
+                                             f"{float(t_ms[i])})")
     period_ms = 1000.0 / sample_rate_hz
+    # Half the declared period or less between most samples means the stamps (or the declared rate) are wrong;
+    # the median tolerates the bunching of samples stamped on arrival of a BLE notification.
+    if steps.size >= 3 and float(np.median(steps)) < 0.5 * period_ms:
+        raise invalid("timestamps_ms", f"median spacing {float(np.median(steps)):.3g} ms is less than half the "
+                                       f"declared sample period ({period_ms:.3g} ms at {sample_rate_hz:g} Hz)")
     if abs(float(t_ms[0]) - t0_ms) > period_ms:
         raise invalid("t0_ms", f"t0_ms ({t0_ms}) must be the time of the first sample (timestamps_ms[0] = "
                                f"{float(t_ms[0])})")
@@ -86,9 +91,6 @@ def ingest_batch(db: DbSession, session: Session, body: BatchIn, *, max_samples:
     ``session`` should be read with a row lock so a concurrent /complete cannot slip in between the status
     check and the insert. A rejected batch raises :class:`ProblemError` and changes nothing.
     """
-    if session.status != "receiving":
-        raise conflict(f"Session is {session.status}; uploads are accepted only while it is receiving",
-                       slug="session-not-receiving")
     sensor = next((s for s in session.sensors if s.sensor_id == body.sensor_id), None)
     if sensor is None:
         declared = ", ".join(s.sensor_id for s in session.sensors)
@@ -101,6 +103,14 @@ def ingest_batch(db: DbSession, session: Session, body: BatchIn, *, max_samples:
     gyro = np.asarray(body.gyro, dtype=np.float64)
     acc = np.asarray(body.acc, dtype=np.float64)
     digest = content_sha256(t_ms, gyro, acc)
+    # A retry of a batch whose answer was lost stays a 200 (or 409 for other content) even after /complete, so
+    # the app never mistakes a stored batch for a lost one; only NEW batches need a receiving session.
+    existing = _find_batch(db, session.id, sensor.sensor_id, body.seq)
+    if existing is not None:
+        return _replay_outcome(existing, digest)
+    if session.status != "receiving":
+        raise conflict(f"Session is {session.status}; uploads are accepted only while it is receiving",
+                       slug="session-not-receiving")
 
     # Re-check the status with a write in this transaction: on SQLite this takes the write lock (a SELECT does
     # not), on PostgreSQL the row lock, so a /complete either commits before (-> 409) or waits for this batch.

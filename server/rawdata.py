@@ -56,8 +56,13 @@ def content_sha256(t_ms: np.ndarray, gyro: np.ndarray, acc: np.ndarray) -> str:
     return h.hexdigest()
 
 
-def concat_batches(batches: Iterable[Batch]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Decode and join batches, sorted by time; a repeated timestamp keeps the sample of the lowest seq."""
+def concat_batches(batches: Iterable[Batch], sample_rate_hz: float | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Decode and join batches, sorted by time; a repeated timestamp keeps the sample of the lowest seq.
+
+    With ``sample_rate_hz``, samples closer than a quarter period to the previous one are dropped too: the same
+    sample re-sent under another seq with a slightly different stamp (overlapping batches) must not count twice.
+    """
     parts = [decode_samples(b.t_ms, b.gyro, b.acc) for b in sorted(batches, key=lambda b: b.seq)]
     if not parts:
         return np.empty(0), np.empty((0, 3)), np.empty((0, 3))
@@ -68,7 +73,11 @@ def concat_batches(batches: Iterable[Batch]) -> tuple[np.ndarray, np.ndarray, np
     order = np.argsort(t, kind="stable")
     t, g, a = t[order], g[order], a[order]
     _, first = np.unique(t, return_index=True)
-    return t[first], g[first], a[first]
+    t, g, a = t[first], g[first], a[first]
+    if sample_rate_hz and t.size > 1:
+        keep = np.concatenate(([True], np.diff(t) >= 250.0 / sample_rate_hz))
+        t, g, a = t[keep], g[keep], a[keep]
+    return t, g, a
 
 
 def load_streams(db: DbSession, session_id: str) -> list[RawSensorStream]:
@@ -86,7 +95,7 @@ def load_streams(db: DbSession, session_id: str) -> list[RawSensorStream]:
         ).all()
         if not batches:
             continue
-        t_ms, gyro, acc = concat_batches(batches)
+        t_ms, gyro, acc = concat_batches(batches, sensor.sample_rate_hz)
         out.append(RawSensorStream(
             sensor_id=sensor.sensor_id,
             leg=sensor.leg,  # type: ignore[arg-type]

@@ -221,8 +221,10 @@ def test_upload_after_complete_is_409_and_complete_is_idempotent(api: Api) -> No
     assert r2.json()["completed_at"] == r.json()["completed_at"]
     r = api.upload(dev, sess["id"], batch_body("L-thigh", 1))
     assert r.status_code == 409 and r.headers["content-type"].startswith("application/problem+json")
-    # Even an identical replay after completion is refused: the session is closed.
-    assert api.upload(dev, sess["id"], batch_body("L-thigh", 0)).status_code == 409
+    # A retry of a stored batch is still acknowledged (its first answer may have been lost); other content is not.
+    r = api.upload(dev, sess["id"], batch_body("L-thigh", 0))
+    assert r.status_code == 200 and r.json()["duplicate"] is True
+    assert api.upload(dev, sess["id"], batch_body("L-thigh", 0, seed=9)).status_code == 409
     assert _batches(api) == 1
 
 
@@ -234,16 +236,16 @@ def test_concurrent_identical_insert_rereads(api: Api, monkeypatch: pytest.Monke
     real = ingest._find_batch
     calls = {"n": 0}
 
-    def miss_first(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202 - the pre-check "misses" the other insert
+    def miss_first(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202 - both pre-checks "miss" the other insert
         calls["n"] += 1
-        return None if calls["n"] == 1 else real(*args, **kwargs)
+        return None if calls["n"] <= 2 else real(*args, **kwargs)
 
     monkeypatch.setattr(ingest, "_find_batch", miss_first)
     r = api.upload(dev, sess["id"], body)
-    assert r.status_code == 200 and r.json()["duplicate"] is True and calls["n"] == 2
+    assert r.status_code == 200 and r.json()["duplicate"] is True and calls["n"] == 3
     calls["n"] = 0
     changed = dict(body, acc=[[0.0, 0.0, 0.0]] * 10)
-    assert api.upload(dev, sess["id"], changed).status_code == 409 and calls["n"] == 2
+    assert api.upload(dev, sess["id"], changed).status_code == 409 and calls["n"] == 3
     assert _batches(api) == 1
 
 
@@ -277,3 +279,36 @@ def test_concurrent_replays_store_once(api: Api) -> None:
     with ThreadPoolExecutor(6) as pool:
         ids = list(pool.map(lambda _: api.session(dev, me["patient_id"], client_session_id="same")["id"], range(6)))
     assert len(set(ids)) == 1
+
+
+def test_bunched_timestamps_are_refused(api: Api) -> None:
+    """Stamps far denser than the declared rate (here 1 us apart in pairs) are a client bug: 422, nothing stored."""
+    _, dev, sess = api.setup_device_session()
+    body = batch_body("L-shank", 0, n=20)
+    body["timestamps_ms"] = [10.0 * (i // 2) + 0.001 * (i % 2) for i in range(20)]
+    r = api.upload(dev, sess["id"], body)
+    assert r.status_code == 422 and r.json()["errors"][0]["field"] == "timestamps_ms"
+    assert "np.float64" not in r.text
+    assert _batches(api) == 0
+
+
+def test_overlapping_batches_under_new_seq_count_once_in_processing(api: Api) -> None:
+    """The same samples re-sent under other seq numbers with stamps 1 us later are merged, not doubled."""
+    _, dev, sess = api.setup_device_session()
+    for seq in range(4):
+        body = batch_body("L-shank", seq, n=50, timestamps=True)
+        assert api.upload(dev, sess["id"], body).status_code == 201
+        shifted = dict(body, seq=100 + seq, t0_ms=body["t0_ms"] + 0.001,
+                       timestamps_ms=[t + 0.001 for t in body["timestamps_ms"]])
+        assert api.upload(dev, sess["id"], shifted).status_code == 201
+    with api.client.app.state.sessionmaker() as db:  # type: ignore[attr-defined]
+        (stream,) = load_streams(db, sess["id"])
+    assert stream.t_s.size == 200
+    assert np.all(np.diff(stream.t_s) > 0.009)
+
+
+def test_malformed_json_names_the_body(api: Api) -> None:
+    clin, _ = api.clinician()
+    r = api.client.post("/v1/patients", content=b'{"display_name": ', headers={**bearer(clin),
+                                                                            "Content-Type": "application/json"})
+    assert r.status_code == 422 and r.json()["errors"][0]["field"] == "body"
