@@ -4,27 +4,12 @@ parameters from the gait events."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
+
+from pipeline.types import StrideValues
 
 # Loading-response flexion peak is searched in the first part of stance (heel strike -> this share of stance).
 LOADING_SHARE = 0.6
-
-
-@dataclass(frozen=True)
-class StrideValues:
-    t_start_s: float
-    t_end_s: float
-    duration_s: float
-    t_toe_off_s: float
-    stance_time_s: float
-    swing_time_s: float
-    stance_pct: float
-    peak_swing_flexion_deg: float
-    min_flexion_deg: float
-    rom_deg: float
-    stance_flexion_deg: float
 
 
 def stride_values(angle_deg: np.ndarray, t_s: np.ndarray, hs: int, to: int, hs_next: int) -> StrideValues:

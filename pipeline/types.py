@@ -38,11 +38,9 @@ class RawSensorStream:
 
 
 @dataclass(frozen=True)
-class StrideMetrics:
-    """One stride: heel strike to the next heel strike of the same leg."""
+class StrideValues:
+    """Timing and angles of one stride: heel strike to the next heel strike of the same leg."""
 
-    leg: Leg
-    index: int
     t_start_s: float
     t_end_s: float
     duration_s: float
@@ -54,6 +52,14 @@ class StrideMetrics:
     min_flexion_deg: float
     rom_deg: float
     stance_flexion_deg: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class StrideMetrics(StrideValues):
+    """One stride's values with its leg, position and the estimator that produced its angle."""
+
+    leg: Leg
+    index: int
     estimator: str
     quality: float  # 0 (untrustworthy) .. 1 (all checks passed)
     quality_reasons: tuple[str, ...] = ()
