@@ -29,7 +29,7 @@ from pipeline.fusion import fuse
 from pipeline.metrics import stride_values
 from pipeline.phases import detect_gait_events
 from pipeline.prepare import PreparedLeg, nominal_fs, prepare_leg_si, to_si
-from pipeline.running import build_running_leg_data, detect_running, running_auto
+from pipeline.running import RUNNING_AUTO_ESTIMATOR, build_running_leg_data, detect_running, running_auto
 from pipeline.signal_utils import lowpass_runs_many
 from pipeline.types import LegResult, RawSensorStream, SessionResult, StrideMetrics
 
@@ -210,6 +210,7 @@ def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activi
             angle = np.asarray(get_estimator(estimator)(data), dtype=float)
             labels = np.where(np.isfinite(angle), estimator, "").astype(str)
             choices = [(estimator, 1.0, ()) for _ in strides]
+    primary = RUNNING_AUTO_ESTIMATOR if data.activity == "running" else "go"
     out: list[StrideMetrics] = []
     # non-finite samples counted by prefix sum: one pass instead of a test per stride
     bad_cum = np.concatenate(([0], np.cumsum(~np.isfinite(angle))))
@@ -218,8 +219,9 @@ def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activi
             continue
         v = stride_values(angle, prep.t_s, a, t, b)
         out.append(StrideMetrics(leg=leg, index=len(out), estimator=name, quality=float(quality),
-                                 quality_reasons=tuple(reasons), **v.__dict__))
+                                 quality_reasons=tuple(reasons), activity=data.activity,
+                                 fallback=estimator == "auto" and name != primary, **v.__dict__))
     walking_s = float(sum(s.duration_s for s in out))
     info["n_strides"] = len(out)
     return LegResult(leg=leg, fs_hz=prep.fs_hz, t_s=prep.t_s, angle_deg=angle, estimator=labels, strides=out,
-                     gaps_s=list(prep.gaps_s), walking_s=walking_s, info=info)
+                     gaps_s=list(prep.gaps_s), walking_s=walking_s, activity=data.activity, info=info)

@@ -63,6 +63,10 @@ class StrideMetrics(StrideValues):
     estimator: str
     quality: float  # 0 (untrustworthy) .. 1 (all checks passed)
     quality_reasons: tuple[str, ...] = ()
+    # the activity the stride's leg was processed as ("walking" or "running"; never "unknown")
+    activity: str = "walking"
+    # True when the policy's primary estimator for that activity failed on this stride and another one was used
+    fallback: bool = False
 
 
 @dataclass
@@ -77,6 +81,7 @@ class LegResult:
     strides: list[StrideMetrics]
     gaps_s: list[tuple[float, float]] = field(default_factory=list)
     walking_s: float = 0.0
+    activity: str = "walking"  # what the leg was processed as: "walking" or "running"
     info: dict = field(default_factory=dict)  # axes, diagnostics: JSON-serialisable only
 
 
