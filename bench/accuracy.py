@@ -20,10 +20,8 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
-import importlib  # noqa: E402
 import math  # noqa: E402
 import multiprocessing as mp  # noqa: E402
-import pkgutil  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
@@ -31,6 +29,9 @@ from dataclasses import dataclass  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench.matching import LegScore, data_gaps, score_leg, summarise  # noqa: E402
+from pipeline.estimators import available  # noqa: E402
+from pipeline.phases import detect_gait_events, shank_sagittal_dps  # noqa: E402
+from pipeline.session import process_session  # noqa: E402
 from pipeline.simulate import SimConfig, simulate_session  # noqa: E402
 
 WALKING = ("normal", "slow", "fast", "stiff-knee", "crouch")
@@ -56,21 +57,12 @@ def _log(msg: str) -> None:
 
 
 def estimator_names() -> list[str]:
-    """``auto`` plus every estimator registered in ``pipeline.estimators`` (its sub-modules register themselves)."""
-    import pipeline.estimators as est
-
-    for mod in pkgutil.iter_modules(est.__path__):
-        try:
-            importlib.import_module(f"pipeline.estimators.{mod.name}")
-        except ImportError as exc:  # an estimator still being written must not stop the bench
-            _log(f"note: pipeline.estimators.{mod.name} not importable ({exc})")
-    return ["auto", *est.available()]
+    """``auto`` plus every estimator registered in ``pipeline.estimators``."""
+    return ["auto", *available()]
 
 
 def run_case(case: Case, estimators: list[str]) -> tuple[Case, dict[str, LegScore], float]:
     """Simulate one case and score every estimator on it (both legs pooled)."""
-    from pipeline.session import process_session
-
     t0 = time.perf_counter()
     sim = simulate_session(SimConfig(pattern=case.pattern, fs_hz=case.fs_hz, seed=case.seed,
                                      duration_s=case.duration_s))
@@ -171,9 +163,6 @@ def real_tables(estimators: list[str]) -> list[str]:
         from bench.real_data import BIOMECHZOO_CSV, TAN_DIR, load_biomechzoo, load_tan_steps, real_data_available
     except ImportError as exc:
         return [f"_Real recordings skipped: bench.real_data not importable ({exc})._"]
-    from pipeline.phases import detect_gait_events, shank_sagittal_dps
-    from pipeline.session import process_session
-
     out: list[str] = []
     if real_data_available(BIOMECHZOO_CSV):
         streams, vicon = load_biomechzoo()

@@ -9,13 +9,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pipeline.params import WALKING
 from pipeline.simulate import LegTruth, SimSession, TruthStride
 from pipeline.types import LegResult, StrideMetrics
 
-try:  # the pipeline's own bridging limit: longer gaps are masked and no stride may span them
-    from pipeline.prepare import MAX_BRIDGE_S
-except ImportError:  # pragma: no cover - only while the pipeline is not there yet
-    MAX_BRIDGE_S = 0.05
+# the pipeline's own bridging limit: longer gaps are masked and no stride may span them
+MAX_BRIDGE_S = WALKING.prepare.max_bridge_s
 
 MATCH_TOL_S = 0.15  # both heel strikes of a detected stride within this of the true ones (and < 25 % of a stride)
 
@@ -50,7 +49,7 @@ def data_gaps(sim: SimSession, leg: str) -> list[tuple[float, float]]:
         if s.leg != leg:
             continue
         dt = np.diff(s.t_s)
-        idx = np.flatnonzero((dt > 1.75 / s.fs_hz) & (dt > MAX_BRIDGE_S))
+        idx = np.flatnonzero((dt > WALKING.prepare.gap_factor / s.fs_hz) & (dt > MAX_BRIDGE_S))
         out += [(float(s.t_s[i]), float(s.t_s[i + 1])) for i in idx]
     return out
 

@@ -23,6 +23,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from pipeline.session import process_session  # noqa: E402
 from pipeline.simulate import SimConfig, simulate_session  # noqa: E402
 
 TARGET_S = 0.3
@@ -69,8 +70,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--estimator", default="auto")
     ap.add_argument("--profile-top", type=int, default=15, help="0: no profile")
     args = ap.parse_args(argv)
-
-    from pipeline.session import process_session
 
     t0 = time.perf_counter()
     sim = simulate_session(SimConfig(pattern="normal", fs_hz=args.fs, seed=args.seed,

@@ -18,27 +18,26 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import OptimizeResult, least_squares
 
+from pipeline.params import WALKING, AxesParams
 from pipeline.signal_utils import cross_rows, row_norm
 
-MAX_FIT_SAMPLES = 1000
-FIT_CHUNKS = 20
-N_RESTARTS = 2
-N_CENTRE_STARTS = 4
-MAX_LEVER_M = 0.4
-CENTRE_REG = 0.05  # [m/s^2 per m] per sample: negligible against real misfit, fixes the flat valley
-_EPS = 1e-9
+_EPS = 1e-9  # guards divisions by a norm; far below any physical value
 
 
-@dataclass
+@dataclass(frozen=True)
 class JointAxes:
+    """Knee axis in both sensor frames (unit 3-vectors) and the Eq. 2 fit's residual."""
+
     j1: np.ndarray  # thigh frame
     j2: np.ndarray  # shank frame
     rms_residual_dps: float
     n_samples: int
 
 
-@dataclass
+@dataclass(frozen=True)
 class JointCentres:
+    """Sensor positions relative to the knee centre (Seel Eq. 5) and the fit's residual."""
+
     o1: np.ndarray  # position of the thigh sensor relative to the knee centre, thigh frame [m]
     o2: np.ndarray  # position of the shank sensor relative to the knee centre, shank frame [m]
     rms_residual_mps2: float
@@ -46,9 +45,11 @@ class JointCentres:
 
 
 def select_fit_samples(g1: np.ndarray, g2: np.ndarray, valid: np.ndarray,
-                       max_samples: int = MAX_FIT_SAMPLES, chunks: int = FIT_CHUNKS) -> np.ndarray:
-    """A bounded, deterministic sample set for the axis/centre fits: the most dynamic samples of each of
-    ``chunks`` equal time chunks, so the cost does not grow with session length and the set spans the session."""
+                       params: AxesParams = WALKING.axes) -> np.ndarray:
+    """A bounded, deterministic sample set (indices) for the axis/centre fits: the most dynamic samples of each of
+    ``fit_chunks`` equal time chunks, so the cost does not grow with session length and the set spans the session.
+    ``g1``, ``g2`` (N, 3) gyros [rad/s], ``valid`` (N,) bool."""
+    max_samples, chunks = params.max_fit_samples, params.fit_chunks
     idx = np.flatnonzero(valid)
     if idx.size <= max_samples:
         return idx
@@ -118,23 +119,14 @@ class _AxisProblem:
         return jac
 
 
-def _axis_residuals(x: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> np.ndarray:
-    """Seel Eq. 2: ||g1 x j1|| - ||g2 x j2|| per sample (:class:`_AxisProblem`)."""
-    return _AxisProblem(g1, g2).residuals(x)
-
-
-def _axis_jacobian(x: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> np.ndarray:
-    """Analytic Jacobian of Eq. 2 (:class:`_AxisProblem`)."""
-    return _AxisProblem(g1, g2).jacobian(x)
-
-
 def _principal_axis(g: np.ndarray) -> np.ndarray:
     """Dominant rotation axis of a segment (McGrath et al. 2018: in gait most angular velocity is sagittal)."""
     _, _, vt = np.linalg.svd(g, full_matrices=False)
     return vt[0]
 
 
-def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | None = None) -> JointAxes:
+def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | None = None,
+                   params: AxesParams = WALKING.axes) -> JointAxes:
     """Joint axis of the knee in the thigh (``j1``) and shank (``j2``) sensor frames by Seel's Eq. 2
     (Rhudy et al. 2024, Eq. 2-3), solved with ``scipy.optimize.least_squares`` on a bounded sample set.
 
@@ -142,14 +134,14 @@ def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | N
     deterministic. Signs follow the module convention (flexion rate ``g1.j1 - g2.j2`` positive).
     """
     valid = np.ones(g1_rps.shape[0], dtype=bool) if valid is None else valid
-    idx = select_fit_samples(g1_rps, g2_rps, valid)
+    idx = select_fit_samples(g1_rps, g2_rps, valid, params)
     if idx.size < 10:
         raise ValueError("too few samples to estimate the knee axis")
     g1, g2 = g1_rps[idx], g2_rps[idx]
     p1, p2 = _principal_axis(g1), _principal_axis(g2)
     starts = [np.array([*_to_sph(p1), *_to_sph(p2)])]
     rng = np.random.default_rng(0)
-    for _ in range(N_RESTARTS):
+    for _ in range(params.n_restarts):
         starts.append(np.array([rng.uniform(-1.4, 1.4), rng.uniform(-np.pi, np.pi),
                                 rng.uniform(-1.4, 1.4), rng.uniform(-np.pi, np.pi)]))
     # restarts on a quarter of the set, then the winner refined on all of it (bounded, deterministic cost)
@@ -187,10 +179,6 @@ def orient_axes(j1: np.ndarray, j2: np.ndarray, g1: np.ndarray, g2: np.ndarray,
     return j1, j2
 
 
-SYNC_MAX_S = 0.06
-SYNC_CUTOFF_HZ = 15.0
-
-
 def hinge_rates(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-sample ``||g1 x j1||`` and ``||g2 x j2||`` (Seel Eq. 2): the angular speed perpendicular to the axis."""
     return row_norm(cross_rows(g1, j1)), row_norm(cross_rows(g2, j2))
@@ -198,10 +186,11 @@ def hinge_rates(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray) 
 
 def estimate_sync_lag_s(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray, valid: np.ndarray,
                         fs_hz: float, window: slice | None = None,
-                        rates: tuple[np.ndarray, np.ndarray] | None = None) -> float | None:
+                        rates: tuple[np.ndarray, np.ndarray] | None = None, max_lag_s: float = WALKING.sync.max_lag_s
+                        ) -> float | None:
     """Timestamp offset of the shank relative to the thigh [s], from Seel's hinge constraint (Eq. 2): for a hinge,
     the angular velocity perpendicular to the axis is the same vector in both segments, so ||g1 x j1|| = ||g2 x j2||
-    sample by sample. A clock offset between the sensors shifts one against the other; the lag (within +-SYNC_MAX_S)
+    sample by sample. A clock offset between the sensors shifts one against the other; the lag (within +-max_lag_s)
     minimising the mean squared mismatch, refined by a parabola through the three best lags, estimates it.
     Positive: shank events appear late on the common grid. None when the cost has no clear minimum (a leg that never
     leaves its joint plane carries no timing information here). Inputs low-passed gyros [rad/s]; ``window``
@@ -214,7 +203,7 @@ def estimate_sync_lag_s(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.n
         else:
             rates = (rates[0][window], rates[1][window])
     m1, m2 = hinge_rates(g1, g2, j1, j2) if rates is None else rates
-    k_max = max(int(round(SYNC_MAX_S * fs_hz)), 2)
+    k_max = max(int(round(max_lag_s * fs_hz)), 2)
     n = m1.shape[0]
     idx = np.flatnonzero(valid[k_max:n - k_max]) + k_max
     if idx.size < 10 * k_max:
@@ -271,9 +260,10 @@ class _CentreProblem:
     """Seel Eq. 5 residual and Jacobian on one sample set, sharing ``a - M o`` and its norms between the two (MINPACK
     evaluates the Jacobian where it last evaluated the residuals); same arithmetic, same result."""
 
-    def __init__(self, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray) -> None:
+    def __init__(self, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray, centre_reg: float) -> None:
         self.args = (a1, m1, a2, m2)
-        self.reg = CENTRE_REG * np.sqrt(a1.shape[0])
+        self.centre_reg = centre_reg
+        self.reg = centre_reg * np.sqrt(a1.shape[0])
         self._x: np.ndarray | None = None
         self._parts: tuple[np.ndarray, ...] = ()
 
@@ -292,28 +282,26 @@ class _CentreProblem:
         _, m1, _, m2 = self.args
         n1, n2 = np.maximum(n1, _EPS)[:, None], np.maximum(n2, _EPS)[:, None]
         data = np.hstack([-np.einsum("ni,nij->nj", v1 / n1, m1), np.einsum("ni,nij->nj", v2 / n2, m2)])
-        return np.vstack([data, CENTRE_REG * np.sqrt(self.args[0].shape[0]) * np.eye(6)])
+        return np.vstack([data, self.centre_reg * np.sqrt(self.args[0].shape[0]) * np.eye(6)])
 
 
-def _centre_resid(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray) -> np.ndarray:
+def _centre_resid(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray,
+                  centre_reg: float) -> np.ndarray:
     """Seel Eq. 5 residual: ||a1 - Gamma1(o1)|| - ||a2 - Gamma2(o2)|| per sample, plus a weak pull of o towards 0:
     the cost is flat when both centres slide along the axis (Eq. 5's final projection), and without the pull the
     solver can wander along that valley to metres."""
-    return _CentreProblem(a1, m1, a2, m2).residuals(x)
+    return _CentreProblem(a1, m1, a2, m2, centre_reg).residuals(x)
 
 
-def _centre_jac(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray) -> np.ndarray:
-    """d||a - M o||/do = -(v/||v||)^T M (and the pull's constant rows)."""
-    return _CentreProblem(a1, m1, a2, m2).jacobian(x)
-
-
-def _lsq_centres(x0: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray) -> OptimizeResult:
-    prob = _CentreProblem(a1, m1, a2, m2)
+def _lsq_centres(x0: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray,
+                 centre_reg: float) -> OptimizeResult:
+    prob = _CentreProblem(a1, m1, a2, m2, centre_reg)
     return least_squares(prob.residuals, x0, jac=prob.jacobian, method="lm", max_nfev=200)
 
 
 def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,
-                      gd2: np.ndarray, j1: np.ndarray, j2: np.ndarray) -> JointCentres:
+                      gd2: np.ndarray, j1: np.ndarray, j2: np.ndarray, params: AxesParams = WALKING.axes
+                      ) -> JointCentres:
     """Joint-centre positions by Seel's Eq. 5 (Rhudy et al. 2024, Eq. 5), least squares with analytic Jacobian,
     then shifted along the axes as in Eq. 5 (the cost is blind to sliding both along j). Inputs: a bounded sample set.
     """
@@ -322,24 +310,25 @@ def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.nd
     # The cost has mirrored local minima (a sensor->knee direction flipped), so a few seeded starts on a quarter of
     # the samples, then the best one refined on all of them.
     rng = np.random.default_rng(1)
-    starts = [np.full(6, 1e-3)] + [rng.uniform(-0.25, 0.25, 6) for _ in range(N_CENTRE_STARTS)]
+    starts = [np.full(6, 1e-3)] + [rng.uniform(-0.25, 0.25, 6) for _ in range(params.n_centre_starts)]
     sub = slice(None, None, 4) if a1.shape[0] >= 400 else slice(None)
     args_sub = (a1[sub], m1[sub], a2[sub], m2[sub])
-    trials = sorted((_lsq_centres(x0, *args_sub) for x0 in starts), key=lambda r: r.cost)
+    reg = params.centre_reg
+    trials = sorted((_lsq_centres(x0, *args_sub, reg) for x0 in starts), key=lambda r: r.cost)
     # the two best subset solutions refined on all samples: the subset alone can prefer a mirrored minimum
-    sol = min((_lsq_centres(t.x, a1, m1, a2, m2) for t in trials[:2]), key=lambda r: r.cost)
+    sol = min((_lsq_centres(t.x, a1, m1, a2, m2, reg) for t in trials[:2]), key=lambda r: r.cost)
     # one trimming pass: a few samples (next to gaps, impacts) can carry metres-per-second-squared of misfit
-    r = _centre_resid(sol.x, a1, m1, a2, m2)[:-6]
+    r = _centre_resid(sol.x, a1, m1, a2, m2, reg)[:-6]
     mad = float(np.median(np.abs(r - np.median(r)))) + 1e-9
     keep = np.abs(r - np.median(r)) < 6.0 * mad
     if keep.sum() >= 50 and not keep.all():
         a1, m1, a2, m2 = a1[keep], m1[keep], a2[keep], m2[keep]
-        sol = _lsq_centres(sol.x, a1, m1, a2, m2)
+        sol = _lsq_centres(sol.x, a1, m1, a2, m2, reg)
     o1h, o2h = sol.x[:3], sol.x[3:]
     shift = (o1h @ j1 + o2h @ j2) / 2.0
     o1, o2 = o1h - j1 * shift, o2h - j2 * shift
-    r = _centre_resid(sol.x, a1, m1, a2, m2)[:-6]
-    if max(np.linalg.norm(o1), np.linalg.norm(o2)) > MAX_LEVER_M:
+    r = _centre_resid(sol.x, a1, m1, a2, m2, reg)[:-6]
+    if max(np.linalg.norm(o1), np.linalg.norm(o2)) > params.max_lever_m:
         # not a body-worn sensor position: no lever-arm correction rather than a wrong one
         return JointCentres(o1=np.zeros(3), o2=np.zeros(3), rms_residual_mps2=float(np.sqrt(np.mean(r ** 2))),
                             absolute=False)

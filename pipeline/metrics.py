@@ -6,17 +6,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.params import WALKING, MetricsParams
 from pipeline.types import StrideValues
 
-# Loading-response flexion peak is searched in the first part of stance (heel strike -> this share of stance).
-LOADING_SHARE = 0.6
 
-
-def stride_values(angle_deg: np.ndarray, t_s: np.ndarray, hs: int, to: int, hs_next: int) -> StrideValues:
-    """Metrics of one stride ``[hs, hs_next]`` with toe-off ``to``; the angle must be finite on the stride."""
+def stride_values(angle_deg: np.ndarray, t_s: np.ndarray, hs: int, to: int, hs_next: int,
+                  params: MetricsParams = WALKING.metrics) -> StrideValues:
+    """Metrics of one stride ``[hs, hs_next]`` (sample indices) with toe-off ``to``; ``angle_deg`` (N,) must be
+    finite on the stride, ``t_s`` (N,) its time stamps [s]."""
     seg = angle_deg[hs:hs_next + 1]
     swing = angle_deg[to:hs_next + 1]
-    load_end = hs + max(int(round(LOADING_SHARE * (to - hs))), 1)
+    load_end = hs + max(int(round(params.loading_share * (to - hs))), 1)
     t0, t1, tt = float(t_s[hs]), float(t_s[hs_next]), float(t_s[to])
     peak = _nanmax(swing)
     low = _nanmin(seg)

@@ -8,13 +8,14 @@ the lobe (the shank stops swinging forward). Mid-stance (MSt) is taken half-way 
 Allseits zero-angle update only needs a point after loading response and before push-off).
 
 Timing against the force plate of the Tan et al. 2022 treadmill steps (real data, ``bench/real_data.py``): the shank
-minimum precedes toe-off by ~40 ms (``TO_DELAY_S`` added) and heel strike comes ~10-30 ms after the smoothed zero
+minimum precedes toe-off by ~40 ms (``to_delay_s`` added) and heel strike comes ~10-30 ms after the smoothed zero
 crossing. When the shank accelerometer is given, HS is the heel-strike impact: the largest jump of the specific force
-within -30..+120 ms of the zero crossing (if it stands out of the window), otherwise the zero crossing + ``HS_DELAY_S``.
+within ``impact_window_s`` of the zero crossing (if it stands out of the window), otherwise the zero crossing +
+``hs_delay_s`` (:class:`pipeline.params.PhaseParams`).
 
 Robustness to standing, sitting, sit-to-stand, turns and slow walking: lobes must exceed an adaptive height
 threshold, consecutive MS peaks must be separated by a clearly negative (stance) region, and only bouts of at least
-``MIN_BOUT_PEAKS`` peaks with consistent periods produce strides. No stride spans a masked sample.
+``PhaseParams.min_bout_peaks`` peaks with consistent periods produce strides. No stride spans a masked sample.
 """
 
 from __future__ import annotations
@@ -24,25 +25,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from pipeline.params import WALKING, PhaseParams
 from pipeline.signal_utils import lowpass, row_norm
 
-LOBE_CUTOFF_HZ = 4.0  # smooth version for lobes and MS peaks
-EVENT_CUTOFF_HZ = 15.0  # light smoothing for TO/HS minima
-MIN_PEAK_DPS = 50.0
-REL_PEAK = 0.35  # of the median swing peak of the session
-STANCE_NEG_DPS = 10.0  # the smoothed rate must drop below -this between two swings
-MIN_PERIOD_S, MAX_PERIOD_S = 0.5, 3.0
-PERIOD_TOL = 0.35
-MIN_BOUT_PEAKS = 3
-SEARCH_S = 0.3  # TO/HS search windows around the lobe edges
-STANCE_PCT_RANGE = (30.0, 85.0)
-TO_DELAY_S = 0.04
-HS_DELAY_S = 0.02
-IMPACT_WINDOW_S = (-0.03, 0.12)
-IMPACT_PROMINENCE = 3.0  # largest jump / median jump in the window
 
-
-@dataclass
+@dataclass(frozen=True)
 class GaitEvents:
     """Per swing lobe (aligned arrays, index -1 when not found): ``ms`` mid-swing peak, ``to`` toe-off before it,
     ``hs`` heel strike after it, ``mst`` mid-stance after ``hs`` (before the next lobe's ``to``), ``bout`` the walking
@@ -67,14 +54,6 @@ def shank_sagittal_dps(gyr_dps: np.ndarray) -> np.ndarray:
     return w
 
 
-def _falling_crossings(x: np.ndarray) -> np.ndarray:
-    return np.flatnonzero((x[:-1] > 0) & (x[1:] <= 0)) + 1
-
-
-def _rising_crossings(x: np.ndarray) -> np.ndarray:
-    return np.flatnonzero((x[:-1] <= 0) & (x[1:] > 0)) + 1
-
-
 def _swing_lobes(ws: np.ndarray, min_height: float) -> list[tuple[int, int, int]]:
     """``(start, peak, stop)`` of each positive lobe of the smoothed rate reaching ``min_height`` (start/stop may be
     the signal edges). Vectorised: standing noise makes thousands of tiny lobes."""
@@ -93,14 +72,15 @@ def _swing_lobes(ws: np.ndarray, min_height: float) -> list[tuple[int, int, int]
     return list(zip(starts[keep].tolist(), peaks.tolist(), stops[keep].tolist(), strict=True))
 
 
-def _merge_lobes(ws: np.ndarray, lobes: list[tuple[int, int, int]], fs_hz: float) -> list[tuple[int, int, int]]:
+def _merge_lobes(ws: np.ndarray, lobes: list[tuple[int, int, int]], fs_hz: float, stance_neg_dps: float
+                 ) -> list[tuple[int, int, int]]:
     """Merge lobes separated only by a shallow, short dip (noise inside one swing) - keep the higher peak."""
     merged: list[tuple[int, int, int]] = []
     for lobe in lobes:
         if merged:
             a, p, b = merged[-1]
             dip = ws[b:lobe[0]]
-            if (dip.size == 0 or dip.min() > -STANCE_NEG_DPS) and (lobe[0] - b) < 0.15 * fs_hz:
+            if (dip.size == 0 or dip.min() > -stance_neg_dps) and (lobe[0] - b) < 0.15 * fs_hz:
                 peak = p if ws[p] >= ws[lobe[1]] else lobe[1]
                 merged[-1] = (a, peak, lobe[2])
                 continue
@@ -108,14 +88,14 @@ def _merge_lobes(ws: np.ndarray, lobes: list[tuple[int, int, int]], fs_hz: float
     return merged
 
 
-def _heel_strikes(zc: np.ndarray, n: int, fs_hz: float, jerk: np.ndarray | None) -> np.ndarray:
+def _heel_strikes(zc: np.ndarray, n: int, fs_hz: float, jerk: np.ndarray | None, p: PhaseParams) -> np.ndarray:
     """HS after the end of each swing lobe (indices ``zc``): the impact onset if one stands out of the window
-    (largest jump > IMPACT_PROMINENCE x the window's median jump), else the zero crossing + HS_DELAY_S.
+    (largest jump > ``impact_prominence`` x the window's median jump), else the zero crossing + ``hs_delay_s``.
     Vectorised over lobes: one (lobes x window) matrix."""
-    fallback = np.minimum(zc + int(round(HS_DELAY_S * fs_hz)), n - 1)
+    fallback = np.minimum(zc + int(round(p.hs_delay_s * fs_hz)), n - 1)
     if jerk is None or zc.size == 0:
         return fallback
-    off = np.arange(int(round(IMPACT_WINDOW_S[0] * fs_hz)), int(round(IMPACT_WINDOW_S[1] * fs_hz)) + 1)
+    off = np.arange(int(round(p.impact_window_s[0] * fs_hz)), int(round(p.impact_window_s[1] * fs_hz)) + 1)
     idx = zc[:, None] + off[None, :]
     inside = (idx >= 1) & (idx < n)
     win = np.where(inside, jerk[np.clip(idx, 0, n - 1)], 0.0)
@@ -123,7 +103,7 @@ def _heel_strikes(zc: np.ndarray, n: int, fs_hz: float, jerk: np.ndarray | None)
     peak = win[np.arange(zc.size), k]
     med = np.median(np.where(inside, win, np.nan), axis=1) if inside.all() else np.nanmedian(
         np.where(inside, win, np.nan), axis=1)
-    stands_out = peak > IMPACT_PROMINENCE * np.maximum(np.nan_to_num(med), 1e-9)
+    stands_out = peak > p.impact_prominence * np.maximum(np.nan_to_num(med), 1e-9)
     # onset: the last sample before the first jump of at least half the largest
     before_peak = np.arange(off.size)[None, :] <= k[:, None]
     first = np.argmax((win >= 0.5 * peak[:, None]) & before_peak, axis=1)
@@ -132,13 +112,15 @@ def _heel_strikes(zc: np.ndarray, n: int, fs_hz: float, jerk: np.ndarray | None)
 
 
 def detect_gait_events(shank_sag_dps: np.ndarray, fs_hz: float, valid: np.ndarray | None = None,
-                       min_bout_peaks: int = MIN_BOUT_PEAKS, shank_acc_mps2: np.ndarray | None = None) -> GaitEvents:
-    """Mid-swing, toe-off, heel-strike and mid-stance indices from a shank sagittal angular velocity [deg/s].
+                       min_bout_peaks: int | None = None, shank_acc_mps2: np.ndarray | None = None,
+                       params: PhaseParams = WALKING.phases) -> GaitEvents:
+    """Mid-swing, toe-off, heel-strike and mid-stance indices from a shank sagittal angular velocity (N,) [deg/s].
 
     ``valid`` (default all True) marks usable samples: events are not searched inside masked samples (they are
-    treated as zero rate), and no stride spans one. ``min_bout_peaks=1`` accepts isolated swings (short windows).
-    ``shank_acc_mps2`` (N, 3), optional: refines heel strike to the impact.
+    treated as zero rate), and no stride spans one. ``min_bout_peaks=1`` accepts isolated swings (short windows;
+    default ``params.min_bout_peaks``). ``shank_acc_mps2`` (N, 3), optional: refines heel strike to the impact.
     """
+    p = params
     w = np.asarray(shank_sag_dps, dtype=float)
     n = w.shape[0]
     valid = np.ones(n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
@@ -146,61 +128,80 @@ def detect_gait_events(shank_sag_dps: np.ndarray, fs_hz: float, valid: np.ndarra
     if n < 5:
         return GaitEvents(empty, empty, empty, empty, empty)
     w0 = np.where(valid, np.nan_to_num(w), 0.0)
-    ws = lowpass(w0, LOBE_CUTOFF_HZ, fs_hz)
-    we = lowpass(w0, EVENT_CUTOFF_HZ, fs_hz)
+    ws = lowpass(w0, p.lobe_cutoff_hz, fs_hz)
+    we = lowpass(w0, p.event_cutoff_hz, fs_hz)
     ws[~valid] = 0.0
-    lobes = _merge_lobes(ws, _swing_lobes(ws, 0.5 * MIN_PEAK_DPS), fs_hz)
+    lobes = _swing_peaks(ws, fs_hz, p)
     if not lobes:
         return GaitEvents(empty, empty, empty, empty, empty)
-    heights = np.array([ws[p] for _, p, _ in lobes])
-    big = heights[heights >= MIN_PEAK_DPS]
-    thresh = max(MIN_PEAK_DPS, REL_PEAK * float(np.median(big))) if big.size else np.inf
-    lobes = [lb for lb, h in zip(lobes, heights, strict=True) if h >= thresh]
-    search = max(int(round(SEARCH_S * fs_hz)), 2)
-    to_delay = int(round(TO_DELAY_S * fs_hz))
-    jerk = None
-    if shank_acc_mps2 is not None:
-        acc = np.asarray(shank_acc_mps2, dtype=float)
-        jerk = np.concatenate(([0.0], row_norm(np.diff(acc, axis=0))))
-        jerk[~valid | ~np.isfinite(jerk)] = 0.0
-    ms_a = np.array([p for _, p, _ in lobes], dtype=int)
+    ms_a = np.array([pk for _, pk, _ in lobes], dtype=int)
     starts = np.array([a for a, _, _ in lobes], dtype=int)
-    # toe-off: minimum of ``we`` over [a - search, a] before each lobe start a, all lobes at once; the +inf padding
-    # before the signal start is never the minimum, so each window's argmin (first minimum) is the clipped
-    # window's: the same index as a per-lobe argmin
-    padded = np.concatenate((np.full(search, np.inf), we))
-    first = starts - search + np.argmin(sliding_window_view(padded, search + 1)[starts], axis=1) if lobes else starts
-    to_a = np.where(starts > 0, np.minimum(first + to_delay, ms_a - 1), -1).astype(int)
+    to_a = _toe_offs(we, starts, ms_a, fs_hz, p)
     ends = np.array([b for _, _, b in lobes], dtype=int)
-    hs_a = np.where(ends < n, _heel_strikes(np.minimum(ends, n - 1), n, fs_hz, jerk), -1)
-    bout = _bouts(ms_a, ws, valid, fs_hz, min_bout_peaks)
+    jerk = _jerk(shank_acc_mps2, valid)
+    hs_a = np.where(ends < n, _heel_strikes(np.minimum(ends, n - 1), n, fs_hz, jerk, p), -1)
+    bout = _bouts(ms_a, ws, valid, fs_hz, p.min_bout_peaks if min_bout_peaks is None else min_bout_peaks, p)
     mst = np.full(ms_a.size, -1)
     for k in range(ms_a.size - 1):
         if hs_a[k] >= 0 and to_a[k + 1] > hs_a[k]:
             mst[k] = (hs_a[k] + to_a[k + 1]) // 2
-    strides = _strides(ms_a, to_a, hs_a, bout, valid)
+    strides = _strides(ms_a, to_a, hs_a, bout, valid, p)
     return GaitEvents(ms=ms_a, to=to_a, hs=hs_a, mst=mst, bout=bout, strides=strides)
 
 
-def _bouts(ms: np.ndarray, ws: np.ndarray, valid: np.ndarray, fs_hz: float, min_peaks: int) -> np.ndarray:
+def _swing_peaks(ws: np.ndarray, fs_hz: float, p: PhaseParams) -> list[tuple[int, int, int]]:
+    """Swing lobes of the smoothed rate ``ws`` that reach ``min_peak_dps`` and ``rel_peak`` of the median peak."""
+    lobes = _merge_lobes(ws, _swing_lobes(ws, 0.5 * p.min_peak_dps), fs_hz, p.stance_neg_dps)
+    if not lobes:
+        return []
+    heights = np.array([ws[pk] for _, pk, _ in lobes])
+    big = heights[heights >= p.min_peak_dps]
+    thresh = max(p.min_peak_dps, p.rel_peak * float(np.median(big))) if big.size else np.inf
+    return [lb for lb, h in zip(lobes, heights, strict=True) if h >= thresh]
+
+
+def _toe_offs(we: np.ndarray, starts: np.ndarray, ms_a: np.ndarray, fs_hz: float, p: PhaseParams) -> np.ndarray:
+    """Toe-off before each lobe: minimum of ``we`` over ``[a - search, a]`` before each lobe start ``a`` plus
+    ``to_delay_s``, all lobes at once; -1 for a lobe starting at the signal edge. The +inf padding before the
+    signal start is never the minimum, so each window's argmin (first minimum) is the clipped window's: the same
+    index as a per-lobe argmin."""
+    search = max(int(round(p.search_s * fs_hz)), 2)
+    to_delay = int(round(p.to_delay_s * fs_hz))
+    padded = np.concatenate((np.full(search, np.inf), we))
+    first = starts - search + np.argmin(sliding_window_view(padded, search + 1)[starts], axis=1)
+    return np.where(starts > 0, np.minimum(first + to_delay, ms_a - 1), -1).astype(int)
+
+
+def _jerk(shank_acc_mps2: np.ndarray | None, valid: np.ndarray) -> np.ndarray | None:
+    """Per-sample jump of the shank specific force [m/s^2] (0 where masked), or None without an accelerometer."""
+    if shank_acc_mps2 is None:
+        return None
+    acc = np.asarray(shank_acc_mps2, dtype=float)
+    jerk = np.concatenate(([0.0], row_norm(np.diff(acc, axis=0))))
+    jerk[~valid | ~np.isfinite(jerk)] = 0.0
+    return jerk
+
+
+def _bouts(ms: np.ndarray, ws: np.ndarray, valid: np.ndarray, fs_hz: float, min_peaks: int, p: PhaseParams
+           ) -> np.ndarray:
     """Bout id per MS peak: chains of peaks with plausible, consistent periods, a real stance dip between
     consecutive peaks and no masked sample in between; chains shorter than ``min_peaks`` get -1."""
     bout = np.full(ms.size, -1)
     if ms.size == 0:
         return bout
     period = np.diff(ms) / fs_hz
-    link = (period >= MIN_PERIOD_S) & (period <= MAX_PERIOD_S)
+    link = (period >= p.min_period_s) & (period <= p.max_period_s)
     inv_cum = np.concatenate(([0], np.cumsum(~valid)))
     # minimum of ws between consecutive peaks, all at once (peaks are increasing; the last entry is unused)
     dip = np.minimum.reduceat(ws, ms)[:-1]
-    link &= (dip < -STANCE_NEG_DPS) & (inv_cum[ms[1:]] == inv_cum[ms[:-1]])
+    link &= (dip < -p.stance_neg_dps) & (inv_cum[ms[1:]] == inv_cum[ms[:-1]])
     # period consistency: compare each link with the median of its linked neighbourhood
     if period.size >= 3:
         padded = np.pad(np.where(link, period, np.nan), 2, constant_values=np.nan)
         windows = np.lib.stride_tricks.sliding_window_view(padded, 5)
         with np.errstate(all="ignore"):
             local = np.nanmedian(np.where(np.isnan(windows).all(axis=1, keepdims=True), 1.0, windows), axis=1)
-        link &= np.abs(period - local) <= PERIOD_TOL * local
+        link &= np.abs(period - local) <= p.period_tol * local
     chain_id = 0
     start = 0
     for k in range(ms.size):
@@ -214,7 +215,7 @@ def _bouts(ms: np.ndarray, ws: np.ndarray, valid: np.ndarray, fs_hz: float, min_
 
 
 def _strides(ms: np.ndarray, to: np.ndarray, hs: np.ndarray, bout: np.ndarray,
-             valid: np.ndarray) -> list[tuple[int, int, int]]:
+             valid: np.ndarray, p: PhaseParams) -> list[tuple[int, int, int]]:
     """Strides HS(k) -> TO(k+1) -> HS(k+1) for consecutive peaks of one bout, plausible stance share, no mask."""
     inv_cum = np.concatenate(([0], np.cumsum(~valid)))
     out = []
@@ -225,7 +226,7 @@ def _strides(ms: np.ndarray, to: np.ndarray, hs: np.ndarray, bout: np.ndarray,
         if a < 0 or t < 0 or b < 0 or not (a < t < ms[k + 1] < b):
             continue
         stance_pct = 100.0 * (t - a) / (b - a)
-        if not (STANCE_PCT_RANGE[0] <= stance_pct <= STANCE_PCT_RANGE[1]):
+        if not (p.stance_pct_range[0] <= stance_pct <= p.stance_pct_range[1]):
             continue
         if inv_cum[b + 1] != inv_cum[a]:
             continue

@@ -1,11 +1,12 @@
 """Raw thigh + shank streams of one leg -> SI units on one uniform time grid, with packet-loss gaps marked.
 
-Thigh and shank IMUs are not sample-synchronous and may run at different rates, so both are linearly
-interpolated onto one grid at the faster of the two rates (cubic spline: gait signals are smooth at 50-200 Hz and a
-cubic keeps swing peaks that straight lines would cut). A gap is a step between consecutive samples longer than
-``GAP_FACTOR`` nominal periods. Gaps up to ``MAX_BRIDGE_S`` (150 ms: one or two lost BLE packets; shorter than the
-swing-flexion phase, ~250 ms, so the cubic still sees both sides of any knee event) are bridged by the cubic and
-reported (``bridged_s``, strides touching one get a quality note); longer gaps are masked: no angle, no stride across.
+Thigh and shank IMUs are not sample-synchronous and may run at different rates, so both are interpolated onto one
+grid at the faster of the two rates by a cubic Hermite (Catmull-Rom) curve: gait signals are smooth at 50-200 Hz and
+a cubic keeps swing peaks that straight lines would cut. A gap is a step between consecutive samples longer than
+``PrepareParams.gap_factor`` nominal periods. Gaps up to ``PrepareParams.max_bridge_s`` (one or two lost BLE
+packets; shorter than the swing-flexion phase, so the cubic still sees both sides of any knee event) are bridged by
+the cubic and reported (``bridged_s``, strides touching one get a quality note); longer gaps are masked: no angle,
+no stride across.
 """
 
 from __future__ import annotations
@@ -14,20 +15,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pipeline.constants import G_MPS2
+from pipeline.params import WALKING, PrepareParams
 from pipeline.types import RawSensorStream
 
-G_MPS2 = 9.80665
-GAP_FACTOR = 1.75
-MAX_BRIDGE_S = 0.15
-# A gyro axis pinned at its extreme value for this many samples in a row counts as saturated.
-SATURATION_RUN = 3
-SATURATION_MIN_DPS = 200.0
+MAX_BRIDGE_S = WALKING.prepare.max_bridge_s
+"""The walking preset's bridge limit [s], for callers outside the pipeline (:class:`PrepareParams` owns it)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class PreparedLeg:
     """One leg on a uniform grid ``t_s = t0_s + i / fs_hz``. Segment 1 is the thigh, 2 the shank (Seel et al. 2014
-    numbering as used by the task; Rhudy et al. 2024 swap them)."""
+    numbering; Rhudy et al. 2024 swap them)."""
 
     leg: str
     fs_hz: float
@@ -41,7 +40,7 @@ class PreparedLeg:
     saturated: np.ndarray  # True where either gyro looks saturated
     gaps_s: list[tuple[float, float]] = field(default_factory=list)
     bridged_gaps: int = 0
-    bridged_s: list[tuple[float, float]] = field(default_factory=list)  # bridged gaps longer than 50 ms
+    bridged_s: list[tuple[float, float]] = field(default_factory=list)  # bridged gaps worth a quality note
 
     @property
     def n(self) -> int:
@@ -88,37 +87,39 @@ def nominal_fs(stream: RawSensorStream, t_s: np.ndarray) -> float:
     return measured
 
 
-def find_gaps(t_s: np.ndarray, fs_hz: float) -> tuple[list[tuple[float, float]], int, list[tuple[float, float]]]:
-    """Masked gaps ``(t_last_before, t_first_after)`` longer than MAX_BRIDGE_S, the number of bridged gaps, and the
-    bridged gaps longer than 50 ms (worth a note on the strides they touch)."""
+def find_gaps(t_s: np.ndarray, fs_hz: float, params: PrepareParams = WALKING.prepare
+              ) -> tuple[list[tuple[float, float]], int, list[tuple[float, float]]]:
+    """Masked gaps ``(t_last_before, t_first_after)`` longer than ``max_bridge_s``, the number of bridged gaps, and
+    the bridged gaps longer than ``noted_bridge_s`` (worth a note on the strides they touch)."""
     dt = np.diff(t_s)
-    is_gap = dt > GAP_FACTOR / fs_hz
-    long_gap = is_gap & (dt > MAX_BRIDGE_S)
-    noted = np.flatnonzero(is_gap & ~long_gap & (dt > 0.05))
+    is_gap = dt > params.gap_factor / fs_hz
+    long_gap = is_gap & (dt > params.max_bridge_s)
+    noted = np.flatnonzero(is_gap & ~long_gap & (dt > params.noted_bridge_s))
     idx = np.flatnonzero(long_gap)
     return ([(float(t_s[i]), float(t_s[i + 1])) for i in idx], int(is_gap.sum() - long_gap.sum()),
             [(float(t_s[i]), float(t_s[i + 1])) for i in noted])
 
 
-def saturation_mask(gyr: np.ndarray) -> np.ndarray:
-    """Samples where some gyro axis sits at its extreme value for a run of samples (clipped sensor)."""
+def saturation_mask(gyr: np.ndarray, params: PrepareParams = WALKING.prepare) -> np.ndarray:
+    """Samples where some gyro axis (``gyr`` (N, 3) [rad/s]) sits at its extreme value for ``saturation_run``
+    samples in a row (clipped sensor)."""
+    run_len = params.saturation_run
     out = np.zeros(gyr.shape[0], dtype=bool)
     for axis in range(3):
         g = np.abs(gyr[:, axis])
         peak = g.max(initial=0.0)
-        if np.rad2deg(peak) < SATURATION_MIN_DPS:
+        if np.rad2deg(peak) < params.saturation_min_dps:
             continue
         at_peak = g >= peak * 0.999
-        # runs of at least SATURATION_RUN consecutive samples pinned at the extreme
-        run = np.convolve(at_peak.astype(int), np.ones(SATURATION_RUN, dtype=int), mode="same") >= SATURATION_RUN
+        run = np.convolve(at_peak.astype(int), np.ones(run_len, dtype=int), mode="same") >= run_len
         if run.any():
-            out |= np.convolve(run.astype(int), np.ones(SATURATION_RUN, dtype=int), mode="same") > 0
+            out |= np.convolve(run.astype(int), np.ones(run_len, dtype=int), mode="same") > 0
     return out
 
 
-def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray) -> np.ndarray:
+def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray, max_bridge_s: float) -> np.ndarray:
     """Cubic Hermite interpolation (Catmull-Rom slopes from the neighbouring samples, non-uniform times), fully
-    vectorised; straight lines across gaps longer than MAX_BRIDGE_S (masked anyway, but no overshoot)."""
+    vectorised; straight lines across gaps longer than ``max_bridge_s`` (masked anyway, but no overshoot)."""
     n = t.shape[0]
     if n < 4:
         return np.column_stack([np.interp(t_new, t, x[:, k]) for k in range(x.shape[1])])
@@ -128,7 +129,7 @@ def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray) -> np.ndarr
     m = np.empty_like(x)
     m[1:-1] = (x[2:] - x[:-2]) / (t[2:] - t[:-2])[:, None]
     m[0], m[-1] = dx[0], dx[-1]
-    long_gap = dt > MAX_BRIDGE_S
+    long_gap = dt > max_bridge_s
     g = np.flatnonzero(long_gap)
     m[g] = dx[np.maximum(g - 1, 0)]  # one-sided: the data before the gap
     m[g + 1] = dx[np.minimum(g + 1, n - 2)]  # and after it
@@ -170,22 +171,22 @@ def _mask_intervals(t_grid: np.ndarray, gaps: list[tuple[float, float]]) -> np.n
 
 
 def prepare_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, shank_shift_s: float = 0.0,
-                shank_drift: float = 0.0) -> PreparedLeg:
+                shank_drift: float = 0.0, params: PrepareParams = WALKING.prepare) -> PreparedLeg:
     """Convert both streams to SI, put them on one uniform grid over their common time span, mark gaps.
 
     The shank's time stamps are corrected to ``t + shank_shift_s + shank_drift * t`` (a measured clock offset and
-    rate error, see :func:`pipeline.session.synchronised_leg`). Raises ValueError when the two streams have no
+    rate error, see :func:`pipeline.sync.synchronised_leg`). Raises ValueError when the two streams have no
     usable overlap.
     """
     si1, si2 = to_si(thigh), to_si(shank)
     return prepare_leg_si(leg, si1, si2, nominal_fs(thigh, si1[0]), nominal_fs(shank, si2[0]),
-                          shank_shift_s, shank_drift)
+                          shank_shift_s, shank_drift, params=params)
 
 
 def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
                    si2: tuple[np.ndarray, np.ndarray, np.ndarray], fs1: float, fs2: float,
-                   shank_shift_s: float = 0.0, shank_drift: float = 0.0, reuse: PreparedLeg | None = None
-                   ) -> PreparedLeg:
+                   shank_shift_s: float = 0.0, shank_drift: float = 0.0, reuse: PreparedLeg | None = None,
+                   params: PrepareParams = WALKING.prepare) -> PreparedLeg:
     """:func:`prepare_leg` on streams already converted by :func:`to_si` (``(t_s, gyr_rps, acc_mps2)`` each, at
     nominal rates ``fs1``/``fs2``), so a second pass with corrected shank time stamps skips the conversion.
     ``reuse``: a first pass of the same streams; its grid and thigh channels are kept when the re-stamped shank
@@ -206,21 +207,21 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
     keep_grid = reuse is not None and reuse.t_s[0] >= t2[0] and reuse.t_s[-1] <= t2[-1] and reuse.fs_hz == fs_hz
     if keep_grid:
         t_grid, t_start = reuse.t_s, float(reuse.t_s[0])
-    gaps1, br1, noted1 = find_gaps(t1, fs1)
-    gaps2, br2, noted2 = find_gaps(t2, fs2)
+    gaps1, br1, noted1 = find_gaps(t1, fs1, params)
+    gaps2, br2, noted2 = find_gaps(t2, fs2, params)
     gaps = sorted(gaps1 + gaps2)
     valid = ~_mask_intervals(t_grid, gaps)
-    sat1 = saturation_mask(g1)
-    sat2 = saturation_mask(g2)
+    sat1 = saturation_mask(g1, params)
+    sat2 = saturation_mask(g2, params)
     saturated = (np.interp(t_grid, t1, sat1.astype(float)) > 0) | (np.interp(t_grid, t2, sat2.astype(float)) > 0)
     merged = _merge_intervals(gaps)
     if keep_grid:
         # the first pass's arrays themselves (never modified in place): same values and memory layout
         gyr_thigh, acc_thigh = reuse.gyr_thigh_rps, reuse.acc_thigh_mps2
     else:
-        thigh6 = _interp_columns(t_grid, t1, np.hstack([g1, a1]))
+        thigh6 = _interp_columns(t_grid, t1, np.hstack([g1, a1]), params.max_bridge_s)
         gyr_thigh, acc_thigh = thigh6[:, :3], thigh6[:, 3:]
-    shank6 = _interp_columns(t_grid, t2, np.hstack([g2, a2]))
+    shank6 = _interp_columns(t_grid, t2, np.hstack([g2, a2]), params.max_bridge_s)
     return PreparedLeg(
         leg=leg, fs_hz=fs_hz, t0_s=float(t_start), t_s=t_grid,
         gyr_thigh_rps=gyr_thigh, gyr_shank_rps=shank6[:, :3],

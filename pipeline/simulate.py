@@ -33,11 +33,11 @@ from typing import Literal
 import numpy as np
 from scipy.interpolate import BSpline, CubicSpline, make_interp_spline
 
+from pipeline.constants import G_MPS2 as GRAVITY_MS2
 from pipeline.types import RawSensorStream
 
 Pattern = Literal["normal", "slow", "fast", "stiff-knee", "crouch", "running"]
 PATTERNS: tuple[str, ...] = ("normal", "slow", "fast", "stiff-knee", "crouch", "running")
-GRAVITY_MS2 = 9.80665
 _GRID_HZ = 500.0
 _N_HARMONICS = 8
 

@@ -6,7 +6,9 @@ Raw streams carry their declared units as strings; :mod:`pipeline.prepare` conve
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Literal
 
 import numpy as np
@@ -69,6 +71,52 @@ class StrideMetrics(StrideValues):
     fallback: bool = False
 
 
+class AbsoluteReference(StrEnum):
+    """What anchored a leg's absolute knee angle level."""
+
+    STANDING = "standing"  # a quiet upright standing period set the accelerometer angle's zero
+    NONE = "none"  # no standing found: the level is GO's own zero (straight knee before swing) or the frames' own
+
+
+@dataclass(frozen=True)
+class RunningDiagnostics:
+    """Foot-strike cycles and impact masking of a leg processed as running (Rhudy et al. 2024, Sect. 2.2.2)."""
+
+    foot_strikes: int
+    cycles: int
+    stride_s: float | None  # median gait cycle [s], None without cycles
+    impact_g: float  # median high-frequency amplitude of the foot strikes [g]
+    impact_masked_pct: float  # share of samples within +-5 % of the cycle around a strike [%]
+    acc_update_pct: float  # share of samples where the accelerometer may update the filters [%]
+
+
+@dataclass(frozen=True)
+class LegDiagnostics:
+    """How one leg was processed: fit residuals, clock correction, absolute reference, stride counts.
+    JSON-serialisable through :func:`dataclasses.asdict` (the enum is a ``str``)."""
+
+    activity: str  # "walking" or "running": what the leg was processed as
+    axis_rms_residual_dps: float  # Seel Eq. 2 fit residual
+    axis_fit_samples: int
+    centre_rms_residual_mps2: float  # Seel Eq. 5 fit residual
+    shank_lag_ms: float | None  # shank clock offset at mid-session; None when no correction was applied
+    shank_drift_ppm: float | None  # shank clock rate error; None when no correction was applied
+    absolute_reference: AbsoluteReference
+    standing_ref_deg: float | None  # accelerometer angle of quiet upright standing, None without
+    bouts: int
+    bridged_gaps: int
+    n_strides: int
+    n_fallback: int  # strides where the activity's primary estimator was replaced
+    j1: tuple[float, ...]  # knee axis, thigh frame
+    j2: tuple[float, ...]  # knee axis, shank frame
+    o1_m: tuple[float, ...]  # thigh sensor relative to the knee centre [m]
+    o2_m: tuple[float, ...]  # shank sensor relative to the knee centre [m]
+    cf_shift_deg: float | None = None  # walking auto: shift applied to the CF fallback
+    offset_median_deg: float | None = None  # walking auto: median per-stride offset of GO to the accelerometer
+    tau_s: float | None = None  # KF/EKF fusion time constant when tuned
+    running: RunningDiagnostics | None = None
+
+
 @dataclass
 class LegResult:
     """The continuous knee flexion estimate and the strides of one leg."""
@@ -82,11 +130,13 @@ class LegResult:
     gaps_s: list[tuple[float, float]] = field(default_factory=list)
     walking_s: float = 0.0
     activity: str = "walking"  # what the leg was processed as: "walking" or "running"
-    info: dict = field(default_factory=dict)  # axes, diagnostics: JSON-serialisable only
+    diagnostics: LegDiagnostics | None = None  # None only for results not made by the pipeline (test doubles)
 
 
 @dataclass
 class SessionResult:
+    """The result of :func:`pipeline.session.process_session`: per-leg results and session warnings."""
+
     algorithm_version: str
     activity: str
     legs: dict[str, LegResult]
@@ -108,5 +158,6 @@ class SessionResult:
                 "estimators": {e: sum(1 for s in strides if s.estimator == e)
                                for e in sorted({s.estimator for s in strides})},
                 "gaps": len(res.gaps_s),
+                "diagnostics": None if res.diagnostics is None else dataclasses.asdict(res.diagnostics),
             }
         return out

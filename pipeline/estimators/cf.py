@@ -1,23 +1,39 @@
 """Complementary filter of Seel et al. 2014 (Rhudy et al. 2024, Eq. 17): the gyroscope angle increment (Eq. 4)
-corrected towards the accelerometer angle (Eq. 6-7) with a fixed gain lambda."""
+corrected towards the accelerometer angle (Eq. 6-7) with a fixed gain lambda = dt / tau, which keeps the filter
+independent of the sampling rate."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.signal import lfilter
 
-from pipeline.estimators import LegData, register
+from pipeline.estimators.kf import (
+    FilterDiagnostics,
+    filter_setup,
+    gain_for_time_constant,
+    interval_rate,
+    linear_recursion,
+    start_from_measurement,
+)
+from pipeline.filter_inputs import debiased_rate, run_per_segment, update_mask
+from pipeline.leg_input import EstimatorDiagnostics, LegInput
+from pipeline.params import WALKING
+from pipeline.posture import in_bouts, standing_reference
 from pipeline.signal_utils import true_runs
 
-# Time constant of the accelerometer correction: lambda = dt / TAU_S (Eq. 17) keeps the filter rate-independent.
-# 0.5 s: shorter follows accelerometer noise on real data (biomechZoo), longer lets gyro bias through (simulator).
-TAU_S = 0.5
+
+@dataclass(frozen=True, kw_only=True)
+class CfDiagnostics(EstimatorDiagnostics):
+    """Walking CF: the standing reading it was zeroed on (``standing_ref_deg``, None when not zeroed)."""
 
 
 def complementary_filter(rate_dps: np.ndarray, acc_angle_deg: np.ndarray, fs_hz: float,
-                         valid: np.ndarray, tau_s: float = TAU_S) -> np.ndarray:
+                         valid: np.ndarray, tau_s: float = WALKING.cf.tau_s) -> np.ndarray:
     """Eq. 17, ``a[n] = lam*acc[n] + (1-lam)*(a[n-1] + rate[n]*dt)``, as a first-order IIR (``lfilter``) run
-    separately on each valid run and started at the run's first second of accelerometer angle (median)."""
+    separately on each valid run and started at the run's first second of accelerometer angle (median).
+    Arrays (N,): rate [deg/s], accelerometer angle [deg], valid; returns the angle (N,) [deg], NaN elsewhere."""
     dt = 1.0 / fs_hz
     lam = min(dt / tau_s, 1.0)
     out = np.full(rate_dps.shape[0], np.nan)
@@ -29,18 +45,34 @@ def complementary_filter(rate_dps: np.ndarray, acc_angle_deg: np.ndarray, fs_hz:
     return out
 
 
-@register("cf")
-def cf_estimator(data: LegData) -> np.ndarray:
+def cf_running_leg(leg: LegInput, tau_s: float | None = None) -> tuple[np.ndarray, FilterDiagnostics]:
+    """Eq. 17 (constant gain ``lambda = dt / tau``) on a running leg, with the same inputs as the KF (de-biased
+    rate, standing zero, measurement updates only where :func:`pipeline.filter_inputs.update_mask` allows: Rhudy et
+    al. skip the impacts for CF, KF and EKF alike) and the same time constant, so the two differ only in the gain
+    schedule."""
+    tau, diag, _ = filter_setup(leg, tau_s)
+    rate = interval_rate(debiased_rate(leg))
+    mask = update_mask(leg)
+    z = np.asarray(leg.acc_angle_deg, dtype=float) - diag.acc_zero_deg
+    fs = leg.fs_hz
+    lam = gain_for_time_constant(tau, fs)
+
+    def run(a: int, b: int) -> np.ndarray:
+        gains = np.where(mask[a:b], lam, 0.0)
+        drive = np.concatenate(([0.0], rate[a:b - 1] / fs))
+        x0 = start_from_measurement(z[a:b], mask[a:b], rate[a:b], 1.0 / fs)
+        return linear_recursion(1.0 - gains, (1.0 - gains) * drive + gains * np.where(mask[a:b], z[a:b], 0.0), x0)
+
+    return run_per_segment(leg, run), diag
+
+
+def cf_estimator(leg: LegInput) -> tuple[np.ndarray, EstimatorDiagnostics]:
     """Eq. 17. Walking: the accelerometer angle zeroed on quiet standing, as Allseits et al. 2018 (Sect. 2.4.2) did
-    for their CF comparison (:func:`pipeline.fusion.standing_reference`); without standing the offset of the
-    joint-plane frames stays in."""
-    if data.activity == "running":  # impact-free updates and the KF's inputs (pipeline.running)
-        from pipeline.estimators.kf import cf_running_leg
-
-        return cf_running_leg(data)
-    from pipeline.fusion import STANDING_KNEE_DEG, in_bouts, standing_reference
-
-    angle = complementary_filter(data.rate_dps, data.acc_angle_deg, data.fs_hz, data.prep.valid)
-    ref = standing_reference(data, data.acc_angle_deg, in_bouts(data))
-    data.extras["cf_standing_ref_deg"] = ref
-    return angle if ref is None else angle - (ref - STANDING_KNEE_DEG)
+    for their CF comparison (:func:`pipeline.posture.standing_reference`); without standing the offset of the
+    joint-plane frames stays in. Running: impact-free updates and the KF's inputs (:func:`cf_running_leg`)."""
+    if leg.activity == "running":
+        return cf_running_leg(leg)
+    angle = complementary_filter(leg.rate_dps, leg.acc_angle_deg, leg.fs_hz, leg.prep.valid, leg.params.cf.tau_s)
+    ref = standing_reference(leg, leg.acc_angle_deg, in_bouts(leg))
+    diag = CfDiagnostics(standing_ref_deg=ref)
+    return (angle if ref is None else angle - (ref - leg.params.posture.standing_knee_deg)), diag

@@ -23,28 +23,32 @@ import math
 import numpy as np
 
 from pipeline.axes import angular_acceleration, gamma_apply, joint_plane_frames
-from pipeline.estimators import LegData, register
+from pipeline.constants import G_MPS2
 from pipeline.estimators.kf import (
-    DEFAULT_R_DEG2,
-    DEFAULT_TAU_S,
-    QUIET_R_SCALE,
-    acc_zero_deg,
-    debiased_rate,
+    FILTER_TAU_S,
+    R_DEG2,
+    FilterDiagnostics,
+    filter_setup,
     interval_rate,
-    leg_quiet,
-    leg_update_mask,
     q_for_time_constant,
-    run_per_segment,
 )
+from pipeline.filter_inputs import debiased_rate, r_scale, run_per_segment, update_mask
+from pipeline.leg_input import LegInput
 from pipeline.signal_utils import lowpass_runs_many
 
-G_MPS2 = 9.80665
 DEG2_TO_RAD2 = math.radians(1.0) ** 2
-DEFAULT_R_MPS2_SQ = DEFAULT_R_DEG2 * DEG2_TO_RAD2 * G_MPS2**2
+
+
+def r_mps2_sq(r_deg2: float) -> float:
+    """The KF's accelerometer-angle variance [deg^2] as the EKF's acceleration variance [(m/s^2)^2] at 1 g."""
+    return r_deg2 * DEG2_TO_RAD2 * G_MPS2**2
+
+
+R_MPS2_SQ = r_mps2_sq(R_DEG2)
 
 
 def ekf_angle(rate_dps: np.ndarray, acc_a_plane_mps2: np.ndarray, acc_b_plane_mps2: np.ndarray,
-              fs_hz: float, *, tau_s: float = DEFAULT_TAU_S, r_x_mps2_sq: float = DEFAULT_R_MPS2_SQ,
+              fs_hz: float, *, tau_s: float = FILTER_TAU_S, r_x_mps2_sq: float = R_MPS2_SQ,
               r_y_mps2_sq: float | None = None, update_mask: np.ndarray | None = None,
               x0_deg: float | None = None, p0_deg2: float | None = None,
               r_scale: np.ndarray | None = None, force_general: bool = False) -> np.ndarray:
@@ -54,7 +58,7 @@ def ekf_angle(rate_dps: np.ndarray, acc_a_plane_mps2: np.ndarray, acc_b_plane_mp
     axes ``(x_i, y_i)`` of Eq. 7, with ``b = Rot(alpha) a``. ``tau_s`` sets Q as in the KF, with R's angle
     equivalent ``r_x / g^2``. ``update_mask`` False skips the measurement update (impacts, NaN samples).
     Without ``x0_deg`` the state starts at the accelerometer angle of the first usable sample (variance
-    ``DEFAULT_R_DEG2``). ``r_scale`` (per sample) multiplies R, as in :func:`pipeline.estimators.kf.kf_angle`.
+    ``R_DEG2``). ``r_scale`` (per sample) multiplies R, as in :func:`pipeline.estimators.kf.kf_angle`.
     With ``r_x = r_y`` an exactly equivalent, faster form runs unless ``force_general``."""
     rate = interval_rate(np.asarray(rate_dps, dtype=float))
     a1 = np.asarray(acc_a_plane_mps2, dtype=float).reshape(-1, 2)
@@ -80,7 +84,7 @@ def ekf_angle(rate_dps: np.ndarray, acc_a_plane_mps2: np.ndarray, acc_b_plane_mp
             x = 0.0
     else:
         x = math.radians(x0_deg)
-    p = DEG2_TO_RAD2 * (DEFAULT_R_DEG2 if p0_deg2 is None else p0_deg2)
+    p = DEG2_TO_RAD2 * (R_DEG2 if p0_deg2 is None else p0_deg2)
     du = (np.radians(rate) * dt).tolist()
     scale = np.ones(n) if r_scale is None else np.broadcast_to(np.asarray(r_scale, float), (n,))
     if rx == ry and not force_general:
@@ -149,25 +153,19 @@ def _general_loop(x: float, p: float, q: float, rx: float, ry: float, du: list[f
     return out
 
 
-# ---------------------------------------------------------------------------------------------------------------
-# The registered estimator.
-
-def plane_accelerations(data: LegData) -> tuple[np.ndarray, np.ndarray]:
+def plane_accelerations(leg: LegInput) -> tuple[np.ndarray, np.ndarray]:
     """Lever-arm-corrected accelerations (Eq. 6) of thigh and shank in their joint-plane frames (Eq. 7), (N, 2)
-    each, filtered as for the leg's accelerometer angle (running legs come already 7 Hz filtered)."""
-    from pipeline.session import FIT_CUTOFF_HZ  # lazy: the session module imports the registry
-
-    prep, fs = data.prep, data.fs_hz
-    if data.extras.get("running_cycles") is not None:
+    each [m/s^2], filtered as for the leg's accelerometer angle (``AxesParams.fit_cutoff_hz``; a ``prefiltered``
+    leg, running, comes already 7 Hz filtered)."""
+    prep, fs = leg.prep, leg.fs_hz
+    if leg.prefiltered:
         g1, g2, a1, a2 = prep.gyr_thigh_rps, prep.gyr_shank_rps, prep.acc_thigh_mps2, prep.acc_shank_mps2
     else:
         g1, g2, a1, a2 = (np.nan_to_num(x) for x in lowpass_runs_many(
             (prep.gyr_thigh_rps, prep.gyr_shank_rps, prep.acc_thigh_mps2, prep.acc_shank_mps2), prep.valid,
-            FIT_CUTOFF_HZ, fs))
-    centres = data.centres
-    if centres is None:
-        raise ValueError("the EKF needs joint centres")
-    j1, j2 = data.axes.j1, data.axes.j2
+            leg.params.axes.fit_cutoff_hz, fs))
+    centres = leg.centres
+    j1, j2 = leg.axes.j1, leg.axes.j2
     x1, x2 = joint_plane_frames(centres, j1, j2)
     y1, y2 = np.cross(j1, x1), np.cross(j2, x2)
     at1 = a1 - gamma_apply(g1, angular_acceleration(g1, fs), centres.o1)
@@ -175,27 +173,21 @@ def plane_accelerations(data: LegData) -> tuple[np.ndarray, np.ndarray]:
     return np.column_stack([at1 @ x1, at1 @ y1]), np.column_stack([at2 @ x2, at2 @ y2])
 
 
-def ekf_leg(data: LegData, tau_s: float | None = None) -> np.ndarray:
-    """EKF knee angle of one leg, with the KF's inputs (de-biased rate, update mask, quiet-standing weighting, zero
-    from standing) and its automatically tuned time constant unless ``tau_s`` is given."""
-    from pipeline.tuning import tune_time_constant
-
-    rate = debiased_rate(data)
-    mask = leg_update_mask(data)
-    r_scale = np.where(leg_quiet(data), QUIET_R_SCALE, 1.0)
-    zero = math.radians(acc_zero_deg(data))
-    thigh, shank = plane_accelerations(data)
+def ekf_leg(leg: LegInput, tau_s: float | None = None) -> tuple[np.ndarray, FilterDiagnostics]:
+    """EKF knee angle (N,) [deg] of one leg, with the KF's inputs (de-biased rate, update mask, quiet-standing
+    weighting, zero from standing) and its automatically tuned time constant unless ``tau_s`` is given."""
+    tau, diag, quiet = filter_setup(leg, tau_s)
+    rate = debiased_rate(leg)
+    mask = update_mask(leg)
+    scale = r_scale(leg, quiet)
+    zero = math.radians(diag.acc_zero_deg)
+    thigh, shank = plane_accelerations(leg)
     # b = Rot(alpha + zero) a  ->  b = Rot(alpha) (Rot(zero) a): the standing zero moves into the thigh vector
     c, s = math.cos(zero), math.sin(zero)
     thigh = np.column_stack([c * thigh[:, 0] - s * thigh[:, 1], s * thigh[:, 0] + c * thigh[:, 1]])
-    fs = data.fs_hz
-    if tau_s is None:
-        tau_s, diag = tune_time_constant(data)
-        data.extras["ekf_tuning"] = diag
-    return run_per_segment(data, lambda a, b: ekf_angle(rate[a:b], thigh[a:b], shank[a:b], fs, tau_s=float(tau_s),
-                                                        update_mask=mask[a:b], r_scale=r_scale[a:b]))
-
-
-@register("ekf")
-def ekf_estimator(data: LegData) -> np.ndarray:
-    return ekf_leg(data)
+    fs = leg.fs_hz
+    r = r_mps2_sq(leg.params.kf.r_deg2)
+    angle = run_per_segment(leg, lambda a, b: ekf_angle(rate[a:b], thigh[a:b], shank[a:b], fs, tau_s=tau,
+                                                        r_x_mps2_sq=r, update_mask=mask[a:b],
+                                                        r_scale=scale[a:b]))
+    return angle, diag

@@ -9,17 +9,28 @@ linearly (the integral is made to return to zero at each update), so the angle i
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from pipeline.estimators import LegData, register
+from pipeline.leg_input import EstimatorDiagnostics, LegInput
 from pipeline.signal_utils import lowpass_runs, true_runs
 
-GO_CUTOFF_HZ = 20.0
-FIRST_ZAU_LOOKBACK_S = 0.6
+
+@dataclass(frozen=True, kw_only=True)
+class GoDiagnostics(EstimatorDiagnostics):
+    """The zero-angle updates of one leg (aligned arrays, one entry per update). GO has no absolute reference
+    (``standing_ref_deg`` stays None): its zero is the straight knee assumed before swing."""
+
+    zau_idx: np.ndarray  # sample index of each update
+    zau_bout: np.ndarray  # bout id of each update
+    zau_found: np.ndarray  # True where a negative->positive rate crossing was found
+    drift_deg: np.ndarray  # drift removed between an update and the previous one of its bout, NaN across bouts
 
 
 def integrate_runs(rate_dps: np.ndarray, fs_hz: float, valid: np.ndarray) -> np.ndarray:
-    """Cumulative trapezoid integral of the rate, restarted at zero on every valid run; NaN elsewhere."""
+    """Cumulative trapezoid integral (N,) [deg] of the rate (N,) [deg/s], restarted at zero on every valid run;
+    NaN elsewhere."""
     out = np.full(rate_dps.shape[0], np.nan)
     for a, b in true_runs(valid):
         r = rate_dps[a:b]
@@ -27,15 +38,17 @@ def integrate_runs(rate_dps: np.ndarray, fs_hz: float, valid: np.ndarray) -> np.
     return out
 
 
-def zau_points(rate_f: np.ndarray, integral: np.ndarray, data: LegData) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def zau_points(rate_f: np.ndarray, integral: np.ndarray, leg: LegInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One ZAU per swing lobe that belongs to a bout: ``(index, bout_id, found_crossing)``.
 
-    Search window: from the preceding mid-stance (or FIRST_ZAU_LOOKBACK_S before toe-off for a bout's first swing)
-    to toe-off plus a few samples. Among the negative->positive crossings of the filtered rate in the window the one
-    with the lowest integral wins; without any crossing the window's integral minimum is used (flagged).
+    Search window: from the preceding mid-stance (or ``GoParams.first_zau_lookback_s`` before toe-off for a bout's
+    first swing) to ``zau_after_to_s`` after toe-off. Among the negative->positive crossings of the filtered rate in
+    the window the one with the lowest integral wins; without any crossing the window's integral minimum is used
+    (flagged).
     """
-    ev = data.events
-    fs = data.fs_hz
+    ev = leg.events
+    fs = leg.fs_hz
+    p = leg.params.go
     idx, bouts, found = [], [], []
     # crossings and non-finite samples located once for the whole signal, then looked up per window (the same
     # crossings a per-window scan finds: a crossing at i needs samples i-1 and i, both inside [lo, hi))
@@ -44,9 +57,9 @@ def zau_points(rate_f: np.ndarray, integral: np.ndarray, data: LegData) -> tuple
     for k in range(ev.ms.size):
         if ev.bout[k] < 0 or ev.to[k] < 0:
             continue
-        hi = min(int(ev.to[k]) + int(0.05 * fs) + 1, int(ev.ms[k]))
+        hi = min(int(ev.to[k]) + int(p.zau_after_to_s * fs) + 1, int(ev.ms[k]))
         prev_ok = k > 0 and ev.bout[k - 1] == ev.bout[k] and ev.mst[k - 1] >= 0
-        lo = int(ev.mst[k - 1]) if prev_ok else max(int(ev.to[k] - FIRST_ZAU_LOOKBACK_S * fs), 0)
+        lo = int(ev.mst[k - 1]) if prev_ok else max(int(ev.to[k] - p.first_zau_lookback_s * fs), 0)
         if hi - lo < 3 or bad_cum[hi] != bad_cum[lo]:
             continue
         cross = cross_all[np.searchsorted(cross_all, lo + 1):np.searchsorted(cross_all, hi - 1, side="right")]
@@ -61,17 +74,15 @@ def zau_points(rate_f: np.ndarray, integral: np.ndarray, data: LegData) -> tuple
     return np.array(idx, dtype=int), np.array(bouts, dtype=int), np.array(found, dtype=bool)
 
 
-def go_relative(data: LegData) -> tuple[np.ndarray, dict]:
-    """GO angle with the per-stride zero (Allseits), NaN outside the span of each bout's updates.
-
-    Returns the angle and diagnostics: ZAU indices, their bout, whether a zero crossing was found, and the drift
-    removed between consecutive updates [deg]."""
-    valid = data.prep.valid
-    rate_f = lowpass_runs(np.nan_to_num(data.rate_dps), valid, GO_CUTOFF_HZ, data.fs_hz)
-    integral = integrate_runs(np.nan_to_num(rate_f), data.fs_hz, valid)
-    zi, zb, zf = zau_points(rate_f, integral, data)
+def go_relative(leg: LegInput) -> tuple[np.ndarray, GoDiagnostics]:
+    """GO angle (N,) [deg] with the per-stride zero (Allseits Sect. 2.2), NaN outside the span of each bout's
+    updates, and the updates (:class:`GoDiagnostics`)."""
+    valid = leg.prep.valid
+    rate_f = lowpass_runs(np.nan_to_num(leg.rate_dps), valid, leg.params.go.cutoff_hz, leg.fs_hz)
+    integral = integrate_runs(np.nan_to_num(rate_f), leg.fs_hz, valid)
+    zi, zb, zf = zau_points(rate_f, integral, leg)
     out = np.full(integral.shape[0], np.nan)
-    ev = data.events
+    ev = leg.events
     for b in np.unique(zb):
         pts = zi[zb == b]
         if pts.size == 0:
@@ -83,13 +94,4 @@ def go_relative(data: LegData) -> tuple[np.ndarray, dict]:
         out[seg] = integral[seg] - np.interp(seg, pts, integral[pts])
     drift = np.diff(integral[zi]) if zi.size > 1 else np.zeros(0)
     same_bout = np.diff(zb) == 0 if zb.size > 1 else np.zeros(0, dtype=bool)
-    diag = {"zau_idx": zi, "zau_bout": zb, "zau_found": zf,
-            "drift_deg": np.where(same_bout, drift, np.nan)}
-    return out, diag
-
-
-@register("go")
-def go_estimator(data: LegData) -> np.ndarray:
-    angle, diag = go_relative(data)
-    data.extras["go"] = diag
-    return angle
+    return out, GoDiagnostics(zau_idx=zi, zau_bout=zb, zau_found=zf, drift_deg=np.where(same_bout, drift, np.nan))

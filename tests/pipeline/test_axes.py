@@ -15,6 +15,7 @@ from pipeline.axes import (
     orient_axes,
     select_fit_samples,
 )
+from pipeline.params import AxesParams
 
 
 def _hinge_gyros(seed: int, n: int = 3000, fs: float = 100.0):
@@ -63,7 +64,7 @@ def test_fit_sample_set_is_bounded_and_spread() -> None:
     n = 50_000
     rng = np.random.default_rng(0)
     g = rng.standard_normal((n, 3))
-    idx = select_fit_samples(g, g, np.ones(n, dtype=bool), max_samples=2000, chunks=20)
+    idx = select_fit_samples(g, g, np.ones(n, dtype=bool), AxesParams(max_fit_samples=2000, fit_chunks=20))
     assert idx.size <= 2000
     counts, _ = np.histogram(idx, bins=20, range=(0, n))
     assert counts.min() > 0

@@ -13,9 +13,9 @@ from pipeline.estimators.kf import (
     kf_gains,
     linear_recursion,
     q_for_time_constant,
-    stride_bias_dps,
     time_constant_for_q,
 )
+from pipeline.filter_inputs import stride_bias_dps
 
 FS = 200.0
 

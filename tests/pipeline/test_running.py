@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
+from pipeline.constants import G_MPS2
 from pipeline.estimators import get_estimator
 from pipeline.estimators.cf import complementary_filter
 from pipeline.estimators.kf import kf_leg
+from pipeline.params import RUNNING
 from pipeline.prepare import prepare_leg
 from pipeline.running import (
-    G_MPS2,
-    build_running_leg_data,
+    build_running_leg_input,
     cycle_window_mask,
     detect_foot_strikes,
     find_cycles,
@@ -23,7 +26,9 @@ from pipeline.running import (
 )
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, SimSession, simulate_session
-from pipeline.tuning import TAU_RANGE_S, tune_time_constant
+from pipeline.tuning import tune_time_constant
+
+TAU_RANGE_S = RUNNING.tuning.tau_range_s
 
 FS = 200.0
 
@@ -156,14 +161,15 @@ def test_running_session_auto_uses_the_extended_kalman_filter(running_sim: SimSe
 def test_unknown_activity_is_detected_as_running(running_sim: SimSession) -> None:
     res = process_session(running_sim.streams, activity="unknown")
     assert res.legs["left"].strides[0].estimator == "ekf"
-    assert "running" in res.legs["left"].info
+    diag = res.legs["left"].diagnostics
+    assert diag.activity == "running" and diag.running is not None and diag.running.cycles >= 20
 
 
 def test_thigh_axis_sign_is_recovered_from_the_swing_peak(running_sim: SimSession) -> None:
     by = {s.segment: s for s in running_sim.streams}
     prep = prepare_leg("left", by["thigh"], by["shank"])
-    data, _ = build_running_leg_data(prep)
-    cycles = data.extras["running_cycles"]
+    data, _ = build_running_leg_input(prep, RUNNING)
+    cycles = data.running_cycles
     j1, j2 = data.axes.j1, data.axes.j2
     for start in (j1, -j1):
         got = thigh_axis_sign(start, j2, prep.gyr_thigh_rps, prep.gyr_shank_rps, cycles, prep.fs_hz)
@@ -173,23 +179,24 @@ def test_thigh_axis_sign_is_recovered_from_the_swing_peak(running_sim: SimSessio
 def test_kf_update_mask_skips_impacts_and_keeps_swing_windows(running_sim: SimSession) -> None:
     by = {s.segment: s for s in running_sim.streams}
     prep = prepare_leg("left", by["thigh"], by["shank"])
-    data, info = build_running_leg_data(prep)
-    update = data.extras["acc_update_mask"]
+    data, info = build_running_leg_input(prep, RUNNING)
+    update = data.acc_update_mask
     strikes = find_cycles(prep.acc_shank_mps2, prep.fs_hz, prep.valid).strikes
     assert not update[strikes].any()
-    a, b = data.extras["running_cycles"][5]
+    a, b = data.running_cycles[5]
     assert update[a + int(0.6 * (b - a))]
-    assert info["running"]["acc_update_pct"] < 60
-    angle = kf_leg(data, tau_s=0.5)
+    assert info.acc_update_pct < 60
+    angle, diag = kf_leg(data, tau_s=0.5)
+    assert diag.tuning is None
     assert np.isfinite(angle[prep.valid]).mean() > 0.95
 
 
 def test_tuning_trusts_a_cleaner_gyroscope_longer(running_sim: SimSession) -> None:
     by = {s.segment: s for s in running_sim.streams}
     prep = prepare_leg("left", by["thigh"], by["shank"])
-    data, _ = build_running_leg_data(prep)
+    data, _ = build_running_leg_input(prep, RUNNING)
     tau, diag = tune_time_constant(data)
-    assert TAU_RANGE_S[0] <= tau <= TAU_RANGE_S[1] and diag["strides"] >= 20
+    assert TAU_RANGE_S[0] <= tau <= TAU_RANGE_S[1] and diag.strides >= 20
     # a gyro whose per-stride closure scatters more (a wandering bias) must lean on the accelerometer sooner
     rng = np.random.default_rng(0)
     wander = np.repeat(rng.normal(0, 3.0, prep.n // 100 + 1), 100)[:prep.n]
@@ -202,14 +209,13 @@ def test_filters_ignore_the_accelerometer_angle_at_impacts(running_sim: SimSessi
     """Rhudy et al.: no measurement update +-5 % of the cycle around a foot strike, for CF, KF and EKF alike."""
     by = {s.segment: s for s in running_sim.streams}
     prep = prepare_leg("left", by["thigh"], by["shank"])
-    data, _ = build_running_leg_data(prep)
+    data, _ = build_running_leg_input(prep, RUNNING)
     est = get_estimator(name)
-    clean = est(data)
+    clean, _ = est(data)
     strikes = find_cycles(prep.acc_shank_mps2, prep.fs_hz, prep.valid).strikes
     around = impact_mask(strikes, prep.n, prep.fs_hz)
-    data.acc_angle_deg = np.where(around, data.acc_angle_deg + 60.0, data.acc_angle_deg)
-    data.extras.pop("quiet_mask", None)
-    hit = est(data)
+    data = replace(data, acc_angle_deg=np.where(around, data.acc_angle_deg + 60.0, data.acc_angle_deg))
+    hit, _ = est(data)
     ok = np.isfinite(clean)
     assert ok.mean() > 0.9
     # (a strike detected at the edge of a standing period may shift the standing zero by hundredths of a degree)

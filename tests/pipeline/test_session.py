@@ -171,7 +171,7 @@ def test_thigh_shank_clock_offset_is_measured_and_removed() -> None:
     ref = process_session(sim.streams)
     res = process_session(shifted)
     for leg in ("left", "right"):
-        lag = res.legs[leg].info["shank_lag_ms"]
+        lag = res.legs[leg].diagnostics.shank_lag_ms
         assert lag is not None and abs(lag - 25.0) < 4.0
         p_ref = np.array([s.peak_swing_flexion_deg - t.peak_swing_flexion_deg for s, t in _matched(sim, ref.legs[leg])])
         p_res = np.array([s.peak_swing_flexion_deg - t.peak_swing_flexion_deg for s, t in _matched(sim, res.legs[leg])])

@@ -1,0 +1,77 @@
+"""The inputs the KF, EKF and running CF share (Rhudy et al. 2024, Sect. 2.3-2.4, and what the paper got from
+Vicon): the knee rate de-biased per stride, where the accelerometer may update the state, how much it is trusted,
+and the valid runs the filters restart on.
+
+Gait is periodic: over one stride the knee returns to its angle, so a stride's mean rate is the gyroscope bias (plus
+the small stride-to-stride change of the angle). The filters' random-walk model assumes zero-mean gyro errors; a
+bias would otherwise leave a steady offset of ``bias * tau`` (several degrees at 1 deg/s).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from pipeline.leg_input import LegInput
+from pipeline.params import WALKING, FilterInputParams
+from pipeline.signal_utils import true_runs
+
+
+def stride_bias_dps(rate_dps: np.ndarray, strides: list[tuple[int, int]],
+                    params: FilterInputParams = WALKING.filter_inputs) -> np.ndarray | None:
+    """Gyroscope bias (N,) [deg/s] of the knee rate ``rate_dps`` (N,) per sample: ``integral(rate) / duration`` of
+    each stride ``(start, stop)``. Strides further than ``bias_outlier_mads`` robust SDs from the session median
+    (gait initiation and termination, where the knee does change its angle over the stride) are dropped; the rest
+    are smoothed by a running median over ``bias_smooth_strides`` strides and interpolated, held constant beyond the
+    first and last. None without strides."""
+    vals, centres = [], []
+    for a, b in strides:
+        r = rate_dps[a:b + 1]
+        if b - a < 2 or not np.isfinite(r).all():
+            continue
+        vals.append(float(np.trapezoid(r) / (b - a)))
+        centres.append(0.5 * (a + b))
+    if not vals:
+        return None
+    v, c = np.asarray(vals), np.asarray(centres)
+    med = float(np.median(v))
+    spread = max(params.bias_outlier_mads * 1.4826 * float(np.median(np.abs(v - med))), params.bias_min_spread_dps)
+    keep = np.abs(v - med) <= spread
+    v, c = v[keep], c[keep]
+    half = params.bias_smooth_strides // 2
+    padded = np.pad(v, half, constant_values=np.nan)
+    sm = np.nanmedian(np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1), axis=1)
+    return np.interp(np.arange(rate_dps.shape[0]), c, sm)
+
+
+def debiased_rate(leg: LegInput) -> np.ndarray:
+    """The leg's knee rate (N,) [deg/s] minus its per-stride bias (:func:`stride_bias_dps`)."""
+    rate = np.asarray(leg.rate_dps, dtype=float)
+    bias = stride_bias_dps(rate, leg.filter_strides, leg.params.filter_inputs)
+    return rate if bias is None else rate - bias
+
+
+def update_mask(leg: LegInput) -> np.ndarray:
+    """(N,) bool, where the accelerometer may update the filters: valid samples with a finite accelerometer angle,
+    restricted by the leg's ``acc_update_mask`` when it has one (running: 40-80 % of each cycle and quiet periods,
+    never at an impact)."""
+    mask = leg.prep.valid & np.isfinite(leg.acc_angle_deg)
+    extra = leg.acc_update_mask
+    return mask & np.asarray(extra, dtype=bool) if extra is not None else mask
+
+
+def r_scale(leg: LegInput, quiet: np.ndarray) -> np.ndarray:
+    """(N,) multiplier of R: ``quiet_r_scale`` on ``quiet`` samples (the accelerometer angle then sees gravity
+    only and is accurate to a degree or two), 1 elsewhere."""
+    return np.where(quiet, leg.params.kf.quiet_r_scale, 1.0)
+
+
+def run_per_segment(leg: LegInput, fn: Callable[[int, int], np.ndarray]) -> np.ndarray:
+    """``fn(a, b)`` on each valid run ``[a, b)`` of the leg (the filters restart after a masked gap), NaN elsewhere."""
+    ok = leg.prep.valid & np.isfinite(leg.rate_dps)
+    out = np.full(ok.shape[0], np.nan)
+    for a, b in true_runs(ok):
+        if b - a >= 2:
+            out[a:b] = fn(a, b)
+    return out

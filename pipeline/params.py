@@ -1,0 +1,305 @@
+"""Every tunable of the pipeline, as a typed tree of frozen dataclasses with named presets (after mobgap's
+``PredefinedParameters``).
+
+One dataclass per stage; :class:`PipelineParams` holds one of each. :data:`PRESETS` names the tree per activity
+(``process_session(..., params=None)`` uses the activity's preset; ``unknown`` starts from ``walking``). Both presets
+hold the same values: the activities differ in which stages their code path reads (``running`` vs ``fusion``), not
+in the numbers. A variant is ``dataclasses.replace(WALKING, go=replace(WALKING.go, cutoff_hz=15.0))``.
+
+Units are part of the field names; each field says why it has its value.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class PrepareParams:
+    """Units, common grid and gaps (:mod:`pipeline.prepare`)."""
+
+    gap_factor: float = 1.75
+    """A step longer than this many nominal sample periods is a gap: BLE jitter stays below, one lost sample not."""
+    max_bridge_s: float = 0.15
+    """Longest gap bridged by the cubic [s]: one or two lost BLE packets, shorter than swing flexion (~250 ms), so
+    the cubic still sees both sides of any knee event. Longer gaps are masked."""
+    noted_bridge_s: float = 0.05
+    """Bridged gaps longer than this [s] get a quality note on the strides they touch."""
+    saturation_run: int = 3
+    """A gyro axis pinned at its extreme for this many samples in a row counts as saturated."""
+    saturation_min_dps: float = 200.0
+    """Only extremes above this rate [deg/s] can be a clipped sensor (gait peaks reach 300-1000 deg/s)."""
+
+
+@dataclass(frozen=True)
+class AxesParams:
+    """Joint axes (Seel Eq. 2), joint centres (Eq. 5) and accelerometer angle (Eq. 6-7) (:mod:`pipeline.axes`)."""
+
+    fit_cutoff_hz: float = 10.0
+    """Gyro/acc low-pass [Hz] for the axis and centre fits and the accelerometer angle: keeps gait (< 6 Hz),
+    drops sensor noise and impact ringing."""
+    fit_margin_s: float = 0.1
+    """Centre-fit samples stay this far [s] from a masked gap: filters and Eq. 1 differences are unreliable there."""
+    max_fit_samples: int = 1000
+    """Sample budget of one fit: bounds the cost whatever the session length."""
+    fit_chunks: int = 20
+    """Equal time chunks the budget is spread over, so the fit set spans the whole session."""
+    n_restarts: int = 2
+    """Seeded restarts of the axis fit besides the principal-axis start (Eq. 2 has local minima)."""
+    n_centre_starts: int = 4
+    """Seeded starts of the centre fit besides the near-zero one (Eq. 5 has mirrored minima)."""
+    max_lever_m: float = 0.4
+    """A sensor further than this [m] from the knee is not body-worn: no lever-arm correction then."""
+    centre_reg: float = 0.05
+    """Pull of the centres towards 0 [m/s^2 per m, per sample]: negligible against real misfit, fixes the flat
+    valley of Eq. 5 along the axis."""
+
+
+@dataclass(frozen=True)
+class SyncParams:
+    """Thigh/shank clock offset and drift from the hinge constraint (:mod:`pipeline.sync`)."""
+
+    window_s: float = 40.0
+    """One lag estimate per window [s]: long enough for a stable minimum, short against crystal drift."""
+    max_drift: float = 150e-6
+    """Largest credible rate error [s/s]: BLE sensor crystals drift tens of ppm; more is a bad estimate."""
+    agree_s: float = 0.006
+    """The window lags must agree with the fitted line within this [s], or no correction is applied."""
+    max_lag_s: float = 0.06
+    """Search range of the lag [s]: larger offsets are not a clock error between two BLE sensors."""
+    min_shift_samples: float = 0.25
+    """A correction smaller than this share of a sample period is not applied (re-preparing costs time)."""
+
+
+@dataclass(frozen=True)
+class PhaseParams:
+    """Gait events from the shank sagittal rate (:mod:`pipeline.phases`, Allseits et al. 2018)."""
+
+    lobe_cutoff_hz: float = 4.0
+    """Smoothing [Hz] for swing lobes and mid-swing peaks: one lobe per swing."""
+    event_cutoff_hz: float = 15.0
+    """Light smoothing [Hz] for the toe-off and heel-strike minima (keeps their timing)."""
+    min_peak_dps: float = 50.0
+    """Smallest mid-swing peak [deg/s]: slow walking reaches ~150; standing sway stays far below."""
+    rel_peak: float = 0.35
+    """A lobe must reach this share of the session's median swing peak (turns, shuffles are lower)."""
+    stance_neg_dps: float = 10.0
+    """The smoothed rate must drop below minus this [deg/s] between two swings (a real stance)."""
+    min_period_s: float = 0.5
+    """Shortest plausible stride [s] for walking bouts."""
+    max_period_s: float = 3.0
+    """Longest plausible stride [s] (very slow walking)."""
+    period_tol: float = 0.35
+    """A stride off its neighbours' median period by more than this share breaks the bout."""
+    min_bout_peaks: int = 3
+    """Shortest bout [swing peaks] that produces strides (isolated steps are not gait)."""
+    search_s: float = 0.3
+    """Toe-off search window before a lobe start [s]."""
+    stance_pct_range: tuple[float, float] = (30.0, 85.0)
+    """Plausible stance share of a stride [%]; outside it the events are wrong."""
+    to_delay_s: float = 0.04
+    """Toe-off after the shank minimum [s]: measured against the Tan et al. 2022 force plate."""
+    hs_delay_s: float = 0.02
+    """Heel strike after the smoothed zero crossing [s] when no impact stands out (Tan et al. 2022: 10-30 ms)."""
+    impact_window_s: tuple[float, float] = (-0.03, 0.12)
+    """Window around the zero crossing [s] searched for the heel-strike impact."""
+    impact_prominence: float = 3.0
+    """An impact stands out when its jump exceeds this multiple of the window's median jump."""
+
+
+@dataclass(frozen=True)
+class MetricsParams:
+    """Per-stride metrics (:mod:`pipeline.metrics`)."""
+
+    loading_share: float = 0.6
+    """The loading-response flexion peak is searched from heel strike over this share of stance."""
+
+
+@dataclass(frozen=True)
+class GoParams:
+    """Gyroscope-only angle with zero-angle updates (:mod:`pipeline.estimators.go`, Allseits et al. 2018)."""
+
+    cutoff_hz: float = 20.0
+    """Low-pass [Hz] of the knee rate before integration (Allseits Sect. 2.4.1: low-order Butterworth)."""
+    first_zau_lookback_s: float = 0.6
+    """A bout's first update is searched this far [s] before its toe-off (no preceding mid-stance)."""
+    zau_after_to_s: float = 0.05
+    """The update window ends this far [s] after toe-off."""
+
+
+@dataclass(frozen=True)
+class CfParams:
+    """Complementary filter (:mod:`pipeline.estimators.cf`, Seel et al. 2014, Rhudy Eq. 17)."""
+
+    tau_s: float = 0.5
+    """Time constant [s] of the accelerometer correction, lambda = dt / tau: shorter follows accelerometer noise on
+    real data (biomechZoo), longer lets gyro bias through (simulator)."""
+
+
+@dataclass(frozen=True)
+class KfParams:
+    """Kalman filters (:mod:`pipeline.estimators.kf`, :mod:`pipeline.estimators.ekf`, Rhudy et al. 2024)."""
+
+    r_deg2: float = 100.0
+    """Accelerometer-angle variance R [deg^2]: only Q/R shapes the estimate, R sets the initial variance's scale."""
+    filter_tau_s: float = 2.0
+    """Fusion time constant [s] of the bare filter functions (the registered estimators tune their own): long
+    against a stride, so within-stride accelerometer errors average out, short against gyro drift."""
+    quiet_r_scale: float = 0.01
+    """R is multiplied by this while the leg is quiet: the accelerometer angle then sees gravity only."""
+
+
+@dataclass(frozen=True)
+class TuningParams:
+    """Automatic fusion time constant of the KF/EKF from the gyro's residual drift (:mod:`pipeline.tuning`)."""
+
+    drift_tol_deg: float = 2.0
+    """Drift [deg] the filter may let through before the accelerometer corrects it."""
+    tau_range_s: tuple[float, float] = (0.5, 16.0)
+    """Clamp of the tuned time constant [s]."""
+    min_strides: int = 6
+    """Fewer fully valid strides give no usable scatter: the untuned constant is used."""
+    untuned_tau_s: float = 4.0
+    """Time constant [s] when the leg has too few strides to tune: a few strides of averaging."""
+
+
+@dataclass(frozen=True)
+class FilterInputParams:
+    """Per-stride de-biasing of the knee rate (:mod:`pipeline.filter_inputs`)."""
+
+    bias_smooth_strides: int = 15
+    """Running median width [strides] of the per-stride bias (also the averaging the tuning assumes)."""
+    bias_outlier_mads: float = 3.0
+    """Strides further than this many robust SDs from the median (gait initiation, termination) are dropped."""
+    bias_min_spread_dps: float = 1.0
+    """Floor [deg/s] of that outlier limit, so a very regular session keeps its strides."""
+
+
+@dataclass(frozen=True)
+class PostureParams:
+    """Quiet standing and the absolute zero (:mod:`pipeline.posture`).
+
+    Two callers define "quiet standing" with different durations: the filters' quiet mask (``quiet_min_s``, KF/EKF
+    R weighting and zero) and the ``auto`` policy's standing reference (``standing_ref_min_s``); their upright tests
+    differ too (3-D angle to the gait gravity direction vs in-plane angle to the stance direction). Each keeps its
+    value so outputs stay identical; unifying them is a science change (it moves absolute levels)."""
+
+    still_dps: float = 15.0
+    """Both segments slower than this [deg/s]: still (sway is a few deg/s, slow walking hundreds)."""
+    force_tol: float = 0.1
+    """Specific force within this share of g: no segment acceleration."""
+    quiet_min_s: float = 0.5
+    """Shortest quiet run [s] for the filters' quiet mask."""
+    standing_ref_min_s: float = 1.0
+    """Shortest quiet upright run [s] (and least total) for the ``auto`` policy's standing reference."""
+    standing_zero_min_s: float = 1.0
+    """Least total quiet upright standing [s] for the filters' accelerometer zero."""
+    upright_deg: float = 45.0
+    """Upright: gravity within this angle [deg] of its direction during gait. Sitting puts the thigh ~90 deg off;
+    running leaves the shank ~30 deg off on average."""
+    bout_margin_s: float = 1.0
+    """Samples within this time [s] of a bout's first/last mid-swing are walking, not standing."""
+    standing_knee_deg: float = 4.0
+    """Knee flexion [deg] assumed for relaxed quiet standing (healthy adults ~2-6 deg)."""
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    """The walking ``auto`` policy: absolute GO with CF fallback (:mod:`pipeline.policy`)."""
+
+    calm_dps: float = 90.0
+    """Both segments slower than this [deg/s]: the accelerometer angle is usable (small lever-arm terms)."""
+    min_quiet_samples: int = 5
+    """A stride with fewer calm stance samples uses its whole stance for the offset (and gets a note)."""
+    offset_smooth: int = 11
+    """Running median width [strides] of the per-stride offsets: the true minimum changes slowly."""
+    drift_max_deg: float = 15.0
+    """GO drift [deg] between two updates beyond which the stride falls back to CF."""
+    mismatch_deg: float = 8.0
+    """SD [deg] of GO minus CF over a stride beyond which the stride gets a mismatch note."""
+    penalties: tuple[tuple[str, float], ...] = (
+        ("no_absolute_reference", 0.2), ("no_zero_crossing", 0.3), ("drift", 0.3), ("saturation", 0.5),
+        ("go_cf_mismatch", 0.3), ("cf_fallback", 0.2), ("no_go_estimate", 0.3), ("few_quiet_samples", 0.1),
+        ("bridged_gap", 0.1))
+    """Quality lost per reason (quality = 1 - sum, floored at 0): saturation and a broken GO weigh most."""
+    default_penalty: float = 0.1
+    """Quality lost for a reason not listed."""
+
+    def penalty(self, reason: str) -> float:
+        """Quality lost for ``reason``."""
+        return dict(self.penalties).get(reason, self.default_penalty)
+
+
+@dataclass(frozen=True)
+class RunningParams:
+    """Running: foot strikes, gait-cycle windows, impact masks, 7 Hz low-pass, the running ``auto`` policy
+    (:mod:`pipeline.running`, :mod:`pipeline.policy`, Rhudy et al. 2024 Sect. 2.2.2)."""
+
+    fit_window: tuple[float, float] = (0.40, 0.80)
+    """Share of the gait cycle used for the axis and centre fits (Rhudy Fig. 7: swing, no impacts)."""
+    impact_half_width: float = 0.05
+    """Share of the gait cycle skipped on either side of a foot strike for measurement updates (Rhudy)."""
+    lowpass_hz: float = 7.0
+    """Zero-lag Butterworth cut-off [Hz] after the axes are known (Rhudy, after Vasquez et al.)."""
+    lowpass_order: int = 4
+    """Order of that Butterworth (Rhudy: 4th order)."""
+    min_stride_s: float = 0.45
+    """Shortest plausible running stride, same foot to same foot [s]."""
+    max_stride_s: float = 1.6
+    """Longest plausible running stride [s]."""
+    impact_hp_hz: float = 12.0
+    """Impacts are peaks of the shank acceleration's content above this frequency [Hz] (the ringing)."""
+    strike_min_g: float = 0.5
+    """An impact's high-frequency peak is at least this large [g]."""
+    strike_rel: float = 0.4
+    """... and at least this share of the session's impact level."""
+    cycle_tol: float = 0.35
+    """A cycle off the local median length by more than this share is not a gait cycle."""
+    detect_max_stride_s: float = 0.85
+    """``unknown`` sessions: runners strike every ~0.6-0.8 s, walkers every 0.9-1.4 s [s]."""
+    detect_min_impact_g: float = 1.0
+    """... with 4-10 g at the shank (high-frequency amplitude), walkers 1.5-3 g raw, far less high-pass [g]."""
+    detect_min_cycles: int = 6
+    """Fewer gait cycles are not evidence of running."""
+    swing_peak_phase: tuple[float, float] = (0.55, 0.9)
+    """Running knee flexion peaks within this share of the foot-strike cycle (Novacheck 1998): fixes the thigh axis
+    sign."""
+    swing_peak_target: float = 0.7
+    """Typical phase of that peak (~70 % of the cycle, Novacheck 1998): the sign whose peak is nearer wins."""
+    default_stride_s: float = 0.7
+    """Cycle length [s] for the impact mask when no plausible interval is known (a typical running stride)."""
+    auto_estimator: str = "ekf"
+    """The running ``auto`` estimator: best on the simulator without reference tuning (bench/accuracy.py)."""
+    no_reference_quality: float = 0.8
+    """Stride quality without a quiet-standing zero (the level is then the joint-plane frames' own)."""
+
+
+@dataclass(frozen=True)
+class PipelineParams:
+    """One value per stage of the pipeline."""
+
+    prepare: PrepareParams = field(default_factory=PrepareParams)
+    axes: AxesParams = field(default_factory=AxesParams)
+    sync: SyncParams = field(default_factory=SyncParams)
+    phases: PhaseParams = field(default_factory=PhaseParams)
+    metrics: MetricsParams = field(default_factory=MetricsParams)
+    go: GoParams = field(default_factory=GoParams)
+    cf: CfParams = field(default_factory=CfParams)
+    kf: KfParams = field(default_factory=KfParams)
+    tuning: TuningParams = field(default_factory=TuningParams)
+    filter_inputs: FilterInputParams = field(default_factory=FilterInputParams)
+    posture: PostureParams = field(default_factory=PostureParams)
+    fusion: FusionParams = field(default_factory=FusionParams)
+    running: RunningParams = field(default_factory=RunningParams)
+
+
+WALKING = PipelineParams()
+"""Walking preset (also the start for ``unknown`` sessions)."""
+RUNNING = PipelineParams()
+"""Running preset."""
+PRESETS: dict[str, PipelineParams] = {"walking": WALKING, "running": RUNNING}
+
+
+def preset(activity: str) -> PipelineParams:
+    """The named preset of ``activity`` (``walking`` for ``unknown``)."""
+    return PRESETS.get(activity, WALKING)

@@ -1,0 +1,268 @@
+"""The ``auto`` policy: which estimator's angle each stride keeps, its quality, and whether it is a fallback.
+
+**Walking**: GO (Allseits et al. 2018) made ABSOLUTE per stride, with a complementary-filter (Seel et al. 2014,
+Rhudy et al. 2024 Eq. 17) fallback for strides where GO's assumptions fail. No paper does this part. GO's
+zero-angle update assumes the knee is straight at the minimum before swing, so a crouch or contracture knee that
+never extends would read 0 deg there. Each stride's GO curve is therefore shifted by the mean of (accelerometer
+angle - GO) over the calm samples of its stance (Seel Eq. 6-7 angle), with the accelerometer angle's zero from quiet
+upright standing (:func:`pipeline.posture.standing_reference`). The per-stride offsets are smoothed with a running
+median over neighbouring strides (the accelerometer angle is noisy, the true minimum flexion changes slowly) and
+interpolated between stride centres so the trace is continuous. Without standing in the session the offset stays 0
+(Allseits' assumption) and the stride says so (``no_absolute_reference``). The trace is GO inside the strides that
+kept it, CF (shifted to the same zero) elsewhere: fallback strides, bout edges, standing, sitting, transitions.
+
+**Running**: the EKF of Rhudy et al. Eq. 22-24 with the running inputs (impact-free 40-80 % updates, per-stride
+gyro de-biasing, quiet-standing anchoring, automatic tuning; :mod:`pipeline.filter_inputs`,
+:mod:`pipeline.tuning`). GO's zero-angle update does not apply: a running knee never straightens (minimum ~15-25
+deg). Rhudy et al. found KF and CF slightly better than their EKF (Table 2, Vicon-tuned). With these inputs and no
+reference tuning the EKF came out best on the simulator (bench/accuracy.py, running, TUNE seeds 0-9 at 100 and
+200 Hz: RMSE EKF 2.17, KF 2.57, CF 3.35 deg; per-stride peak LoA EKF -6.9..5.0, KF -5.5..7.5): its update
+``P |a| |b| / (P |a|^2 + r) sin(alpha_acc - x)`` bounds the pull of a large accelerometer-angle error (the sine)
+and weighs it by the acceleration magnitudes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.estimators import get_estimator
+from pipeline.estimators.cf import complementary_filter
+from pipeline.estimators.go import GoDiagnostics, go_relative
+from pipeline.estimators.kf import FilterDiagnostics
+from pipeline.leg_input import EstimatorDiagnostics, LegInput
+from pipeline.params import FusionParams
+from pipeline.posture import in_bouts, standing_reference
+from pipeline.signal_utils import row_norm
+from pipeline.tuning import TuningDiagnostics
+from pipeline.types import AbsoluteReference
+
+
+@dataclass(frozen=True)
+class StrideChoice:
+    """The policy's verdict on one gait-event stride."""
+
+    estimator: str
+    quality: float  # 0 (untrustworthy) .. 1 (all checks passed)
+    reasons: tuple[str, ...]
+    fallback: bool  # the activity's primary estimator failed here and ``estimator`` replaced it
+
+
+@dataclass(frozen=True)
+class PolicyResult:
+    """Angle (N,) [deg], per-sample estimator names (N,) ("" where no estimate), one choice per stride of
+    ``leg.events.strides``, and what anchored the level."""
+
+    angle_deg: np.ndarray
+    estimator: np.ndarray
+    choices: tuple[StrideChoice, ...]
+    absolute_reference: AbsoluteReference
+    standing_ref_deg: float | None = None
+    cf_shift_deg: float | None = None
+    offset_median_deg: float | None = None
+    tuning: TuningDiagnostics | None = None
+
+
+def _reference(ref: float | None) -> AbsoluteReference:
+    return AbsoluteReference.NONE if ref is None else AbsoluteReference.STANDING
+
+
+def _tuning(diag: EstimatorDiagnostics) -> TuningDiagnostics | None:
+    return diag.tuning if isinstance(diag, FilterDiagnostics) else None
+
+
+def auto(leg: LegInput) -> PolicyResult:
+    """The ``auto`` policy of the leg's activity."""
+    return running_auto(leg) if leg.activity == "running" else walking_auto(leg)
+
+
+def single_estimator(leg: LegInput, name: str) -> PolicyResult:
+    """One registered estimator alone: every stride is its own, with full quality (nothing checked)."""
+    angle, diag = get_estimator(name)(leg)
+    angle = np.asarray(angle, dtype=float)
+    labels = np.where(np.isfinite(angle), name, "").astype(str)
+    choice = StrideChoice(estimator=name, quality=1.0, reasons=(), fallback=False)
+    ref = diag.standing_ref_deg
+    return PolicyResult(angle_deg=angle, estimator=labels, choices=tuple(choice for _ in leg.events.strides),
+                        absolute_reference=_reference(ref), standing_ref_deg=None if ref is None else round(ref, 2),
+                        tuning=_tuning(diag))
+
+
+def running_auto(leg: LegInput) -> PolicyResult:
+    """The running policy: ``RunningParams.auto_estimator`` (the EKF) on every stride; without a standing zero the
+    strides say so and lose quality."""
+    rp = leg.params.running
+    name = rp.auto_estimator
+    angle, diag = get_estimator(name)(leg)
+    labels = np.where(np.isfinite(angle), name, "").astype(str)
+    ref = diag.standing_ref_deg
+    reasons: tuple[str, ...] = () if ref is not None else ("no_absolute_reference",)
+    choice = StrideChoice(estimator=name, quality=rp.no_reference_quality if reasons else 1.0, reasons=reasons,
+                          fallback=False)
+    return PolicyResult(angle_deg=angle, estimator=labels, choices=tuple(choice for _ in leg.events.strides),
+                        absolute_reference=_reference(ref), standing_ref_deg=None if ref is None else round(ref, 2),
+                        tuning=_tuning(diag))
+
+
+def walking_auto(leg: LegInput) -> PolicyResult:
+    """The walking policy: absolute GO per stride, CF fallback (module docstring)."""
+    go_rel, go_diag = go_relative(leg)
+    cf = complementary_filter(leg.rate_dps, leg.acc_angle_deg, leg.fs_hz, leg.prep.valid, leg.params.cf.tau_s)
+    return fuse(leg, go_rel, go_diag, cf)
+
+
+def _running_median(x: np.ndarray, width: int) -> np.ndarray:
+    if x.size == 0:
+        return x
+    half = width // 2
+    padded = np.pad(x, half, mode="edge")
+    return np.median(np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1), axis=1)
+
+
+def _segment_sums(x: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
+    """Sum of ``x[a:b]`` for each (non-overlapping or not) half-open range, via a prefix sum."""
+    c = np.concatenate(([0.0], np.cumsum(x, dtype=float)))
+    return c[stops] - c[starts]
+
+
+def stance_offsets(leg: LegInput, go_rel: np.ndarray, strides: list[tuple[int, int, int]]
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of (accelerometer angle - GO) [deg] over the calm stance samples of each stride, and the calm-sample
+    count. Calm: both segments' angular speed below ``FusionParams.calm_dps`` (lever-arm terms of Eq. 6 small); a
+    stride with fewer than ``min_quiet_samples`` calm samples uses its whole stance. The running median over strides
+    (:func:`fuse`) removes outliers."""
+    if not strides:
+        return np.zeros(0), np.zeros(0, dtype=int)
+    p = leg.params.fusion
+    prep = leg.prep
+    speed = np.rad2deg(np.maximum(row_norm(prep.gyr_thigh_rps), row_norm(prep.gyr_shank_rps)))
+    diff = leg.acc_angle_deg - go_rel
+    ok = np.isfinite(diff)
+    d0 = np.where(ok, diff, 0.0)
+    quiet = ok & (speed < p.calm_dps)
+    arr = np.asarray(strides)
+    lo, hi = arr[:, 0], arr[:, 1] + 1
+    n_quiet = _segment_sums(quiet, lo, hi)
+    n_ok = _segment_sums(ok, lo, hi)
+    s_quiet = _segment_sums(np.where(quiet, d0, 0.0), lo, hi)
+    s_ok = _segment_sums(d0, lo, hi)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        offs = np.where(n_quiet >= p.min_quiet_samples, s_quiet / np.maximum(n_quiet, 1), s_ok / n_ok)
+    offs[n_ok == 0] = np.nan
+    return offs, n_quiet.astype(int)
+
+
+@dataclass(frozen=True)
+class _StrideFlags:
+    """Per-stride checks of the walking policy, aligned with the strides."""
+
+    go_complete: np.ndarray
+    no_crossing: np.ndarray
+    drifted: np.ndarray
+    saturated: np.ndarray
+    bridged: np.ndarray
+    mismatch: np.ndarray
+
+
+def _stride_flags(leg: LegInput, go_diag: GoDiagnostics, go_abs: np.ndarray, cf_used: np.ndarray,
+                  lo: np.ndarray, hi: np.ndarray) -> _StrideFlags:
+    """The checks of each stride ``[lo, hi)`` from prefix sums (no per-sample Python work)."""
+    p = leg.params.fusion
+    prep = leg.prep
+    n_len = hi - lo
+    go_complete = _segment_sums(np.isfinite(go_abs), lo, hi) == n_len
+    saturated = _segment_sums(prep.saturated, lo, hi) > 0
+    bridged = np.zeros(n_len.size, dtype=bool)
+    for g0, g1 in prep.bridged_s:
+        i0, i1 = np.searchsorted(prep.t_s, [g0, g1])
+        bridged |= (lo <= i1) & (hi > i0)
+    zi, zf, drift = go_diag.zau_idx, go_diag.zau_found, go_diag.drift_deg
+    zl, zh = np.searchsorted(zi, lo), np.searchsorted(zi, hi)
+    missing = np.concatenate(([0], np.cumsum(~zf)))
+    no_crossing = (missing[zh] - missing[zl]) > 0
+    big_drift = np.concatenate(([0], np.cumsum(np.nan_to_num(np.abs(drift)) > p.drift_max_deg))) if drift.size \
+        else np.zeros(1, dtype=int)
+    d_lo, d_hi = np.clip(zl - 1, 0, drift.size), np.clip(zh, 0, drift.size)
+    drifted = (big_drift[d_hi] - big_drift[d_lo]) > 0
+    e = go_abs - cf_used
+    e_ok = np.isfinite(e)
+    e0 = np.where(e_ok, e, 0.0)
+    ne = np.maximum(_segment_sums(e_ok, lo, hi), 1)
+    mean_e = _segment_sums(e0, lo, hi) / ne
+    var_e = np.maximum(_segment_sums(e0 * e0, lo, hi) / ne - mean_e ** 2, 0.0)
+    return _StrideFlags(go_complete=go_complete, no_crossing=no_crossing, drifted=drifted, saturated=saturated,
+                        bridged=bridged, mismatch=np.sqrt(var_e) > p.mismatch_deg)
+
+
+def _choose(flags: _StrideFlags, k: int, absolute_ok: bool, quiet_count: int, p: FusionParams) -> StrideChoice:
+    """GO or the CF fallback for stride ``k``, its quality and reasons."""
+    reasons: list[str] = []
+    if not absolute_ok:
+        reasons.append("no_absolute_reference")
+    elif quiet_count < p.min_quiet_samples:
+        reasons.append("few_quiet_samples")
+    use_go = True
+    for flag, reason in ((not flags.go_complete[k], "no_go_estimate"), (flags.no_crossing[k], "no_zero_crossing"),
+                         (flags.drifted[k], "drift"), (flags.saturated[k], "saturation")):
+        if flag:
+            reasons.append(reason)
+            use_go = False
+    if flags.bridged[k]:
+        reasons.append("bridged_gap")
+    if use_go and flags.mismatch[k]:
+        reasons.append("go_cf_mismatch")
+    if not use_go:
+        reasons.append("cf_fallback")
+    quality = max(0.0, 1.0 - sum(p.penalty(r) for r in reasons))
+    return StrideChoice(estimator="go" if use_go else "cf", quality=round(quality, 3), reasons=tuple(reasons),
+                        fallback=not use_go)
+
+
+def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarray) -> PolicyResult:
+    """Per-sample fused angle, per-sample estimator names and one :class:`StrideChoice` per stride of
+    ``leg.events.strides``. Outside strides (standing, sitting, turning without strides) the CF estimate is used."""
+    p = leg.params.fusion
+    strides = leg.events.strides
+    n = go_rel.shape[0]
+    ref = standing_reference(leg, leg.acc_angle_deg, in_bouts(leg))
+    absolute_ok = ref is not None
+    # acc - ref reads 0 when standing; standing itself is standing_knee_deg of flexion
+    ref_deg = ref - leg.params.posture.standing_knee_deg if ref is not None else 0.0
+    offs, quiet_counts = stance_offsets(leg, go_rel + ref_deg, strides)
+    finite = np.isfinite(offs)
+    raw_level = float(np.median(offs[finite])) if finite.any() else 0.0
+    if absolute_ok and finite.any():
+        smooth = _running_median(np.where(finite, offs, raw_level), p.offset_smooth)
+        cf_shift = -ref_deg
+    else:
+        smooth = np.zeros(len(strides))
+        # keep CF consistent with GO's zero when there is no absolute reference
+        cf_shift = -raw_level - ref_deg
+    cf_used = cf + cf_shift
+    angle = cf_used.copy()
+    labels = np.where(np.isfinite(angle), "cf", "")
+    reference = _reference(ref)
+    ref_out = None if ref is None else round(ref, 2)
+    if not strides:
+        return PolicyResult(angle_deg=angle, estimator=labels.astype(str), choices=(), absolute_reference=reference,
+                            standing_ref_deg=ref_out, cf_shift_deg=round(cf_shift, 2))
+    centres = np.array([(a + b) / 2.0 for a, _, b in strides])
+    go_abs = go_rel + np.interp(np.arange(n), centres, smooth)
+    arr = np.asarray(strides)
+    lo, hi = arr[:, 0], arr[:, 2] + 1
+    flags = _stride_flags(leg, go_diag, go_abs, cf_used, lo, hi)
+    choices = tuple(_choose(flags, k, absolute_ok, int(quiet_counts[k]), p) for k in range(len(strides)))
+    use = np.array([c.estimator == "go" for c in choices])
+    cover = np.zeros(n + 1, dtype=int)
+    np.add.at(cover, lo[use], 1)
+    np.add.at(cover, hi[use], -1)
+    # GO inside the strides that kept it; extending it to the bout edges (gait initiation and termination, where
+    # its drift line is extrapolated) was worse on the simulator (crouch) and mixed on the real trial
+    go_mask = np.cumsum(cover)[:-1] > 0
+    angle[go_mask] = go_abs[go_mask]
+    labels = np.where(go_mask, "go", labels)
+    labels = np.where(np.isfinite(angle), labels, "")
+    return PolicyResult(angle_deg=angle, estimator=labels.astype(str), choices=choices, absolute_reference=reference,
+                        standing_ref_deg=ref_out, cf_shift_deg=round(cf_shift, 2),
+                        offset_median_deg=round(raw_level, 2))

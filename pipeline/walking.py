@@ -1,0 +1,60 @@
+"""One walking leg, prepared for the estimators: knee rate and shank sagittal rate about the fitted axes (Seel et al.
+2014, Eq. 2-4), gait events (Allseits et al. 2018), joint centres (Eq. 5) and the accelerometer angle (Eq. 6-7)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.axes import (
+    JointAxes,
+    accelerometer_angle_deg,
+    angular_acceleration,
+    fit_joint_axes,
+    fit_joint_centres,
+    select_fit_samples,
+)
+from pipeline.leg_input import LegInput
+from pipeline.params import PipelineParams
+from pipeline.phases import detect_gait_events
+from pipeline.prepare import PreparedLeg
+from pipeline.signal_utils import lowpass_runs_many
+
+
+def fit_gyros(prep: PreparedLeg, cutoff_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """Thigh and shank gyros (N, 3) [rad/s] low-passed at ``cutoff_hz`` for the fits, NaN-free."""
+    g1, g2 = (np.nan_to_num(g) for g in lowpass_runs_many((prep.gyr_thigh_rps, prep.gyr_shank_rps), prep.valid,
+                                                            cutoff_hz, prep.fs_hz))
+    return g1, g2
+
+
+def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: JointAxes | None = None,
+                            fit_gyr: tuple[np.ndarray, np.ndarray] | None = None) -> LegInput:
+    """Axes (unless given), rates, events, joint centres and accelerometer angle of one prepared leg.
+    ``fit_gyr``: :func:`fit_gyros` of this very ``prep`` when already computed (:func:`pipeline.sync.synchronised_leg`),
+    so the same filter is not run twice."""
+    valid = prep.valid
+    fs = prep.fs_hz
+    cutoff = params.axes.fit_cutoff_hz
+    g1, g2 = fit_gyros(prep, cutoff) if fit_gyr is None else fit_gyr
+    if axes is None:
+        axes = fit_joint_axes(g1, g2, valid, params.axes)
+    rate = np.rad2deg(prep.gyr_thigh_rps @ axes.j1 - prep.gyr_shank_rps @ axes.j2)
+    shank_sag = np.rad2deg(prep.gyr_shank_rps @ axes.j2)
+    rate[~valid] = np.nan
+    shank_sag[~valid] = np.nan
+    events = detect_gait_events(shank_sag, fs, valid, shank_acc_mps2=prep.acc_shank_mps2, params=params.phases)
+    a1, a2 = (np.nan_to_num(a) for a in lowpass_runs_many((prep.acc_thigh_mps2, prep.acc_shank_mps2), valid,
+                                                            cutoff, fs))
+    gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)
+    # joint centres only tell standing from sitting (upright test of the standing reference, pipeline.posture):
+    # their in-plane directions are too uncertain for the absolute zero itself.
+    # Fit samples stay away from masked gaps: the filters and Eq. 1 differences are unreliable within a few samples.
+    margin = max(int(params.axes.fit_margin_s * fs), 1)
+    far = ~np.convolve(~valid, np.ones(2 * margin + 1), mode="same").astype(bool)
+    idx = select_fit_samples(g1, g2, far, params.axes)
+    centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], axes.j1, axes.j2,
+                                params.axes)
+    acc_angle = accelerometer_angle_deg(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, centres)
+    acc_angle[~valid] = np.nan
+    return LegInput(prep=prep, axes=axes, centres=centres, rate_dps=rate, acc_angle_deg=acc_angle,
+                    shank_sag_dps=shank_sag, events=events, params=params, activity="walking")
