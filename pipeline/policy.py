@@ -258,7 +258,7 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     np.add.at(cover, lo[use], 1)
     np.add.at(cover, hi[use], -1)
     # GO inside the strides that kept it; extending it to the bout edges (gait initiation and termination, where
-    # its drift line is extrapolated) was worse on the simulator (crouch) and mixed on the real trial
+    # its drift line is extrapolated) is worse on the simulator (crouch) and mixed on the real trial
     go_mask = np.cumsum(cover)[:-1] > 0
     angle[go_mask] = go_abs[go_mask]
     labels = np.where(go_mask, "go", labels)

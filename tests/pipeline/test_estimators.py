@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from pipeline.estimators import available, get_estimator
 from pipeline.estimators.cf import complementary_filter
@@ -10,9 +11,11 @@ from pipeline.estimators.go import integrate_runs
 from pipeline.metrics import stride_values
 
 
-def test_registry_is_open_and_has_the_builtins() -> None:
-    assert {"go", "cf"} <= set(available())
+def test_registry_names_every_builtin_and_rejects_others() -> None:
+    assert available() == ["cf", "ekf", "go", "kf"]
     assert callable(get_estimator("go"))
+    with pytest.raises(ValueError, match="available: cf, ekf, go, kf"):
+        get_estimator("nope")
 
 
 def test_cf_is_eq17_recursion() -> None:

@@ -146,6 +146,9 @@ def test_running_session_auto_uses_the_extended_kalman_filter(running_sim: SimSe
     res = process_session(sim.streams, activity="running")
     leg = res.legs["left"]
     assert leg.strides and {s.estimator for s in leg.strides} == {"ekf"}
+    # the EKF is running's primary estimator: no running stride is a fallback
+    assert all(s.activity == "running" and not s.fallback for s in leg.strides)
+    assert leg.diagnostics.n_fallback == 0 and leg.diagnostics.tau_s is not None
     truth = sim.truth["left"]
     inside = np.zeros(leg.t_s.size, dtype=bool)
     for a, b in truth.bouts_s:

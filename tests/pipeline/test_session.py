@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
 
+from pipeline.params import PRESETS, WALKING
 from pipeline.prepare import MAX_BRIDGE_S
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, SimSession, simulate_session
-from pipeline.types import RawSensorStream
+from pipeline.types import AbsoluteReference, RawSensorStream
 
 
 def _sim(pattern: str, seed: int, **kw) -> SimSession:
@@ -160,6 +162,10 @@ def test_saturated_gyro_strides_fall_back_to_cf() -> None:
         for s in lr.strides:
             if "saturation" in s.quality_reasons:
                 assert s.estimator == "cf" and s.quality < 1.0
+    # the policy itself says which strides are fallbacks, and the leg's diagnostics count them
+    for lr in res.legs.values():
+        assert [s.fallback for s in lr.strides] == [s.estimator == "cf" for s in lr.strides]
+        assert lr.diagnostics.n_fallback == sum(s.fallback for s in lr.strides) > 0
 
 
 def test_thigh_shank_clock_offset_is_measured_and_removed() -> None:
@@ -176,3 +182,40 @@ def test_thigh_shank_clock_offset_is_measured_and_removed() -> None:
         p_ref = np.array([s.peak_swing_flexion_deg - t.peak_swing_flexion_deg for s, t in _matched(sim, ref.legs[leg])])
         p_res = np.array([s.peak_swing_flexion_deg - t.peak_swing_flexion_deg for s, t in _matched(sim, res.legs[leg])])
         assert abs(np.mean(p_res) - np.mean(p_ref)) < 1.0
+
+
+def test_summary_carries_typed_leg_diagnostics() -> None:
+    sim = _sim("normal", 21, legs=("left",))
+    res = process_session(sim.streams)
+    leg = res.summary()["legs"]["left"]
+    diag = json.loads(json.dumps(leg["diagnostics"]))  # what the server stores
+    assert diag["activity"] == "walking"
+    assert diag["absolute_reference"] == "standing" and isinstance(diag["standing_ref_deg"], float)
+    assert diag["n_strides"] == leg["n_strides"] > 0 and diag["n_fallback"] == 0
+    assert diag["axis_fit_samples"] > 0 and diag["axis_rms_residual_dps"] >= 0.0
+    assert diag["bouts"] >= 2 and diag["running"] is None
+    assert set(diag) >= {"centre_rms_residual_mps2", "shank_lag_ms", "shank_drift_ppm", "bridged_gaps"}
+
+
+def test_absolute_reference_says_what_anchored_the_level() -> None:
+    sim = _sim("normal", 22, legs=("left",))
+    by_estimator = {e: process_session(sim.streams, estimator=e).legs["left"].diagnostics for e in ("go", "cf", "kf")}
+    # GO alone keeps its own zero (the straight knee assumed before swing); CF and KF are zeroed on quiet standing
+    assert by_estimator["go"].absolute_reference == AbsoluteReference.NONE
+    assert by_estimator["go"].standing_ref_deg is None
+    for e in ("cf", "kf"):
+        assert by_estimator[e].absolute_reference == AbsoluteReference.STANDING
+        assert by_estimator[e].standing_ref_deg is not None
+    assert by_estimator["kf"].tau_s is not None and by_estimator["go"].tau_s is None
+
+
+def test_params_none_is_the_activity_preset_and_params_are_used() -> None:
+    sim = _sim("normal", 23, legs=("left",))
+    default = process_session(sim.streams).legs["left"]
+    preset = process_session(sim.streams, params=PRESETS["walking"]).legs["left"]
+    np.testing.assert_array_equal(default.angle_deg, preset.angle_deg)
+    # a much slower GO low-pass smooths the swing peak: the parameter reaches the estimator
+    slow = dataclasses.replace(WALKING, go=dataclasses.replace(WALKING.go, cutoff_hz=2.0))
+    changed = process_session(sim.streams, params=slow).legs["left"]
+    peaks = [s.peak_swing_flexion_deg for s in default.strides]
+    assert np.median([s.peak_swing_flexion_deg for s in changed.strides]) < np.median(peaks) - 3.0
