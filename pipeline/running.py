@@ -44,7 +44,7 @@ from pipeline.prepare import PreparedLeg
 from pipeline.signal_utils import row_norm, true_runs
 from pipeline.types import RunningDiagnostics
 
-_RP = WALKING.running
+_RP = WALKING.running  # defaults of the public helpers; the leg flow passes its own preset's stage
 
 
 @dataclass(frozen=True)

@@ -72,7 +72,7 @@ def _streams_by_leg(streams: Sequence[RawSensorStream], warnings: list[str]
     return by_leg
 
 
-def leg_input(synced: SyncedLeg, activity: str, params: PipelineParams | None
+def _leg_input(synced: SyncedLeg, activity: str, params: PipelineParams | None
               ) -> tuple[LegInput, RunningDiagnostics | None]:
     """The estimators' input for one synchronised leg: the running flow when declared or (``unknown``) detected
     running, else the walking flow. ``params`` None: the preset of the activity the leg is processed as."""
@@ -90,7 +90,7 @@ def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activi
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore", RuntimeWarning)
         synced = synchronised_leg(leg, thigh, shank, params if params is not None else preset(activity))
-        data, running = leg_input(synced, activity, params)
+        data, running = _leg_input(synced, activity, params)
         result = auto(data) if estimator == "auto" else single_estimator(data, estimator)
     strides = _strides(leg, data, result)
     diagnostics = _diagnostics(data, synced, result, strides, running)

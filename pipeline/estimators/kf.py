@@ -33,6 +33,7 @@ from pipeline.params import WALKING
 from pipeline.posture import acc_zero_deg, leg_quiet
 from pipeline.tuning import TuningDiagnostics, tune_time_constant
 
+# defaults of the bare filter functions, from the walking preset (the leg-level estimators read ``leg.params.kf``)
 R_DEG2 = WALKING.kf.r_deg2
 FILTER_TAU_S = WALKING.kf.filter_tau_s
 
