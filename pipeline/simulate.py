@@ -130,7 +130,9 @@ class SimConfig:
     sit_knee_deg: float = 90.0  # seated knee flexion (thigh horizontal)
     knee_shift_deg: tuple[float, float] = (0.0, 0.0)  # (left, right) offset added to the gait knee curve
     knee_scale: tuple[float, float] = (1.0, 1.0)  # (left, right) gait knee excursion above its minimum
-    impact_g: float | None = None  # peak heel-strike shock on the shank accelerometer in g (None: impact_level)
+    # Peak heel-strike shock on the shank accelerometer in g (thigh: 0.3 x). None: impact_level, where 1 gives the
+    # pattern's default, a peak of 0.53 x _PatternSpec.impact_g (walking ~1.1 g, running ~3.2 g).
+    impact_g: float | None = None
     lever_scale: float = 1.0  # multiplies every sensor's lever arm from the knee joint centre
     lever_offaxis_m: float = 0.0  # extra anterior and lateral offset of every sensor from its segment's axis
     loss_model: Literal["independent", "bursty"] = "independent"  # bursty: Gilbert-Elliott, mean = packet_loss
@@ -254,6 +256,8 @@ _STEP = np.array([(0.0, 0, 0, 0, 0, 0.0), (0.5, 80, 65, 0, 0, 0.0), (0.8, 60, 50
                   (3.0, 5, 0, 50, 35, -0.02), (3.4, 5, 0, 40, 25, 0.0), (3.9, 0, 0, 0, 0, 0.0)])
 _MOVE_REPS = 3
 _IMPACT_FREQ_HZ, _IMPACT_TAU_S = 28.0, 0.012  # heel-strike shock: damped sine on the accelerometers
+# With an absolute impact_g, the shank sensor's transient rotation grows with the shock up to running's default.
+_IMPACT_ROT_MAX_DEG = 3.0
 
 
 def _damped_sine_peak(freq_hz: float, tau_s: float) -> float:
@@ -776,6 +780,8 @@ def simulate_session(cfg: SimConfig) -> SimSession:
                 # Heel contact arrests the shank's forward swing: a sharp backward rotation in the sagittal plane
                 # right at heel strike, then a rebound (real shank gyro: local minimum ~10 ms after HS).
                 rot_amp, rot_f, rot_tau = np.radians(0.5 * spec.impact_g) * impact_level, 12.0, 0.03
+                if cfg.impact_g is not None:  # skin and strap limit the sensor's rocking whatever the shock
+                    rot_amp = min(rot_amp, np.radians(_IMPACT_ROT_MAX_DEG))
                 tr_amp, imp_g = 0.0, spec.impact_g * impact_level
             axis = rng.standard_normal(3)
             axis /= np.linalg.norm(axis)
