@@ -245,13 +245,14 @@ class _Timeline:
 
 
 # Keyframes of non-gait movements: (time s, knee deg, hip deg, pelvis height m) relative to quiet standing.
-# Countermovement vertical jump: squat, push-off, ~0.25 m flight, landing with flexion, recovery.
-_JUMP = np.array([(0.0, 0, 0, 0.0), (0.6, 70, 60, -0.18), (0.9, -2, 0, 0.08), (1.15, 12, 8, 0.32),
-                  (1.4, 0, 0, 0.06), (1.6, 50, 40, -0.12), (2.4, 0, 0, 0.0)])
+# Countermovement vertical jump: squat (shank tilted ~30 deg forward: knee = hip + ankle dorsiflexion), push-off,
+# ~0.25 m flight, landing with flexion, recovery.
+_JUMP = np.array([(0.0, 0, 0, 0.0), (0.6, 85, 55, -0.25), (0.9, -2, 0, 0.08), (1.15, 12, 8, 0.32),
+                  (1.4, 0, 0, 0.06), (1.6, 60, 40, -0.15), (2.4, 0, 0, 0.0)])
 _JUMP_LANDING_S = 1.4
 # Step up onto a 17 cm stair and back down (lead leg up, trail up, lead down, trail down): columns
 # (time s, lead knee, lead hip, trail knee, trail hip, pelvis height m).
-_STEP = np.array([(0.0, 0, 0, 0, 0, 0.0), (0.5, 80, 65, 0, 0, 0.0), (0.8, 60, 50, 5, -5, 0.0),
+_STEP = np.array([(0.0, 0, 0, 0, 0, 0.0), (0.5, 90, 65, 0, 0, 0.0), (0.8, 65, 50, 5, -5, 0.0),
                   (1.5, 5, 5, 60, 30, 0.17), (2.0, 0, 0, 0, 0, 0.17), (2.6, 25, -5, 45, 30, 0.05),
                   (3.0, 5, 0, 50, 35, -0.02), (3.4, 5, 0, 40, 25, 0.0), (3.9, 0, 0, 0, 0, 0.0)])
 _MOVE_REPS = 3
