@@ -19,6 +19,7 @@ except ImportError:  # pragma: no cover - only while the pipeline is not there y
 
 PLAUSIBLE_DEG = (-15.0, 160.0)  # a knee angle outside this cannot be true (issue targets)
 MATCH_TOL_S = 0.15  # both heel strikes of a detected stride within this of the true ones (and < 25 % of a stride)
+OUTSIDE_GAIT_MARGIN_S = 1.0  # gait initiation and termination around a bout's first and last heel strike
 
 
 @dataclass
@@ -38,12 +39,14 @@ class LegScore:
     n_samples: int = 0
     stride_sq_err_sum: float = 0.0  # inside expected true strides only
     n_stride_samples: int = 0
+    outside_sq_err_sum: float = 0.0  # farther than OUTSIDE_GAIT_MARGIN_S from every walking bout
+    n_outside_samples: int = 0
     n_non_gait: int = 0  # detected strides overlapping a non-gait movement (sitting, jumps, stairs...)
     n_implausible: int = 0  # finite angle samples outside PLAUSIBLE_DEG
 
     def add(self, other: LegScore) -> None:
         for name in ("n_expected", "n_steady", "tp", "fp", "sq_err_sum", "n_samples", "stride_sq_err_sum",
-                     "n_stride_samples", "n_non_gait", "n_implausible"):
+                     "n_stride_samples", "outside_sq_err_sum", "n_outside_samples", "n_non_gait", "n_implausible"):
             setattr(self, name, getattr(self, name) + getattr(other, name))
         for name in ("peak_err", "rom_err", "min_err", "hs_err_s", "to_err_s"):
             getattr(self, name).extend(getattr(other, name))
@@ -128,6 +131,15 @@ def score_leg(res: LegResult | None, truth: LegTruth, gaps: list[tuple[float, fl
         for s, exp in zip(truth.strides, expected, strict=True):
             if exp:
                 inside[np.searchsorted(t_s, s.t_start_s):np.searchsorted(t_s, s.t_end_s, side="right")] = True
+        walking = np.zeros(t_s.size, dtype=bool)
+        for b0, b1 in truth.bouts_s:
+            walking[np.searchsorted(t_s, b0 - OUTSIDE_GAIT_MARGIN_S):
+                    np.searchsorted(t_s, b1 + OUTSIDE_GAIT_MARGIN_S, side="right")] = True
+        out = ~walking & ok
+        if out.any():
+            e = angle[out] - truth.angle_at(t_s[out])
+            sc.outside_sq_err_sum = float(np.sum(e**2))
+            sc.n_outside_samples = int(out.sum())
         sel = inside & ok
         if sel.any():
             e = angle[sel] - truth.angle_at(t_s[sel])
@@ -159,6 +171,8 @@ def summarise(sc: LegScore) -> dict[str, float]:
         "rom_bias": rom[0], "rom_lo": rom[1], "rom_hi": rom[2],
         "rmse": float(np.sqrt(sc.sq_err_sum / sc.n_samples)) if sc.n_samples else nan,
         "rmse_strides": float(np.sqrt(sc.stride_sq_err_sum / sc.n_stride_samples)) if sc.n_stride_samples else nan,
+        "rmse_outside": float(np.sqrt(sc.outside_sq_err_sum / sc.n_outside_samples)) if sc.n_outside_samples
+        else nan,
         "non_gait_strides": float(sc.n_non_gait),
         "implausible_share": sc.n_implausible / sc.n_samples if sc.n_samples else nan,
         "hs_ms": 1000 * float(np.mean(np.abs(sc.hs_err_s))) if sc.hs_err_s else nan,

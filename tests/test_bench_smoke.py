@@ -165,7 +165,8 @@ def test_robustness_quick_cli_prints_axis_tables() -> None:
         lo, hi = (float(x) for x in r[6].rstrip(" ✗").split(" .. "))
         assert lo <= float(r[5].split()[0]) <= hi  # peak LoA brackets the bias
         assert 0.0 < float(r[9].split()[0]) < 20.0  # RMSE inside strides
-        assert r[11].rstrip(" ✗").endswith("%")
+        assert float(r[10]) >= 0.0  # RMSE outside gait
+        assert r[12].rstrip(" ✗").endswith("%")
     labels = _table(out.stdout, "labels")
     assert [r[0] for r in labels] == ["legs swapped (all four)", "thighs swapped between legs"]
     assert all("legs out" in r[-1] for r in labels)
@@ -182,11 +183,13 @@ def test_robustness_cases_change_one_assumption() -> None:
             changed = {f.name for f in dataclasses.fields(cfg) if getattr(cfg, f.name) != getattr(base, f.name)}
             assert changed <= set(value.overrides), (name, value.label, changed)
     s = {"n_true": 10.0, "recall": 0.94, "precision": 0.99, "coverage": 0.9, "peak_bias": 1.6, "peak_lo": -1.0,
-         "peak_hi": 3.0, "rom_bias": 0.0, "rom_lo": -1.0, "rom_hi": 1.0, "rmse_strides": 3.1,
+         "peak_hi": 3.0, "rom_bias": 0.0, "rom_lo": -1.0, "rom_hi": 1.0, "rmse_strides": 3.1, "rmse_outside": 9.0,
          "non_gait_strides": 0.0, "implausible_share": 0.0}
     cells = _cells(format_row("x", s, AXES["rate"].values[0].targets))
     assert cells[2].endswith("✗") and not cells[3].endswith("✗")  # recall misses 0.95, precision meets 0.98
+    assert cells[4].endswith("✗")  # coverage 0.9 < 0.95
     assert cells[5].endswith("✗") and not cells[6].endswith("✗")  # bias misses 1.5, LoA inside +-3.5
-    assert cells[9].endswith("✗") and not cells[10].endswith("✗") and not cells[11].endswith("✗")
+    assert cells[9].endswith("✗") and not cells[10].endswith("✗")  # RMSE in strides misses; outside: no target
+    assert not cells[11].endswith("✗") and not cells[12].endswith("✗")
     ten = next(v for v in AXES["loss"].values if v.label == "10 %")
     assert not _cells(format_row("x", s, ten.targets))[2].endswith("✗")  # 0.9 at 10 % bursty loss
