@@ -1,6 +1,6 @@
 """Robustness sweep: perturb ONE simulator assumption at a time far beyond its default and score the pipeline.
 
-    python -m bench.robustness                   # REPORT seeds (100-104), every axis, ~6-8 min on 2 cores
+    python -m bench.robustness                   # REPORT seeds (100-104), every axis, ~3-4 min on 2 cores
     python -m bench.robustness --seeds tune      # TUNE seeds (0-4): tune on these, report on the others
     python -m bench.robustness --axes loss,labels --quick   # one seed, short sessions (smoke test)
 
