@@ -16,7 +16,9 @@ from pipeline.types import LegResult, StrideMetrics
 # the pipeline's own bridging limit: longer gaps are masked and no stride may span them
 MAX_BRIDGE_S = WALKING.prepare.max_bridge_s
 
+PLAUSIBLE_DEG = (-15.0, 160.0)  # a knee angle outside this cannot be true (issue targets)
 MATCH_TOL_S = 0.15  # both heel strikes of a detected stride within this of the true ones (and < 25 % of a stride)
+OUTSIDE_GAIT_MARGIN_S = 1.0  # gait initiation and termination around a bout's first and last heel strike
 
 
 @dataclass
@@ -34,9 +36,16 @@ class LegScore:
     to_err_s: list[float] = field(default_factory=list)
     sq_err_sum: float = 0.0
     n_samples: int = 0
+    stride_sq_err_sum: float = 0.0  # inside expected true strides only
+    n_stride_samples: int = 0
+    outside_sq_err_sum: float = 0.0  # farther than OUTSIDE_GAIT_MARGIN_S from every walking bout
+    n_outside_samples: int = 0
+    n_non_gait: int = 0  # detected strides overlapping a non-gait movement (sitting, jumps, stairs...)
+    n_implausible: int = 0  # finite angle samples outside PLAUSIBLE_DEG
 
     def add(self, other: LegScore) -> None:
-        for name in ("n_expected", "n_steady", "tp", "fp", "sq_err_sum", "n_samples"):
+        for name in ("n_expected", "n_steady", "tp", "fp", "sq_err_sum", "n_samples", "stride_sq_err_sum",
+                     "n_stride_samples", "outside_sq_err_sum", "n_outside_samples", "n_non_gait", "n_implausible"):
             setattr(self, name, getattr(self, name) + getattr(other, name))
         for name in ("peak_err", "rom_err", "min_err", "hs_err_s", "to_err_s"):
             getattr(self, name).extend(getattr(other, name))
@@ -83,7 +92,11 @@ def match_strides(detected: list[StrideMetrics], truth: list[TruthStride]) -> li
     return pairs
 
 
-def score_leg(res: LegResult | None, truth: LegTruth, gaps: list[tuple[float, float]]) -> LegScore:
+def score_leg(res: LegResult | None, truth: LegTruth, gaps: list[tuple[float, float]],
+              non_gait: list[tuple[str, float, float]] | None = None) -> LegScore:
+    """Match one leg's strides to the truth and collect errors. ``non_gait``: (kind, start, end) intervals of
+    movements that are not gait (``SimSession.info["non_gait_s"]``); a detected stride overlapping one counts in
+    ``n_non_gait``."""
     sc = LegScore()
     expected = [s.steady and not _overlaps(s.t_start_s, s.t_end_s, gaps) for s in truth.strides]
     sc.n_expected = int(sum(expected))
@@ -103,12 +116,34 @@ def score_leg(res: LegResult | None, truth: LegTruth, gaps: list[tuple[float, fl
         sc.hs_err_s.append(d.t_start_s - t.t_start_s)
         sc.to_err_s.append(d.t_toe_off_s - t.t_toe_off_s)
     sc.fp = len(res.strides) - len(matched_d)
+    sc.n_non_gait = sum(1 for d in res.strides
+                        if any(a < d.t_end_s and d.t_start_s < b for _, a, b in (non_gait or [])))
     angle = np.asarray(res.angle_deg, dtype=float)
+    t_s = np.asarray(res.t_s, dtype=float)
     ok = np.isfinite(angle)
     if ok.any():
-        err = angle[ok] - truth.angle_at(np.asarray(res.t_s)[ok])
+        err = angle[ok] - truth.angle_at(t_s[ok])
         sc.sq_err_sum = float(np.sum(err**2))
         sc.n_samples = int(ok.sum())
+        sc.n_implausible = int(np.sum((angle[ok] < PLAUSIBLE_DEG[0]) | (angle[ok] > PLAUSIBLE_DEG[1])))
+        inside = np.zeros(t_s.size, dtype=bool)
+        for s, exp in zip(truth.strides, expected, strict=True):
+            if exp:
+                inside[np.searchsorted(t_s, s.t_start_s):np.searchsorted(t_s, s.t_end_s, side="right")] = True
+        walking = np.zeros(t_s.size, dtype=bool)
+        for b0, b1 in truth.bouts_s:
+            walking[np.searchsorted(t_s, b0 - OUTSIDE_GAIT_MARGIN_S):
+                    np.searchsorted(t_s, b1 + OUTSIDE_GAIT_MARGIN_S, side="right")] = True
+        out = ~walking & ok
+        if out.any():
+            e = angle[out] - truth.angle_at(t_s[out])
+            sc.outside_sq_err_sum = float(np.sum(e**2))
+            sc.n_outside_samples = int(out.sum())
+        sel = inside & ok
+        if sel.any():
+            e = angle[sel] - truth.angle_at(t_s[sel])
+            sc.stride_sq_err_sum = float(np.sum(e**2))
+            sc.n_stride_samples = int(sel.sum())
     return sc
 
 
@@ -134,6 +169,11 @@ def summarise(sc: LegScore) -> dict[str, float]:
         "peak_bias": peak[0], "peak_lo": peak[1], "peak_hi": peak[2],
         "rom_bias": rom[0], "rom_lo": rom[1], "rom_hi": rom[2],
         "rmse": float(np.sqrt(sc.sq_err_sum / sc.n_samples)) if sc.n_samples else nan,
+        "rmse_strides": float(np.sqrt(sc.stride_sq_err_sum / sc.n_stride_samples)) if sc.n_stride_samples else nan,
+        "rmse_outside": float(np.sqrt(sc.outside_sq_err_sum / sc.n_outside_samples)) if sc.n_outside_samples
+        else nan,
+        "non_gait_strides": float(sc.n_non_gait),
+        "implausible_share": sc.n_implausible / sc.n_samples if sc.n_samples else nan,
         "hs_ms": 1000 * float(np.mean(np.abs(sc.hs_err_s))) if sc.hs_err_s else nan,
         "to_ms": 1000 * float(np.mean(np.abs(sc.to_err_s))) if sc.to_err_s else nan,
     }

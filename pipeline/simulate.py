@@ -22,6 +22,13 @@ the accelerometers, a small transient rotation on the shank gyro), soft-tissue w
 damped transient rotation and translation: it integrates back to zero, as real wobble does), packet loss (dropped
 BLE packets and longer outages), per-sensor start offset, timestamp sync error and clock drift.
 
+Robustness options (``SimConfig`` fields after ``acc_unit``; each default reproduces the model above bit for bit,
+and each new random effect draws from its own ``default_rng([seed, k])`` stream): the standing and seated knee
+angle, per-leg scaled or shifted knee curves, an absolute heel-strike shock in g, larger and off-axis lever arms,
+bursty packet loss (Gilbert-Elliott two-state channel per sensor), sharper and more frequent turns, non-gait
+movements between bouts (vertical jumps, step-ups onto a stair, sit-to-stand repetitions: never strides in the
+truth) and wrongly labelled sensors (legs or thigh/shank swapped).
+
 Pure numpy/scipy, seeded and deterministic.
 """
 
@@ -117,6 +124,24 @@ class SimConfig:
     acc_range_g: float | None = None
     gyro_unit: Literal["deg/s", "rad/s"] = "deg/s"
     acc_unit: Literal["m/s2", "g"] = "m/s2"
+    # --- robustness options: each default reproduces the behaviour above exactly ---
+    stand_knee_deg: float | None = None  # standing knee flexion of both legs (None: drawn from 2-6 deg)
+    stand_knee_right_extra_deg: float = 0.0  # the right knee stands this much more flexed than the left
+    sit_knee_deg: float = 90.0  # seated knee flexion (thigh horizontal)
+    knee_shift_deg: tuple[float, float] = (0.0, 0.0)  # (left, right) offset added to the gait knee curve
+    knee_scale: tuple[float, float] = (1.0, 1.0)  # (left, right) gait knee excursion above its minimum
+    # Peak heel-strike shock on the shank accelerometer in g (thigh: 0.3 x). None: impact_level, where 1 gives the
+    # pattern's default, a peak of 0.53 x _PatternSpec.impact_g (walking ~1.1 g, running ~3.2 g).
+    impact_g: float | None = None
+    lever_scale: float = 1.0  # multiplies every sensor's lever arm from the knee joint centre
+    lever_offaxis_m: float = 0.0  # extra anterior and lateral offset of every sensor from its segment's axis
+    loss_model: Literal["independent", "bursty"] = "independent"  # bursty: Gilbert-Elliott, mean = packet_loss
+    loss_burst_packets: float = 4.0  # bursty: mean number of packets per loss burst
+    turn_every_bouts: int = 2  # with walking_turns, every n-th bout turns
+    turns_per_bout: int = 1
+    turn_strides: float = 2.5  # duration of a walking turn in strides (smaller = sharper)
+    turn_angle_deg: float = 180.0
+    label_swap: Literal["none", "legs", "thighs", "segments", "left_segments"] = "none"  # wrongly labelled sensors
 
 
 @dataclass(frozen=True)
@@ -144,6 +169,7 @@ class LegTruth:
     toe_offs_s: np.ndarray
     strides: list[TruthStride]
     bouts_s: list[tuple[float, float]]  # walking bouts (first to last heel strike)
+    stand_knee_deg: float = float("nan")  # quiet-standing knee flexion of this leg (before sway)
 
     def angle_at(self, t_s: np.ndarray) -> np.ndarray:
         return np.interp(t_s, self.t_s, self.angle_deg)
@@ -196,6 +222,18 @@ class _Bout:
 
 
 @dataclass
+class _Moves:
+    """Non-gait movements between bouts: knee/hip offsets per leg (deg) and pelvis height offset (m) on the grid,
+    landing times (a shock like a heel strike), and every non-gait interval (kind, start, end) incl. sitting."""
+
+    knee: dict[str, np.ndarray] = field(default_factory=dict)
+    hip: dict[str, np.ndarray] = field(default_factory=dict)
+    height: np.ndarray | None = None
+    landings_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    non_gait_s: list[tuple[str, float, float]] = field(default_factory=list)
+
+
+@dataclass
 class _Timeline:
     t: np.ndarray
     env: np.ndarray  # gait amplitude 0..1
@@ -203,6 +241,51 @@ class _Timeline:
     sit: np.ndarray  # 0 standing .. 1 sitting
     heading_rad: np.ndarray
     bouts: list[_Bout]
+    moves: _Moves = field(default_factory=_Moves)
+
+
+# Keyframes of non-gait movements: (time s, knee deg, hip deg, pelvis height m) relative to quiet standing.
+# Countermovement vertical jump: squat (shank tilted ~30 deg forward: knee = hip + ankle dorsiflexion), push-off,
+# ~0.25 m flight, landing with flexion, recovery.
+_JUMP = np.array([(0.0, 0, 0, 0.0), (0.6, 85, 55, -0.25), (0.9, -2, 0, 0.08), (1.15, 12, 8, 0.32),
+                  (1.4, 0, 0, 0.06), (1.6, 60, 40, -0.15), (2.4, 0, 0, 0.0)])
+_JUMP_LANDING_S = 1.4
+# Step up onto a 17 cm stair and back down (lead leg up, trail up, lead down, trail down): columns
+# (time s, lead knee, lead hip, trail knee, trail hip, pelvis height m).
+_STEP = np.array([(0.0, 0, 0, 0, 0, 0.0), (0.5, 90, 65, 0, 0, 0.0), (0.8, 65, 50, 5, -5, 0.0),
+                  (1.5, 5, 5, 60, 30, 0.17), (2.0, 0, 0, 0, 0, 0.17), (2.6, 25, -5, 45, 30, 0.05),
+                  (3.0, 5, 0, 50, 35, -0.02), (3.4, 5, 0, 40, 25, 0.0), (3.9, 0, 0, 0, 0, 0.0)])
+_MOVE_REPS = 3
+_IMPACT_FREQ_HZ, _IMPACT_TAU_S = 28.0, 0.012  # heel-strike shock: damped sine on the accelerometers
+# With an absolute impact_g, the shank sensor's transient rotation grows with the shock up to running's default.
+_IMPACT_ROT_MAX_DEG = 3.0
+
+
+def _damped_sine_peak(freq_hz: float, tau_s: float) -> float:
+    """Peak of exp(-u/tau) sin(2 pi f u) over u >= 0 (at tan(w u) = w tau)."""
+    w = 2 * np.pi * freq_hz
+    u = np.arctan(w * tau_s) / w
+    return float(np.exp(-u / tau_s) * np.sin(w * u))
+
+
+def _keyframes(grid: np.ndarray, t0: float, frames: np.ndarray) -> np.ndarray:
+    """Columns 1.. of ``frames`` interpolated by quintic smoothsteps between keyframes (C2, rest at each one);
+    zero outside the movement."""
+    out = np.zeros((len(grid), frames.shape[1] - 1))
+    ts = t0 + frames[:, 0]
+    for i in range(len(frames) - 1):
+        seg = (grid >= ts[i]) & (grid < ts[i + 1])
+        u = _smoothstep((grid[seg] - ts[i]) / (ts[i + 1] - ts[i]))
+        out[seg] = frames[i, 1:] + (frames[i + 1, 1:] - frames[i, 1:]) * u[:, None]
+    return out
+
+
+def _move_duration_s(kind: str) -> float:
+    if kind == "jump":
+        return _MOVE_REPS * (_JUMP[-1, 0] + 1.0)
+    if kind == "stairs":
+        return _MOVE_REPS * (_STEP[-1, 0] + 0.8)
+    return _MOVE_REPS * (1.5 + 2.5 + 1.5 + 2.0)  # sit_to_stand: down, seated, up, standing
 
 
 def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator) -> _Timeline:
@@ -221,7 +304,8 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
         if n < 3:
             break
         dur = n * stride_s
-        events.append(("walk", t, t + dur, {"turn": cfg.walking_turns and k % 2 == 1 and n >= 8}))
+        turn = cfg.walking_turns and k % cfg.turn_every_bouts == cfg.turn_every_bouts - 1 and n >= 8
+        events.append(("walk", t, t + dur, {"turn": turn}))
         t += dur
         done += n
         if total_strides is not None and done >= total_strides:
@@ -231,12 +315,21 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
         kind = cfg.activities[k % len(cfg.activities)] if cfg.activities else "standing"
         sit_s = rng.uniform(8, 15)
         brk = {"sitting": 5.5 + sit_s, "turn": 5.0}.get(kind, rng.uniform(4, 8))
+        if kind in ("jump", "stairs", "sit_to_stand"):
+            brk = _move_duration_s(kind) + 3.0
         if cfg.duration_s is not None and t + brk + 3 * stride_s + 3 > cfg.duration_s:
             break
         if kind == "sitting":
             events.append(("sit", t + 1.0, t + 1.0 + 2.0 + sit_s + 2.0, {}))
         elif kind == "turn":
             events.append(("turn", t + 1.0, t + 3.5, {"angle": np.pi * rng.choice([-1, 1]) * rng.uniform(0.5, 1)}))
+        elif kind == "sit_to_stand":
+            rep_s = _move_duration_s(kind) / _MOVE_REPS
+            for r in range(_MOVE_REPS):
+                t_r = t + 1.0 + r * rep_s
+                events.append(("sit", t_r, t_r + 1.5 + 2.5 + 1.5, {"ramp": 1.5}))
+        elif kind in ("jump", "stairs"):
+            events.append((kind, t + 1.0, t + 1.0 + _move_duration_s(kind), {"lead": k % 2}))
         t += brk
         k += 1
     t_end = max(t + 2.5, cfg.duration_s or 0.0)
@@ -246,6 +339,7 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
     heading = np.zeros_like(grid)
     freq = np.zeros_like(grid)
     bouts: list[_Bout] = []
+    moves = _Moves()
     for kind, t0, t1, p in events:
         if kind == "walk":
             # Gait initiation/termination: amplitude ramps over the first and last stride.
@@ -259,12 +353,22 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
             freq[inside] = CubicSpline(knots, per)(grid[inside])
             bouts.append(_Bout(t0, t1, bool(p["turn"])))
             if p["turn"]:
-                mid = 0.5 * (t0 + t1)
-                heading += np.pi * _smoothstep((grid - mid + 1.25 * stride_s) / (2.5 * stride_s))
+                n_turns = max(1, cfg.turns_per_bout)
+                mids = [0.5 * (t0 + t1)] if n_turns == 1 else \
+                    [t0 + (i + 1) / (n_turns + 1) * (t1 - t0) for i in range(n_turns)]
+                ts = cfg.turn_strides
+                for i, mid in enumerate(mids):
+                    sign = 1.0 if i % 2 == 0 else -1.0  # several turns per bout: alternate, like a slalom
+                    heading += sign * np.pi * (cfg.turn_angle_deg / 180.0) * _smoothstep(
+                        (grid - mid + 0.5 * ts * stride_s) / (ts * stride_s))
         elif kind == "sit":
-            down = _smoothstep((grid - t0) / 2.0)
-            up = _smoothstep((grid - (t1 - 2.0)) / 2.0)
+            ramp = p.get("ramp", 2.0)
+            down = _smoothstep((grid - t0) / ramp)
+            up = _smoothstep((grid - (t1 - ramp)) / ramp)
             sit += down - up
+            moves.non_gait_s.append(("sit", t0, t1))
+        elif kind in ("jump", "stairs"):
+            _add_moves(moves, grid, kind, t0, p["lead"], cfg.legs)
         elif kind == "turn":
             heading += p["angle"] * _smoothstep((grid - t0) / (t1 - t0))
     phase = np.concatenate([[0.0], np.cumsum(0.5 * (freq[1:] + freq[:-1]) / _GRID_HZ)])
@@ -275,7 +379,35 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
         frac = phase[i0] - np.floor(phase[i0])
         phase[i0:] += (1 - frac) % 1
         del i1
-    return _Timeline(grid, env, phase, sit, heading, bouts)
+    return _Timeline(grid, env, phase, sit, heading, bouts, moves)
+
+
+def _add_moves(mv: _Moves, grid: np.ndarray, kind: str, t0: float, lead: int, legs: tuple[str, ...]) -> None:
+    """Add ``_MOVE_REPS`` jumps or step-ups starting at t0 to the movement layers ``mv``."""
+    if mv.height is None:
+        mv.height = np.zeros_like(grid)
+        for leg in legs:
+            mv.knee[leg] = np.zeros_like(grid)
+            mv.hip[leg] = np.zeros_like(grid)
+    rep_s = _move_duration_s(kind) / _MOVE_REPS
+    for r in range(_MOVE_REPS):
+        t_r = t0 + r * rep_s
+        if kind == "jump":
+            kf = _keyframes(grid, t_r, _JUMP)
+            for leg in legs:
+                mv.knee[leg] += kf[:, 0]
+                mv.hip[leg] += kf[:, 1]
+            mv.height += kf[:, 2]
+            mv.landings_s = np.append(mv.landings_s, t_r + _JUMP_LANDING_S)
+        else:
+            kf = _keyframes(grid, t_r, _STEP)
+            lead_leg = ("left", "right")[(lead + r) % 2]  # alternate the lead leg
+            for leg in legs:
+                c = 0 if leg == lead_leg else 2
+                mv.knee[leg] += kf[:, c]
+                mv.hip[leg] += kf[:, c + 1]
+            mv.height += kf[:, 4]
+    mv.non_gait_s.append((kind, t0, t0 + _move_duration_s(kind)))
 
 
 def _smooth_noise(rng: np.random.Generator, t: np.ndarray, sd: float, corr_s: float) -> np.ndarray:
@@ -466,11 +598,34 @@ def _sample_times(rng: np.random.Generator, cfg: SimConfig, fs: float, t_end: fl
     return t_true, t_rep, {"drift_ppm": drift * 1e6, "sync_offset_ms": sync * 1e3, "start_s": start}
 
 
-def _keep_mask(rng: np.random.Generator, cfg: SimConfig, fs: float, n: int) -> np.ndarray:
+def gilbert_elliott_losses(rng: np.random.Generator, n_packets: int, mean_loss: float,
+                           burst_packets: float) -> np.ndarray:
+    """Lost packets (bool per packet) of a two-state Gilbert-Elliott channel (Gilbert 1960, Elliott 1963) with
+    every packet lost in the bad state and none in the good one: bad-to-good probability r = 1 / burst_packets
+    (geometric bursts of that mean length), good-to-bad p = r L / (1 - L) so the stationary loss is L."""
+    lost = np.zeros(n_packets, dtype=bool)
+    if mean_loss <= 0 or n_packets == 0:
+        return lost
+    r = 1.0 / max(1.0, burst_packets)
+    p = min(1.0, r * mean_loss / (1.0 - min(mean_loss, 0.99)))
+    u = rng.random(n_packets)
+    bad = rng.random() < mean_loss  # start in the stationary distribution
+    for i in range(n_packets):
+        lost[i] = bad
+        bad = (u[i] >= r) if bad else (u[i] < p)
+    return lost
+
+
+def _keep_mask(rng: np.random.Generator, cfg: SimConfig, fs: float, n: int,
+               rng_burst: np.random.Generator | None = None) -> np.ndarray:
     keep = np.ones(n, dtype=bool)
     ps = max(1, cfg.packet_samples)
     n_packets = -(-n // ps)
-    lost = np.nonzero(rng.random(n_packets) < cfg.packet_loss)[0]
+    if cfg.loss_model == "bursty":
+        lost = np.nonzero(gilbert_elliott_losses(rng_burst or rng, n_packets, cfg.packet_loss,
+                                                 cfg.loss_burst_packets))[0]
+    else:
+        lost = np.nonzero(rng.random(n_packets) < cfg.packet_loss)[0]
     for p in lost:
         keep[p * ps:(p + 1) * ps] = False
     dur_min = n / fs / 60
@@ -479,6 +634,18 @@ def _keep_mask(rng: np.random.Generator, cfg: SimConfig, fs: float, n: int) -> n
         keep[i0: i0 + int(rng.uniform(0.3, 2.0) * fs)] = False
     keep[:ps] = True  # the first packet always arrives: it anchors the stream
     return keep
+
+
+def _label(cfg: SimConfig, leg: str, seg: str) -> tuple[str, str]:
+    """The (leg, segment) label the app gives a sensor physically on ``leg``/``seg`` (cfg.label_swap)."""
+    other_leg = {"left": "right", "right": "left"}[leg]
+    other_seg = {"thigh": "shank", "shank": "thigh"}[seg]
+    swap = cfg.label_swap
+    if swap == "legs" or (swap == "thighs" and seg == "thigh"):
+        return other_leg, seg
+    if swap == "segments" or (swap == "left_segments" and leg == "left"):
+        return leg, other_seg
+    return leg, seg
 
 
 def _mounting(rng: np.random.Generator, cfg: SimConfig, leg: str, seg: str, left_mounts: dict) -> np.ndarray:
@@ -515,12 +682,17 @@ def simulate_session(cfg: SimConfig) -> SimSession:
 
     # Posture between bouts: standing with slight sway, sitting at hip 90 / knee 90 deg.
     stand_knee = rng.uniform(2, 6)
+    if cfg.stand_knee_deg is not None:
+        stand_knee = float(cfg.stand_knee_deg)
     stand_hip = rng.uniform(0, 5)
     heading = tl.heading_rad + _smooth_noise(rng, t, np.radians(1.0), 2.0)
+    height = tl.env * spec.bob_m * np.cos(4 * np.pi * tl.phase) - 0.45 * tl.sit
+    if tl.moves.height is not None:
+        height = height + tl.moves.height
     body = _BodySplines(
         heading=make_interp_spline(t, heading, k=5),
         speed=make_interp_spline(t, tl.env * spec.speed_ms * (1 + 0.06 * np.cos(4 * np.pi * tl.phase)), k=5),
-        height=make_interp_spline(t, tl.env * spec.bob_m * np.cos(4 * np.pi * tl.phase) - 0.45 * tl.sit, k=5),
+        height=make_interp_spline(t, height, k=5),
     )
 
     legs: dict[str, _LegSplines] = {}
@@ -534,23 +706,35 @@ def simulate_session(cfg: SimConfig) -> SimSession:
         amp = subj_knee * (1 + _per_stride_signal(rng, phase, 0.025 * var))
         off = _per_stride_signal(rng, phase, 0.6 * var)
         gait_knee = s_min + amp * (s_knee - s_min) + off
+        i_leg = 0 if leg == "left" else 1
+        if cfg.knee_scale[i_leg] != 1.0 or cfg.knee_shift_deg[i_leg] != 0.0:
+            gait_knee = s_min + cfg.knee_scale[i_leg] * amp * (s_knee - s_min) + off + cfg.knee_shift_deg[i_leg]
+        leg_stand = stand_knee + cfg.stand_knee_right_extra_deg if leg == "right" else stand_knee
         gait_hip = subj_hip * _eval_fourier(hip_c, phase % 1.0) * (1 + _per_stride_signal(rng, phase, 0.03 * var))
         sway_k = _smooth_noise(rng, t, 0.7, 1.5)
         sway_h = _smooth_noise(rng, t, 0.7, 1.5)
-        post_knee = (1 - tl.sit) * (stand_knee + sway_k) + tl.sit * (90.0 + sway_k)
+        post_knee = (1 - tl.sit) * (leg_stand + sway_k) + tl.sit * (cfg.sit_knee_deg + sway_k)
         post_hip = (1 - tl.sit) * (stand_hip + sway_h) + tl.sit * (88.0 + sway_h)
         knee = tl.env * gait_knee + (1 - tl.env) * post_knee
         hip = tl.env * gait_hip + (1 - tl.env) * post_hip
+        if tl.moves.height is not None:
+            knee = knee + tl.moves.knee[leg]
+            hip = hip + tl.moves.hip[leg]
         thigh = make_interp_spline(t, np.radians(hip), k=5)
         shank = make_interp_spline(t, np.radians(hip - knee), k=5)
         legs[leg] = _LegSplines(thigh, shank)
         knee_true = np.degrees(thigh(t) - shank(t))
         truth[leg] = _leg_truth(leg, tl, knee_true, phase, spec.stance_frac)
+        truth[leg].stand_knee_deg = float(leg_stand)
 
     thigh_len = rng.uniform(0.38, 0.46)
     half_width = rng.uniform(0.08, 0.11)
     streams: list[RawSensorStream] = []
-    info: dict = {"sensors": {}, "thigh_length_m": thigh_len}
+    info: dict = {"sensors": {}, "thigh_length_m": thigh_len, "non_gait_s": list(tl.moves.non_gait_s)}
+    impact_level = cfg.impact_level
+    if cfg.impact_g is not None:  # the damped sine's peak, not its amplitude, is the shock in g
+        impact_level = cfg.impact_g / (spec.impact_g * _damped_sine_peak(_IMPACT_FREQ_HZ, _IMPACT_TAU_S))
+    rng_burst = np.random.default_rng([cfg.seed, 3])
     left_mounts: dict[str, np.ndarray] = {}
     # Mountings draw from their own stream so "aligned" and "random" share identical kinematics and noise.
     rng_mount = np.random.default_rng([cfg.seed, 1])
@@ -560,6 +744,8 @@ def simulate_session(cfg: SimConfig) -> SimSession:
     for leg in cfg.legs:
         side = 1.0 if leg == "left" else -1.0  # +y is lateral for the left leg
         hs = truth[leg].heel_strikes_s
+        if tl.moves.landings_s.size:
+            hs = np.sort(np.concatenate([hs, tl.moves.landings_s]))  # a jump landing shocks like a heel strike
         for seg in ("thigh", "shank"):
             r_mount = _mounting(rng_mount, cfg, leg, seg, left_mounts)
             if seg == "thigh":
@@ -567,6 +753,8 @@ def simulate_session(cfg: SimConfig) -> SimSession:
             else:
                 lever = np.array([rng.uniform(-0.02, 0.05), side * rng.uniform(0.04, 0.07),
                                   -rng.uniform(0.08, 0.22)])
+            if cfg.lever_scale != 1.0 or cfg.lever_offaxis_m != 0.0:
+                lever = cfg.lever_scale * lever + cfg.lever_offaxis_m * np.array([1.0, side, 0.0])
             fs = cfg.shank_fs_hz if seg == "shank" and cfg.shank_fs_hz else cfg.fs_hz
             t_true, t_rep, clock = _sample_times(rng, cfg, fs, t[-1])
             m = len(t_true)
@@ -588,12 +776,14 @@ def simulate_session(cfg: SimConfig) -> SimSession:
             # Its angle returns to zero, so the integrated gyro keeps the true orientation on average.
             if seg == "thigh":
                 rot_amp, rot_f, rot_tau = np.radians(0.8) * cfg.wobble_level, 11.0, 0.06
-                tr_amp, imp_g = 0.0015 * cfg.wobble_level, 0.3 * spec.impact_g * cfg.impact_level
+                tr_amp, imp_g = 0.0015 * cfg.wobble_level, 0.3 * spec.impact_g * impact_level
             else:
                 # Heel contact arrests the shank's forward swing: a sharp backward rotation in the sagittal plane
                 # right at heel strike, then a rebound (real shank gyro: local minimum ~10 ms after HS).
-                rot_amp, rot_f, rot_tau = np.radians(0.5 * spec.impact_g) * cfg.impact_level, 12.0, 0.03
-                tr_amp, imp_g = 0.0, spec.impact_g * cfg.impact_level
+                rot_amp, rot_f, rot_tau = np.radians(0.5 * spec.impact_g) * impact_level, 12.0, 0.03
+                if cfg.impact_g is not None:  # skin and strap limit the sensor's rocking whatever the shock
+                    rot_amp = min(rot_amp, np.radians(_IMPACT_ROT_MAX_DEG))
+                tr_amp, imp_g = 0.0, spec.impact_g * impact_level
             axis = rng.standard_normal(3)
             axis /= np.linalg.norm(axis)
             if seg == "shank":
@@ -611,7 +801,7 @@ def simulate_session(cfg: SimConfig) -> SimSession:
                 # Heel-strike shock travels up the segment (mostly along its long axis, some anterior).
                 d_seg = np.array([rng.uniform(0.1, 0.4), 0.0, 1.0])
                 d_sensor = r_mount.T @ (d_seg / np.linalg.norm(d_seg))
-                acc += _transient(t_true, hs, imp_g * GRAVITY_MS2, 28.0, 0.012)[:, None] * d_sensor
+                acc += _transient(t_true, hs, imp_g * GRAVITY_MS2, _IMPACT_FREQ_HZ, _IMPACT_TAU_S)[:, None] * d_sensor
 
             gbias = np.radians(cfg.gyro_bias_dps) * rng.standard_normal(3)
             gwalk = np.stack([_smooth_noise(rng, t_true, np.radians(cfg.gyro_bias_walk_dps), 20.0)
@@ -624,10 +814,11 @@ def simulate_session(cfg: SimConfig) -> SimSession:
                 gyr = np.clip(gyr, -np.radians(cfg.gyro_range_dps), np.radians(cfg.gyro_range_dps))
             if cfg.acc_range_g:
                 acc = np.clip(acc, -cfg.acc_range_g * GRAVITY_MS2, cfg.acc_range_g * GRAVITY_MS2)
-            keep = _keep_mask(rng_loss, cfg, fs, m)
+            keep = _keep_mask(rng_loss, cfg, fs, m, rng_burst)
             sid = f"{leg[0].upper()}-{seg}"
+            label_leg, label_seg = _label(cfg, leg, seg)
             streams.append(RawSensorStream(
-                sensor_id=sid, leg=leg, segment=seg, fs_hz=float(fs), t_s=t_rep[keep],
+                sensor_id=sid, leg=label_leg, segment=label_seg, fs_hz=float(fs), t_s=t_rep[keep],
                 gyr=np.degrees(gyr[keep]) * gyro_scale, acc=acc[keep] * acc_scale,
                 gyro_unit=cfg.gyro_unit, acc_unit=cfg.acc_unit))
             info["sensors"][sid] = {"mounting": r_mount.tolist(), "lever_arm_m": lever.tolist(),

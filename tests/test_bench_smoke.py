@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import subprocess
 import sys
@@ -135,3 +136,60 @@ def test_ingest_bench_uploads_through_a_real_server(capsys: pytest.CaptureFixtur
     assert float(rows["throughput"].split()[0]) > 0
     done = rows["complete -> all 1 sessions done"]  # e.g. "0.9 s (12 strides)"
     assert int(done.split("(")[1].split()[0]) > 0
+
+
+def _table(stdout: str, axis: str) -> list[list[str]]:
+    """The data rows of one axis table of bench.robustness."""
+    lines = stdout.splitlines()
+    start = next(i for i, x in enumerate(lines) if x.startswith("### ") and f"(`{axis}`)" in x)
+    rows = []
+    for line in lines[start + 1:]:
+        if line.startswith("### ") or line.startswith("## "):
+            break
+        if line.startswith("| ") and not line.startswith("| value"):
+            rows.append(_cells(line))
+    return rows
+
+
+def test_robustness_quick_cli_prints_axis_tables() -> None:
+    out = subprocess.run([sys.executable, "-m", "bench.robustness", "--quick", "--axes", "loss,labels", "--no-real",
+                          "--jobs", "1"], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "[4/4]" in out.stderr
+    loss = _table(out.stdout, "loss")
+    assert [r[0] for r in loss] == ["0 %", "1 %"]
+    for r in loss:
+        assert int(r[1]) > 10  # true strides
+        recall, precision, coverage = (float(c.split()[0]) for c in r[2:5])
+        assert 0.5 <= recall <= 1.0 and 0.5 <= precision <= 1.0 and 0.0 < coverage <= 1.0
+        lo, hi = (float(x) for x in r[6].rstrip(" ✗").split(" .. "))
+        assert lo <= float(r[5].split()[0]) <= hi  # peak LoA brackets the bias
+        assert 0.0 < float(r[9].split()[0]) < 20.0  # RMSE inside strides
+        assert float(r[10]) >= 0.0  # RMSE outside gait
+        assert r[12].rstrip(" ✗").endswith("%")
+    labels = _table(out.stdout, "labels")
+    assert [r[0] for r in labels] == ["legs swapped (all four)", "thighs swapped between legs"]
+    assert all("legs out" in r[-1] for r in labels)
+    assert float(labels[0][2].split()[0]) < 0.5  # scored against the labelled leg, the other leg's strides miss
+
+
+def test_robustness_cases_change_one_assumption() -> None:
+    from bench.robustness import AXES, Case, case_config, format_row
+
+    base = case_config(Case("rate", 2, 7, 90.0))  # "100 Hz": the base case itself
+    for name, axis in AXES.items():
+        for i, value in enumerate(axis.values):
+            cfg = case_config(Case(name, i, 7, 90.0))
+            changed = {f.name for f in dataclasses.fields(cfg) if getattr(cfg, f.name) != getattr(base, f.name)}
+            assert changed <= set(value.overrides), (name, value.label, changed)
+    s = {"n_true": 10.0, "recall": 0.94, "precision": 0.99, "coverage": 0.9, "peak_bias": 1.6, "peak_lo": -1.0,
+         "peak_hi": 3.0, "rom_bias": 0.0, "rom_lo": -1.0, "rom_hi": 1.0, "rmse_strides": 3.1, "rmse_outside": 9.0,
+         "non_gait_strides": 0.0, "implausible_share": 0.0}
+    cells = _cells(format_row("x", s, AXES["rate"].values[0].targets))
+    assert cells[2].endswith("✗") and not cells[3].endswith("✗")  # recall misses 0.95, precision meets 0.98
+    assert cells[4].endswith("✗")  # coverage 0.9 < 0.95
+    assert cells[5].endswith("✗") and not cells[6].endswith("✗")  # bias misses 1.5, LoA inside +-3.5
+    assert cells[9].endswith("✗") and not cells[10].endswith("✗")  # RMSE in strides misses; outside: no target
+    assert not cells[11].endswith("✗") and not cells[12].endswith("✗")
+    ten = next(v for v in AXES["loss"].values if v.label == "10 %")
+    assert not _cells(format_row("x", s, ten.targets))[2].endswith("✗")  # 0.9 at 10 % bursty loss

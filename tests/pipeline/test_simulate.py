@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pipeline.simulate import GRAVITY_MS2, SimConfig, SimSession, simulate_session
+from pipeline.simulate import GRAVITY_MS2, SimConfig, SimSession, gilbert_elliott_losses, simulate_session
 
 CLEAN = dict(gyro_noise_dps=0.0, gyro_bias_dps=0.0, gyro_bias_walk_dps=0.0, acc_noise_ms2=0.0, acc_bias_ms2=0.0,
              impact_level=0.0, wobble_level=0.0, packet_loss=0.0, outages_per_min=0.0, sync_offset_ms=0.0,
@@ -222,3 +222,138 @@ def test_saturation_and_a_shank_at_another_rate() -> None:
         assert np.median(np.diff(s.t_s)) == pytest.approx(1 / expected_fs, rel=1e-3)
     assert np.abs(_stream(free, "L-shank").gyr).max() > 300.0  # so the clip did something
     assert np.mean(np.abs(_stream(sim, "L-shank").gyr) >= 250.0 - 1e-9) > 0.001
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Robustness options (bench/robustness.py): each changes one modelling assumption
+
+
+def _quiet(sim: SimSession, leg: str) -> np.ndarray:
+    """True knee angle during the quiet standing before the first bout."""
+    tr = sim.truth[leg]
+    return tr.angle_deg[(tr.t_s > 0.3) & (tr.t_s < tr.bouts_s[0][0] - 0.8)]
+
+
+def test_standing_and_seated_flexion_appear_in_the_truth() -> None:
+    sim = simulate_session(SimConfig(seed=21, n_strides=16, bout_strides=8, activities=("sitting",),
+                                     stand_knee_deg=12.0, stand_knee_right_extra_deg=5.0, sit_knee_deg=70.0, **CLEAN))
+    assert np.mean(_quiet(sim, "left")) == pytest.approx(12.0, abs=1.5)
+    assert np.mean(_quiet(sim, "right")) == pytest.approx(17.0, abs=1.5)
+    assert (sim.truth["left"].stand_knee_deg, sim.truth["right"].stand_knee_deg) == (12.0, 17.0)
+    sits = [(a, b) for kind, a, b in sim.info["non_gait_s"] if kind == "sit"]
+    assert sits
+    for leg in ("left", "right"):
+        assert sim.truth[leg].angle_at(np.array([0.5 * (sits[0][0] + sits[0][1])]))[0] == pytest.approx(70, abs=2.5)
+    default = simulate_session(SimConfig(seed=21, n_strides=16, bout_strides=8, activities=("sitting",), **CLEAN))
+    assert 1.0 < np.mean(_quiet(default, "left")) < 7.0  # drawn from 2-6 deg
+
+
+def test_knee_curves_shift_and_scale_per_leg() -> None:
+    base = SimConfig(seed=22, n_strides=16, bout_strides=8, **CLEAN)
+    ref = simulate_session(base)
+    mod = simulate_session(dataclasses.replace(base, knee_shift_deg=(-3.0, 4.0), knee_scale=(1.0, 1.2)))
+    for leg, shift in (("left", -3.0), ("right", 4.0)):
+        pairs = [(a, b) for a, b in zip(ref.truth[leg].strides, mod.truth[leg].strides, strict=True) if a.steady]
+        assert len(pairs) >= 8
+        mins = np.array([b.min_flexion_deg - a.min_flexion_deg for a, b in pairs])
+        assert np.allclose(mins, shift, atol=0.3)  # the scale acts above the curve's minimum
+        ratio = np.median([b.rom_deg / a.rom_deg for a, b in pairs])
+        assert ratio == pytest.approx(1.0 if leg == "left" else 1.2, abs=0.03)
+
+
+def test_impact_g_is_the_peak_shock_on_the_shank() -> None:
+    base = SimConfig(seed=23, n_strides=6, fs_hz=1000.0, **CLEAN)
+    five = simulate_session(dataclasses.replace(base, impact_g=5.0))
+    ten = simulate_session(dataclasses.replace(base, impact_g=10.0))
+    # same random draws and the same (capped) transient rotation: the difference is 5 g of shock exactly
+    for sid, g in (("L-shank", 5.0), ("R-shank", 5.0), ("L-thigh", 1.5)):
+        diff = np.linalg.norm(_stream(ten, sid).acc - _stream(five, sid).acc, axis=1) / GRAVITY_MS2
+        assert 0.97 * g < diff.max() <= 1.001 * g, sid
+        n_hs = len(five.truth[sid[0].replace("L", "left").replace("R", "right")].heel_strikes_s)
+        assert np.sum((diff[1:] > 0.5 * g) & (diff[:-1] <= 0.5 * g)) >= n_hs - 1  # one shock per heel strike
+
+
+def test_lever_arms_scale_and_move_off_axis() -> None:
+    base = SimConfig(seed=24, n_strides=4)
+    ref = simulate_session(base).info["sensors"]
+    mod = simulate_session(dataclasses.replace(base, lever_scale=2.0, lever_offaxis_m=0.05)).info["sensors"]
+    for sid, meta in ref.items():
+        side = 1.0 if sid.startswith("L") else -1.0
+        expected = 2.0 * np.array(meta["lever_arm_m"]) + np.array([0.05, 0.05 * side, 0.0])
+        assert np.allclose(mod[sid]["lever_arm_m"], expected)
+
+
+def _runs(lost: np.ndarray) -> np.ndarray:
+    edges = np.diff(np.concatenate([[0], lost.astype(int), [0]]))
+    return np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+
+
+def test_gilbert_elliott_loss_has_the_requested_mean_and_bursts() -> None:
+    rng = np.random.default_rng(0)
+    lost = gilbert_elliott_losses(rng, 200_000, 0.05, 4.0)
+    assert lost.mean() == pytest.approx(0.05, abs=0.004)
+    assert _runs(lost).mean() == pytest.approx(4.0, rel=0.08)
+    independent = rng.random(200_000) < 0.05
+    assert _runs(independent).mean() < 1.1  # the contrast: independent loss hardly ever loses two in a row
+    assert not gilbert_elliott_losses(rng, 1000, 0.0, 4.0).any()
+
+
+def test_bursty_loss_in_a_session_is_independent_per_sensor() -> None:
+    base = SimConfig(seed=25, duration_s=150, packet_samples=5, outages_per_min=0.0)
+    sim = simulate_session(dataclasses.replace(base, loss_model="bursty", packet_loss=0.08, loss_burst_packets=5))
+    dropped = []
+    for s in sim.streams:
+        n_lost = sim.info["sensors"][s.sensor_id]["dropped"]
+        dropped.append(n_lost)
+        assert 0.04 < n_lost / (n_lost + len(s.t_s)) < 0.13
+        holes = np.diff(s.t_s)[np.diff(s.t_s) > 1.5 / s.fs_hz]
+        assert np.median(holes) > 3 * 5 / s.fs_hz  # bursts of packets, not single packets
+    assert len(set(dropped)) == len(dropped)
+
+
+def test_non_gait_movements_are_never_strides() -> None:
+    sim = simulate_session(SimConfig(seed=26, duration_s=150, bout_strides=8,
+                                     activities=("jump", "stairs", "sit_to_stand")))
+    kinds = [k for k, _, _ in sim.info["non_gait_s"]]
+    assert {"jump", "stairs", "sit"} <= set(kinds) and kinds.count("sit") >= 3
+    for leg, tr in sim.truth.items():
+        for _, a, b in sim.info["non_gait_s"]:
+            assert not any(s.t_start_s < b and s.t_end_s > a for s in tr.strides)
+            assert not np.any((tr.heel_strikes_s > a) & (tr.heel_strikes_s < b))
+        jump = next((a, b) for k, a, b in sim.info["non_gait_s"] if k == "jump")
+        inside = (tr.t_s >= jump[0]) & (tr.t_s <= jump[1])
+        assert tr.angle_deg[inside].max() > 60  # the knee really moves: a deep countermovement
+        shank = _stream(sim, f"{leg[0].upper()}-shank")
+        sel = (shank.t_s >= jump[0]) & (shank.t_s <= jump[1])
+        assert np.abs(shank.gyr[sel]).max() > 100  # and the sensors see it
+        stairs = next((a, b) for k, a, b in sim.info["non_gait_s"] if k == "stairs")
+        inside = (tr.t_s >= stairs[0]) & (tr.t_s <= stairs[1])
+        assert tr.angle_deg[inside].max() > 70  # a step-up bends each knee in turn
+    assert len(sim.truth["left"].strides) >= 10
+
+
+def test_more_and_sharper_turns() -> None:
+    base = SimConfig(seed=27, n_strides=32, bout_strides=16, activities=("standing",))
+    ref = simulate_session(base)
+    mod = simulate_session(dataclasses.replace(base, turn_every_bouts=1, turns_per_bout=3, turn_strides=1.0))
+    n_ref = sum(s.turning for s in ref.truth["left"].strides)
+    n_mod = sum(s.turning for s in mod.truth["left"].strides)
+    assert n_ref >= 1 and n_mod >= 2 * n_ref
+
+
+@pytest.mark.parametrize("swap, expected", [
+    ("legs", {"L-thigh": ("right", "thigh"), "L-shank": ("right", "shank"), "R-thigh": ("left", "thigh")}),
+    ("thighs", {"L-thigh": ("right", "thigh"), "L-shank": ("left", "shank"), "R-thigh": ("left", "thigh")}),
+    ("segments", {"L-thigh": ("left", "shank"), "R-shank": ("right", "thigh")}),
+    ("left_segments", {"L-thigh": ("left", "shank"), "L-shank": ("left", "thigh"), "R-shank": ("right", "shank")}),
+])
+def test_swapped_labels_swap_the_streams(swap: str, expected: dict) -> None:
+    base = SimConfig(seed=28, n_strides=4)
+    ref = {s.sensor_id: s for s in simulate_session(base).streams}
+    sim = simulate_session(dataclasses.replace(base, label_swap=swap))
+    labels = {(s.leg, s.segment) for s in sim.streams}
+    assert len(labels) == 4  # still one sensor per slot
+    for s in sim.streams:
+        assert np.array_equal(s.gyr, ref[s.sensor_id].gyr)  # the data is the physical sensor's
+        if s.sensor_id in expected:
+            assert (s.leg, s.segment) == expected[s.sensor_id]
