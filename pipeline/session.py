@@ -8,8 +8,9 @@ angle (Seel Eq. 5-7; :mod:`pipeline.walking` or :mod:`pipeline.running`) -> the 
 
 from __future__ import annotations
 
+import dataclasses
 import warnings as _warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -21,18 +22,29 @@ from pipeline.params import RUNNING, PipelineParams, preset
 from pipeline.policy import PolicyResult, auto, single_estimator
 from pipeline.running import build_running_leg_input, detect_running
 from pipeline.sync import SyncedLeg, synchronised_leg
-from pipeline.types import LegDiagnostics, LegResult, RawSensorStream, RunningDiagnostics, SessionResult, StrideMetrics
+from pipeline.types import (
+    KneeCalibration,
+    LegDiagnostics,
+    LegResult,
+    RawSensorStream,
+    RunningDiagnostics,
+    SessionResult,
+    StrideMetrics,
+)
 from pipeline.walking import build_walking_leg_input
 
 
 def process_session(streams: Sequence[RawSensorStream], activity: str = "walking", estimator: str = "auto",
-                    params: PipelineParams | None = None) -> SessionResult:
+                    params: PipelineParams | None = None,
+                    calibration: Mapping[str, KneeCalibration] | None = None) -> SessionResult:
     """Knee flexion of every leg that has both a thigh and a shank stream.
 
     ``estimator``: ``"auto"`` (the activity's policy, :mod:`pipeline.policy`) or the name of one registered
     estimator (``"go"``, ``"cf"``, ...) run alone on the same prepared data. ``params``: the parameter tree
     (:mod:`pipeline.params`); None uses the activity's preset (``unknown``: walking, running for legs detected as
-    running). Raises ValueError only for unusable input (no streams, no samples, unknown estimator).
+    running). ``calibration``: per leg, the measured standing knee flexion that replaces the preset's assumed
+    ``posture.standing_knee_deg`` as the absolute zero (the leg's diagnostics say which was used).
+    Raises ValueError only for unusable input (no streams, no samples, unknown estimator).
     """
     if estimator != "auto":
         get_estimator(estimator)  # fail early on an unknown name
@@ -50,7 +62,8 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
             warnings.append(f"{leg} leg skipped: no {missing} sensor")
             continue
         try:
-            legs[leg] = process_leg(leg, segs["thigh"], segs["shank"], activity, estimator, params)
+            legs[leg] = process_leg(leg, segs["thigh"], segs["shank"], activity, estimator, params,
+                                    (calibration or {}).get(leg))
         except ValueError as exc:
             warnings.append(f"{leg} leg skipped: {exc}")
     return SessionResult(algorithm_version=ALGORITHM_VERSION, activity=activity, legs=legs, warnings=warnings)
@@ -72,28 +85,38 @@ def _streams_by_leg(streams: Sequence[RawSensorStream], warnings: list[str]
     return by_leg
 
 
-def _leg_input(synced: SyncedLeg, activity: str, params: PipelineParams | None
-              ) -> tuple[LegInput, RunningDiagnostics | None]:
+def _leg_input(synced: SyncedLeg, activity: str, params: PipelineParams | None,
+               calibration: KneeCalibration | None = None) -> tuple[LegInput, RunningDiagnostics | None]:
     """The estimators' input for one synchronised leg: the running flow when declared or (``unknown``) detected
-    running, else the walking flow. ``params`` None: the preset of the activity the leg is processed as."""
-    walking = params if params is not None else preset(activity)
-    running = params if params is not None else RUNNING
+    running, else the walking flow. ``params`` None: the preset of the activity the leg is processed as; either
+    tree takes the leg's calibrated standing flexion."""
+    walking = _calibrated(params if params is not None else preset(activity), calibration)
+    running = _calibrated(params if params is not None else RUNNING, calibration)
     cycles = detect_running(synced.prep, walking.running) if activity == "unknown" else None
     if activity == "running" or cycles is not None:
         return build_running_leg_input(synced.prep, running, cycles)
     return build_walking_leg_input(synced.prep, walking, axes=synced.axes, fit_gyr=synced.fit_gyr), None
 
 
+def _calibrated(params: PipelineParams, calibration: KneeCalibration | None) -> PipelineParams:
+    """The parameter tree with the leg's measured standing flexion as its absolute zero (unchanged without one)."""
+    if calibration is None:
+        return params
+    return dataclasses.replace(params, posture=dataclasses.replace(
+        params.posture, standing_knee_deg=float(calibration.standing_knee_deg)))
+
+
 def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str = "walking",
-                estimator: str = "auto", params: PipelineParams | None = None) -> LegResult:
+                estimator: str = "auto", params: PipelineParams | None = None,
+                calibration: KneeCalibration | None = None) -> LegResult:
     """Knee flexion and strides of one leg (:func:`process_session` for one thigh/shank pair)."""
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore", RuntimeWarning)
         synced = synchronised_leg(leg, thigh, shank, params if params is not None else preset(activity))
-        data, running = _leg_input(synced, activity, params)
+        data, running = _leg_input(synced, activity, params, calibration)
         result = auto(data) if estimator == "auto" else single_estimator(data, estimator)
     strides = _strides(leg, data, result)
-    diagnostics = _diagnostics(data, synced, result, strides, running)
+    diagnostics = _diagnostics(data, synced, result, strides, running, calibration)
     return LegResult(leg=leg, fs_hz=data.fs_hz, t_s=data.prep.t_s, angle_deg=result.angle_deg,
                      estimator=result.estimator, strides=strides, gaps_s=list(data.prep.gaps_s),
                      walking_s=float(sum(s.duration_s for s in strides)), activity=data.activity,
@@ -117,7 +140,7 @@ def _strides(leg: str, data: LegInput, result: PolicyResult) -> list[StrideMetri
 
 
 def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, strides: list[StrideMetrics],
-                 running: RunningDiagnostics | None) -> LegDiagnostics:
+                 running: RunningDiagnostics | None, calibration: KneeCalibration | None) -> LegDiagnostics:
     axes, centres, events = data.axes, data.centres, data.events
     return LegDiagnostics(
         activity=data.activity, axis_rms_residual_dps=round(axes.rms_residual_dps, 2),
@@ -129,4 +152,7 @@ def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, stride
         j1=tuple(np.round(axes.j1, 4).tolist()), j2=tuple(np.round(axes.j2, 4).tolist()),
         o1_m=tuple(np.round(centres.o1, 4).tolist()), o2_m=tuple(np.round(centres.o2, 4).tolist()),
         cf_shift_deg=result.cf_shift_deg, offset_median_deg=result.offset_median_deg,
-        tau_s=None if result.tuning is None else result.tuning.tau_s, running=running)
+        tau_s=None if result.tuning is None else result.tuning.tau_s, running=running,
+        standing_knee_deg=data.params.posture.standing_knee_deg,
+        level_source="calibration" if calibration is not None else "assumed",
+        calibration_id=None if calibration is None else calibration.calibration_id)

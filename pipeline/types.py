@@ -91,6 +91,17 @@ class RunningDiagnostics:
 
 
 @dataclass(frozen=True)
+class KneeCalibration:
+    """A clinician's statement of one leg's knee flexion in quiet upright standing (goniometer reading or a guided
+    stand-still trial). It replaces the assumed standing flexion as the absolute zero of that leg's angles: a
+    post-surgery knee may stand in 5-15 deg of flexion contracture, which no IMU-only method can see."""
+
+    standing_knee_deg: float
+    method: str = "goniometer"  # how it was measured: "goniometer" or "guided_trial"
+    calibration_id: str | None = None  # the caller's identifier, echoed in the leg's diagnostics
+
+
+@dataclass(frozen=True)
 class LegDiagnostics:
     """How one leg was processed: fit residuals, clock correction, absolute reference, stride counts.
     JSON-serialisable through :func:`dataclasses.asdict` (the enum is a ``str``)."""
@@ -115,6 +126,10 @@ class LegDiagnostics:
     offset_median_deg: float | None = None  # walking auto: median per-stride offset of GO to the accelerometer
     tau_s: float | None = None  # KF/EKF fusion time constant when tuned
     running: RunningDiagnostics | None = None
+    # the standing knee flexion the level rests on, and whether it was measured ("calibration") or "assumed"
+    standing_knee_deg: float | None = None
+    level_source: str = "assumed"
+    calibration_id: str | None = None
 
 
 @dataclass

@@ -219,3 +219,19 @@ def test_params_none_is_the_activity_preset_and_params_are_used() -> None:
     changed = process_session(sim.streams, params=slow).legs["left"]
     peaks = [s.peak_swing_flexion_deg for s in default.strides]
     assert np.median([s.peak_swing_flexion_deg for s in changed.strides]) < np.median(peaks) - 3.0
+
+
+def test_calibration_moves_the_level_by_the_measured_standing_flexion() -> None:
+    """A measured standing flexion replaces the assumed one: every angle of the leg moves by the difference, and
+    the diagnostics say the level came from the calibration."""
+    sim = simulate_session(SimConfig(pattern="normal", seed=31, duration_s=60.0, legs=("left",)))
+    plain = process_session(sim.streams).legs["left"]
+    cal = KneeCalibration(standing_knee_deg=WALKING.posture.standing_knee_deg + 7.0, calibration_id="c1")
+    calibrated = process_session(sim.streams, calibration={"left": cal}).legs["left"]
+    assert plain.diagnostics.level_source == "assumed"
+    assert calibrated.diagnostics.level_source == "calibration"
+    assert calibrated.diagnostics.calibration_id == "c1"
+    assert calibrated.diagnostics.standing_knee_deg == cal.standing_knee_deg
+    assert len(calibrated.strides) == len(plain.strides) > 10
+    shift = [c.peak_swing_flexion_deg - p.peak_swing_flexion_deg for c, p in zip(calibrated.strides, plain.strides)]
+    assert np.allclose(shift, 7.0, atol=0.05)
