@@ -12,7 +12,7 @@ from pipeline.params import PRESETS, WALKING
 from pipeline.prepare import MAX_BRIDGE_S
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, SimSession, simulate_session
-from pipeline.types import AbsoluteReference, RawSensorStream
+from pipeline.types import AbsoluteReference, KneeCalibration, RawSensorStream
 
 
 def _sim(pattern: str, seed: int, **kw) -> SimSession:
