@@ -233,5 +233,6 @@ def test_calibration_moves_the_level_by_the_measured_standing_flexion() -> None:
     assert calibrated.diagnostics.calibration_id == "c1"
     assert calibrated.diagnostics.standing_knee_deg == cal.standing_knee_deg
     assert len(calibrated.strides) == len(plain.strides) > 10
-    shift = [c.peak_swing_flexion_deg - p.peak_swing_flexion_deg for c, p in zip(calibrated.strides, plain.strides, strict=True)]
+    pairs = zip(calibrated.strides, plain.strides, strict=True)
+    shift = [c.peak_swing_flexion_deg - p.peak_swing_flexion_deg for c, p in pairs]
     assert np.allclose(shift, 7.0, atol=0.05)
