@@ -7,6 +7,7 @@ from datetime import UTC, datetime
 
 from sqlalchemy import (
     JSON,
+    Boolean,
     DateTime,
     Float,
     ForeignKey,
@@ -152,6 +153,10 @@ class Stride(Base):
     rom_deg: Mapped[float] = mapped_column(Float)
     stance_flexion_deg: Mapped[float] = mapped_column(Float)
     estimator: Mapped[str] = mapped_column(String(16))
+    # What the stride was processed as (walking | running) and whether its angle came from the fallback of that
+    # activity's primary estimator: both from the pipeline, never re-derived from the estimator name.
+    activity: Mapped[str] = mapped_column(String(16), default="walking")
+    fallback: Mapped[bool] = mapped_column(Boolean, default=False)
     quality: Mapped[float] = mapped_column(Float)
     quality_reasons: Mapped[list] = mapped_column(JSON, default=list)
 

@@ -24,8 +24,10 @@ from sqlalchemy import delete, or_, select, update
 from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
 
+from server.enums import StrideActivity
 from server.jobs.traces import encode_trace
 from server.models import KneeAngleTrace, Session, Stride
+from server.results.stride_record import STORED_FLOATS
 from server.trends.summaries import refresh_session
 
 log = logging.getLogger("gaitmon.jobs")
@@ -132,11 +134,6 @@ def _clear_results(db: DbSession, session_id: str) -> None:
     db.execute(delete(KneeAngleTrace).where(KneeAngleTrace.session_id == session_id))
 
 
-_STRIDE_FLOATS = ("t_start_s", "t_end_s", "duration_s", "t_toe_off_s", "stance_time_s", "swing_time_s",
-                  "stance_pct", "peak_swing_flexion_deg", "min_flexion_deg", "rom_deg", "stance_flexion_deg",
-                  "quality")
-
-
 def _store_results(db: DbSession, sess_row: tuple[str, datetime], session_id: str,
                    result) -> tuple[int, int]:  # noqa: ANN001
     """Insert strides and traces; returns (stored, skipped). A stride with a non-finite metric is skipped: the
@@ -147,13 +144,14 @@ def _store_results(db: DbSession, sess_row: tuple[str, datetime], session_id: st
     stored = skipped = 0
     for leg, res in result.legs.items():
         for s in res.strides:
-            values = {name: float(getattr(s, name)) for name in _STRIDE_FLOATS}
+            values = {name: float(getattr(s, name)) for name in STORED_FLOATS}
             if not all(math.isfinite(v) for v in values.values()):
                 skipped += 1
                 continue
             db.add(Stride(
                 session_id=session_id, patient_id=patient_id, leg=s.leg, index=s.index,
                 started_at=started_at + timedelta(seconds=values["t_start_s"]), estimator=s.estimator,
+                activity=StrideActivity(s.activity), fallback=bool(s.fallback),
                 quality_reasons=list(s.quality_reasons), **values,
             ))
             stored += 1

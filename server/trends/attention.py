@@ -4,8 +4,9 @@ Flags (severity 3 = act now ... 1 = review):
 - ``declining`` (3): peak swing flexion (or ``metric``) of the assessed leg got significantly worse: latest window
   [now - window_days, now] vs the window before it, same significance rule as the trends ``change``
   (|delta| > MDC, enough strides, non-overlapping 95 % CIs; :func:`server.trends.stats.compare`).
-- ``sensor_trouble`` (2): in the latest window, more than ``max_fallback_rate`` of the strides came from a fallback
-  estimator (complementary filter instead of the gyroscope-only estimator), or more than ``max_gaps_per_hour``
+- ``sensor_trouble`` (2): in the latest window, more than ``max_fallback_rate`` of the strides are fallbacks (the
+  pipeline could not use its activity's primary estimator on them, e.g. the complementary filter instead of the
+  gyroscope-only estimator when walking), or more than ``max_gaps_per_hour``
   data gaps per walking hour; failed processing runs are reported alongside.
 - ``silent`` (2): no session for >= ``silent_days`` days (or none since enrolment that long ago).
 - ``stalled`` (1): monitored for ``stalled_weeks`` weeks but no significant improvement: the latest window vs the
@@ -26,6 +27,7 @@ from typing import Any
 from sqlalchemy import case, func, select
 from sqlalchemy.orm import Session as DbSession
 
+from server.enums import StrideActivity
 from server.models import Patient, Session
 from server.trends import stats
 from server.trends.metrics import METRICS, MIN_STRIDES_PER_SESSION
@@ -45,13 +47,15 @@ class AttentionParams:
     max_fallback_rate: float = 0.3
     max_gaps_per_hour: float = 12.0
     min_strides_for_rates: int = 50  # fewer strides than this say nothing about a sensor
+    activity: str = StrideActivity.walking  # declining/stalled compare strides of this activity only
 
 
 def _r(x: float | None, nd: int = 3) -> float | None:
     return None if x is None or not math.isfinite(x) else round(float(x), nd)
 
 
-def _interval_moments(db: DbSession, owned: list[Any], metric: str, edges: list[datetime]) -> dict[str, dict]:
+def _interval_moments(db: DbSession, owned: list[Any], metric: str, edges: list[datetime],
+                      activity: str) -> dict[str, dict]:
     """Session moments per patient, leg and elementary interval [edges[i], edges[i+1]).
 
     Windows are unions of these intervals and moments add up, so SQL evaluates one CASE and six sums per row
@@ -63,7 +67,7 @@ def _interval_moments(db: DbSession, owned: list[Any], metric: str, edges: list[
                 func.sum((m.n_included - 1) * sd2 + m.n_included * m.mean * m.mean), func.sum(m.mean),
                 func.sum(m.mean * m.mean))
          .join(Patient, Patient.id == m.patient_id)
-         .where(*owned, m.metric == metric, m.n_included >= MIN_STRIDES_PER_SESSION,
+         .where(*owned, m.metric == metric, m.activity == activity, m.n_included >= MIN_STRIDES_PER_SESSION,
                 m.started_at >= edges[0], m.started_at < edges[-1])
          .group_by(m.patient_id, m.leg, idx))
     out: dict[str, dict] = {}
@@ -113,7 +117,7 @@ def attention_list(db: DbSession, *, clinician_id: str | None, params: Attention
     decl_w = (now - 2 * win, now - win)
     stall_w = (stall_start, stall_start + win)
     edges = sorted({*latest_w, *decl_w, *stall_w})
-    moments = _interval_moments(db, owned, metric.name, edges)
+    moments = _interval_moments(db, owned, metric.name, edges, p.activity)
 
     def parts(w: tuple[datetime, datetime]) -> tuple[list[int], tuple[float, float]]:
         idx = [i for i in range(len(edges) - 1) if edges[i] >= w[0] and edges[i + 1] <= w[1]]

@@ -38,8 +38,6 @@ import numpy as np
 MIN_QUALITY = 0.5
 # Sessions with fewer included strides are too noisy to be one point of the session-level trend.
 MIN_STRIDES_PER_SESSION = 5
-# The estimator the pipeline prefers; strides by anything else are a fallback (sensor trouble indicator).
-PRIMARY_ESTIMATORS = frozenset({"go"})
 
 Direction = Literal["higher", "lower", "none"]
 

@@ -12,6 +12,7 @@ from fastapi.responses import JSONResponse, StreamingResponse
 
 from server.api.common import Caller, Db
 from server.auth import get_patient_for, require_role
+from server.enums import StrideActivity
 from server.errors import invalid
 from server.models import Patient
 from server.trends import exports, service
@@ -31,6 +32,7 @@ SlopeMethodName = Literal["ols", "theil_sen"]
 
 FromQ = Annotated[str | None, Query(alias="from", description="Local date YYYY-MM-DD of the patient or ISO 8601 "
                                                                "date-time (inclusive)")]
+ActivityQ = Annotated[StrideActivity, Query(description="walking or running: a trend never pools the two")]
 ToQ = Annotated[str | None, Query(alias="to", description="Local date (the whole day is included) or ISO 8601 "
                                                            "date-time (exclusive)")]
 
@@ -56,29 +58,33 @@ def _range(patient: Patient, start: str | None, end: str | None) -> tuple[dateti
 def get_trends(patient_id: str, db: Db, caller: Caller, metric: MetricName = MetricName.peak_swing_flexion_deg,
                leg: LegName | None = None, bucket: BucketName = "day", start: FromQ = None, end: ToQ = None,
                method: SlopeMethodName = "ols",
-               window_days: Annotated[float, Query(ge=1, le=180)] = service.WINDOW_DAYS) -> JSONResponse:
+               window_days: Annotated[float, Query(ge=1, le=180)] = service.WINDOW_DAYS,
+               activity: ActivityQ = StrideActivity.walking) -> JSONResponse:
     patient = get_patient_for(db, caller, patient_id)
     lo, hi = _range(patient, start, end)
     return JSONResponse(service.patient_trends(db, patient, metric_name=metric.value, leg=leg, bucket=bucket,
-                                               start=lo, end=hi, method=method, window_days=window_days))
+                                               start=lo, end=hi, method=method, window_days=window_days,
+                                               activity=activity))
 
 
 @router.get("/patients/{patient_id}/symmetry", summary="Affected vs other leg per bucket (ratio, symmetry index)")
 def get_symmetry(patient_id: str, db: Db, caller: Caller,
                  metric: MetricName = MetricName.peak_swing_flexion_deg, bucket: BucketName = "week",
-                 start: FromQ = None, end: ToQ = None) -> JSONResponse:
+                 start: FromQ = None, end: ToQ = None,
+                 activity: ActivityQ = StrideActivity.walking) -> JSONResponse:
     patient = get_patient_for(db, caller, patient_id)
     lo, hi = _range(patient, start, end)
     return JSONResponse(service.patient_symmetry(db, patient, metric_name=metric.value, bucket=bucket, start=lo,
-                                                 end=hi))
+                                                 end=hi, activity=activity))
 
 
 @router.get("/patients/{patient_id}/completeness",
             summary="Remote-monitoring view: days with data, strides and walking minutes per local day")
 def get_completeness(patient_id: str, db: Db, caller: Caller,
-                     days: Annotated[int, Query(ge=1, le=366)] = 30) -> JSONResponse:
+                     days: Annotated[int, Query(ge=1, le=366)] = 30,
+                     activity: ActivityQ = StrideActivity.walking) -> JSONResponse:
     patient = get_patient_for(db, caller, patient_id)
-    return JSONResponse(service.patient_completeness(db, patient, days=days))
+    return JSONResponse(service.patient_completeness(db, patient, days=days, activity=activity))
 
 
 @router.get("/attention", summary="Patients who need attention (declining, stalled, silent, sensor trouble)")
@@ -102,7 +108,7 @@ def get_attention(db: Db, caller: Caller, limit: Annotated[int, Query(ge=1, le=2
 @router.get("/patients/{patient_id}/strides.csv", summary="Every stride of the patient as CSV",
             response_class=StreamingResponse)
 def get_strides_csv(patient_id: str, request: Request, db: Db, caller: Caller, start: FromQ = None,
-                    end: ToQ = None) -> StreamingResponse:
+                    end: ToQ = None, activity: ActivityQ = StrideActivity.walking) -> StreamingResponse:
     require_role(caller, "admin", "clinician", action="export strides")
     patient = get_patient_for(db, caller, patient_id)
     lo, hi = _range(patient, start, end)
@@ -112,7 +118,7 @@ def get_strides_csv(patient_id: str, request: Request, db: Db, caller: Caller, s
     def body() -> Any:
         # Its own DB session: the response streams after the request's dependencies have been closed.
         with factory() as own:
-            yield from exports.strides_csv(own, patient, lo, hi)
+            yield from exports.strides_csv(own, patient, lo, hi, activity=activity)
 
     name = f"strides-{patient.external_id or patient.id}.csv".replace('"', "")
     log.info("strides.csv of patient %s exported by token %s", patient.id, caller.token_id)
@@ -122,6 +128,7 @@ def get_strides_csv(patient_id: str, request: Request, db: Db, caller: Caller, s
 
 @router.get("/patients/{patient_id}/fhir", summary="Daily summaries as a FHIR R4 Bundle (collection) of Observations")
 def get_fhir(patient_id: str, db: Db, caller: Caller, start: FromQ = None, end: ToQ = None,
+             activity: ActivityQ = StrideActivity.walking,
              metric: Annotated[list[MetricName] | None, Query(description="repeat to choose several")] = None,
              ) -> JSONResponse:
     require_role(caller, "admin", "clinician", action="export FHIR")
@@ -130,4 +137,5 @@ def get_fhir(patient_id: str, db: Db, caller: Caller, start: FromQ = None, end: 
     chosen = tuple(m.value for m in metric) if metric else exports.FHIR_METRICS
     if any(METRICS[m].column is None for m in chosen):
         raise invalid("metric", "count metrics have no daily Observation; choose stride metrics")
-    return JSONResponse(exports.fhir_bundle(db, patient, lo, hi, chosen), media_type="application/fhir+json")
+    return JSONResponse(exports.fhir_bundle(db, patient, lo, hi, chosen, activity=activity),
+                        media_type="application/fhir+json")

@@ -26,11 +26,14 @@ DEFAULTS: dict[str, float] = {
 def stride_rows(session_id: str, patient_id: str, started_at: datetime, leg: str, n: int,
                 **columns: Any) -> list[dict[str, Any]]:
     """``n`` consecutive strides of one leg; any Stride column may be given as a scalar or a length-n array
-    (``estimator`` as a string or a list). ``rom_deg`` defaults to peak - min, timing follows ``duration_s``."""
+    (``estimator`` and ``activity`` as a string or a list, ``fallback`` as a bool or a list). ``rom_deg`` defaults
+    to peak - min, timing follows ``duration_s``."""
+    labels = ("estimator", "activity", "fallback")
     cols = {k: np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)) for k, v in {**DEFAULTS, **{
-        k: v for k, v in columns.items() if k != "estimator"}}.items()}
-    est = columns.get("estimator", "go")
-    estimators = [est] * n if isinstance(est, str) else list(est)
+        k: v for k, v in columns.items() if k not in labels}}.items()}
+    estimators = _per_stride(columns.get("estimator", "go"), n)
+    activities = _per_stride(columns.get("activity", "walking"), n)
+    fallbacks = _per_stride(columns.get("fallback", False), n)
     dur = cols["duration_s"]
     t_start = np.concatenate([[0.0], np.cumsum(dur)[:-1]]) + 1.0
     rom = cols.get("rom_deg", cols["peak_swing_flexion_deg"] - cols["min_flexion_deg"])
@@ -44,8 +47,13 @@ def stride_rows(session_id: str, patient_id: str, started_at: datetime, leg: str
         "peak_swing_flexion_deg": float(cols["peak_swing_flexion_deg"][i]),
         "min_flexion_deg": float(cols["min_flexion_deg"][i]), "rom_deg": float(rom[i]),
         "stance_flexion_deg": float(cols["stance_flexion_deg"][i]), "estimator": estimators[i],
-        "quality": float(cols["quality"][i]), "quality_reasons": [],
+        "activity": activities[i], "fallback": bool(fallbacks[i]), "quality": float(cols["quality"][i]),
+        "quality_reasons": [],
     } for i in range(n)]
+
+
+def _per_stride(value: Any, n: int) -> list[Any]:
+    return [value] * n if isinstance(value, str | bool) else list(value)
 
 
 def add_session(db: DbSession, patient_id: str, started_at: datetime, legs: dict[str, dict[str, Any]], *,
