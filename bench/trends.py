@@ -35,8 +35,8 @@ from server.models import Patient, Session, new_id, utcnow
 from server.trends import service
 from server.trends.attention import attention_list
 from server.trends.models import TrendMetricValues, TrendSessionLeg
-from server.trends.seed import add_session
 from server.trends.summaries import summarise_leg
+from tests.support.seed import add_session
 
 NOW = datetime.now(UTC).replace(microsecond=0)
 

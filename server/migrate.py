@@ -7,7 +7,8 @@ from pathlib import Path
 from alembic import command
 from alembic.config import Config
 
-MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
+# In the repository a link to the top-level migrations/; in an installed wheel the scripts themselves.
+MIGRATIONS_DIR = Path(__file__).parent / "migrations"
 
 
 def include_name(name: str | None, type_: str, parent_names: dict) -> bool:

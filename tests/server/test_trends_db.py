@@ -16,9 +16,9 @@ from server.models import Clinician, Patient, Session
 from server.trends import service
 from server.trends.attention import AttentionParams, attention_list
 from server.trends.models import TrendMetricValues, TrendSessionLeg
-from server.trends.seed import add_session
 from server.trends.summaries import backfill, decode_values, refresh_session, stale_session_ids
 from server.trends.timeutil import parse_bound, zone
+from tests.support.seed import add_session
 
 NOW = datetime(2026, 11, 20, 12, 0, tzinfo=UTC)
 

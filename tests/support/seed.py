@@ -1,4 +1,4 @@
-"""Insert processed sessions with known strides straight into the database (tests and bench/trends.py).
+"""Test support: processed sessions with known strides, inserted straight into the database (tests, bench/trends.py).
 
 This bypasses upload and the pipeline on purpose: trend statistics are checked against strides whose values are
 known exactly. The rows are the same the job runner writes (Session status "done", Stride rows), and summaries come
