@@ -27,15 +27,17 @@ import numpy as np
 from sqlalchemy import create_engine, insert, text
 from sqlalchemy.engine import make_url
 
-from server.auth import create_clinician
+from server.auth.service import create_clinician
 from server.config import Settings
-from server.db import make_engine, make_sessionmaker
+from server.db import make_engine, make_sessionmaker, new_id
 from server.migrate import upgrade_to_head
-from server.models import Patient, Session, new_id, utcnow
+from server.patients.models import Patient
+from server.sessions.models import Session
 from server.trends import service
 from server.trends.attention import attention_list
 from server.trends.models import TrendMetricValues, TrendSessionLeg
 from server.trends.summaries import summarise_leg
+from server.utc import utcnow
 from tests.support.seed import add_session
 
 NOW = datetime.now(UTC).replace(microsecond=0)

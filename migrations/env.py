@@ -6,7 +6,7 @@ from alembic import context
 from sqlalchemy import engine_from_config, pool
 
 from server.config import get_settings
-from server.db import all_metadata
+from server.metadata import all_metadata
 from server.migrate import include_name
 
 config = context.config

@@ -7,11 +7,12 @@ import math
 import numpy as np
 
 
-def finite_round(x: float | None, nd: int = 4) -> float | None:
-    """``x`` rounded to ``nd`` decimals, or None when it is missing, NaN or infinite (JSON has no NaN)."""
+def finite_round(x: float | None, nd: int | None = 4) -> float | None:
+    """``x`` rounded to ``nd`` decimals (``None``: as it is), or None when it is missing, NaN or infinite (JSON
+    has no NaN)."""
     if x is None or not math.isfinite(x):
         return None
-    return round(float(x), nd)
+    return float(x) if nd is None else round(float(x), nd)
 
 
 def json_safe(value: object) -> object:

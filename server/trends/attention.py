@@ -28,7 +28,8 @@ from sqlalchemy import case, func, select
 from sqlalchemy.orm import Session as DbSession
 
 from server.enums import StrideActivity
-from server.models import Patient, Session
+from server.patients.models import Patient
+from server.sessions.models import Session
 from server.trends import stats
 from server.trends.metrics import METRICS, MIN_STRIDES_PER_SESSION
 from server.trends.models import TrendMetricValues, TrendSessionLeg

@@ -23,12 +23,14 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session as DbSession
 
+from server.codec import decode_values
 from server.enums import StrideActivity
-from server.models import Patient, Session, Stride
+from server.patients.models import Patient
+from server.results.models import Stride
+from server.sessions.models import Session
 from server.trends import stats
 from server.trends.metrics import METRICS, MIN_QUALITY, Metric
 from server.trends.models import TrendMetricValues, TrendSessionLeg
-from server.trends.summaries import decode_values
 from server.trends.timeutil import as_utc, local_date, local_midnight, zone
 
 LOCAL_CODE_SYSTEM = "urn:gaitmon:codesystem:gait-metric"

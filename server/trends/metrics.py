@@ -86,7 +86,3 @@ METRICS: dict[str, Metric] = {m.name: m for m in [
 
 # Metrics stored per session-leg as value arrays (everything that comes from a stride column).
 STRIDE_METRICS: tuple[str, ...] = tuple(name for name, m in METRICS.items() if m.column is not None)
-
-
-def get_metric(name: str) -> Metric:
-    return METRICS[name]

@@ -11,7 +11,8 @@ from datetime import datetime
 from sqlalchemy import DateTime, Float, ForeignKey, Index, Integer, LargeBinary, String
 from sqlalchemy.orm import Mapped, mapped_column
 
-from server.models import Base, utcnow
+from server.db import Base
+from server.utc import utcnow
 
 
 class TrendSessionLeg(Base):

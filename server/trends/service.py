@@ -23,13 +23,14 @@ import numpy as np
 from sqlalchemy import and_, func, select
 from sqlalchemy.orm import Session as DbSession
 
+from server.codec import decode_values
 from server.enums import SessionStatus, StrideActivity
-from server.models import Batch, Patient, Session
 from server.numbers import finite_round
+from server.patients.models import Patient
+from server.sessions.models import Batch, Session
 from server.trends import stats
 from server.trends.metrics import METRICS, MIN_QUALITY, MIN_STRIDES_PER_SESSION, Metric
 from server.trends.models import TrendMetricValues, TrendSessionLeg
-from server.trends.summaries import decode_values
 from server.trends.timeutil import Bucket, bucket_bounds, bucket_date, local_date, local_midnight, zone
 from server.utc import as_utc, utcnow
 

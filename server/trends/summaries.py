@@ -15,8 +15,10 @@ from sqlalchemy import delete, exists, func, or_, select
 from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
 
+from server.codec import encode_values
 from server.enums import SessionStatus, StrideActivity
-from server.models import Session, SessionSensor, Stride
+from server.results.models import Stride
+from server.sessions.models import Session, SessionSensor
 from server.trends.metrics import METRICS, MIN_QUALITY, STRIDE_METRICS
 from server.trends.models import TrendMetricValues, TrendSessionLeg
 from server.trends.stats import quantiles_sorted
@@ -25,14 +27,6 @@ from server.utc import utcnow
 log = logging.getLogger(__name__)
 
 _COLUMNS = sorted({METRICS[m].column for m in STRIDE_METRICS if METRICS[m].column})
-
-
-def encode_values(values: np.ndarray) -> bytes:
-    return np.ascontiguousarray(values, dtype="<f4").tobytes()
-
-
-def decode_values(blob: bytes) -> np.ndarray:
-    return np.frombuffer(blob, dtype="<f4")
 
 
 def _quantiles(sorted_values: np.ndarray) -> dict[str, float | None]:

@@ -12,7 +12,7 @@ from alembic.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from sqlalchemy import create_engine, inspect
 
-from server.db import all_metadata
+from server.metadata import all_metadata
 from server.migrate import alembic_config, include_name, upgrade_to_head
 from tests.conftest import fresh_postgres_database
 

@@ -11,12 +11,15 @@ import pytest
 from sqlalchemy import select
 from sqlalchemy.orm import Session as DbSession
 
+from server.auth.models import Clinician
+from server.codec import decode_values
 from server.db import make_engine, make_sessionmaker
-from server.models import Clinician, Patient, Session
+from server.patients.models import Patient
+from server.sessions.models import Session
 from server.trends import service
 from server.trends.attention import AttentionParams, attention_list
 from server.trends.models import TrendMetricValues, TrendSessionLeg
-from server.trends.summaries import backfill, decode_values, refresh_session, stale_session_ids
+from server.trends.summaries import backfill, refresh_session, stale_session_ids
 from server.trends.timeutil import parse_bound, zone
 from tests.support.seed import add_session
 

@@ -10,7 +10,7 @@ import pytest
 
 from pipeline.simulate import SimConfig, simulate_session
 from server.config import Settings
-from server.jobs.process import run_queued
+from server.processing.jobs import run_queued
 from server.simulate_cli import session_to_requests
 from tests.server.helpers import Api, bearer, open_api
 

@@ -14,8 +14,11 @@ import numpy as np
 from sqlalchemy import insert
 from sqlalchemy.orm import Session as DbSession
 
-from server.models import Session, Stride, new_id, utcnow
+from server.db import new_id
+from server.results.models import Stride
+from server.sessions.models import Session
 from server.trends.summaries import refresh_session
+from server.utc import utcnow
 
 DEFAULTS: dict[str, float] = {
     "duration_s": 1.1, "stance_pct": 60.0, "peak_swing_flexion_deg": 60.0, "min_flexion_deg": 2.0,

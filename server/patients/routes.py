@@ -7,31 +7,26 @@ import logging
 from fastapi import APIRouter, Query, Response
 from sqlalchemy import and_, delete, or_, select
 
-from server.api.clinicians import token_out
-from server.api.common import Caller, Db, after_cursor, aware, decode_cursor, encode_cursor
-from server.auth import get_patient_for, issue_token, require_role
+from server.auth.models import Clinician, Token
+from server.auth.routes import token_out
+from server.auth.schemas import DeviceTokenCreated, DeviceTokenIn, TokenOut
+from server.auth.service import get_patient_for, issue_token, require_role
+from server.deps import Caller, Db
 from server.errors import invalid
-from server.models import Batch, Clinician, KneeAngleTrace, Patient, Session, SessionSensor, Stride, Token
-from server.schemas import (
-    DeviceTokenCreated,
-    DeviceTokenIn,
-    PatientIn,
-    PatientOut,
-    PatientPage,
-    PatientPatch,
-    SessionListItem,
-    SessionPage,
-    TokenOut,
-)
+from server.pagination import after_cursor, decode_cursor, encode_cursor
+from server.patients.models import Patient
+from server.patients.schemas import PatientIn, PatientOut, PatientPage, PatientPatch
+from server.results.models import KneeAngleTrace, Stride
+from server.sessions.models import Batch, Session, SessionSensor
+from server.sessions.schemas import SessionListItem, SessionPage
 
 log = logging.getLogger("gaitmon.api")
 router = APIRouter(prefix="/v1/patients", tags=["patients"])
 
 
 def patient_out(p: Patient) -> PatientOut:
-    return PatientOut(id=p.id, clinician_id=p.clinician_id, external_id=p.external_id,
-                      display_name=p.display_name, affected_leg=p.affected_leg,  # type: ignore[arg-type]
-                      timezone=p.timezone, created_at=aware(p.created_at))  # type: ignore[arg-type]
+    """The response form of a patient."""
+    return PatientOut.model_validate(p)
 
 
 @router.post("", status_code=201, response_model=PatientOut,
@@ -138,8 +133,5 @@ def list_sessions(patient_id: str, db: Db, caller: Caller, limit: int = Query(50
     rows = db.scalars(stmt.order_by(Session.started_at.desc(), Session.id.desc()).limit(limit + 1)).all()
     page = rows[:limit]
     next_cursor = encode_cursor(page[-1].started_at, page[-1].id) if len(rows) > limit else None
-    items = [SessionListItem(id=s.id, patient_id=s.patient_id, client_session_id=s.client_session_id,
-                             started_at=aware(s.started_at), activity=s.activity,  # type: ignore[arg-type]
-                             status=s.status, algorithm_version=s.algorithm_version,  # type: ignore[arg-type]
-                             summary=s.summary) for s in rows[:limit]]
+    items = [SessionListItem.model_validate(s) for s in page]
     return SessionPage(items=items, next_cursor=next_cursor)

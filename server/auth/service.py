@@ -10,15 +10,15 @@ import hashlib
 import secrets
 from dataclasses import dataclass
 
-from fastapi import Depends, Request
 from sqlalchemy import select
 from sqlalchemy.orm import Session as DbSession
 
-from server.db import get_db
-from server.errors import ProblemError, forbidden, not_found
-from server.models import Clinician, Patient, Session, Token
+from server.auth.models import Clinician, Token
+from server.enums import Role
+from server.errors import forbidden, not_found
+from server.patients.models import Patient
+from server.sessions.models import Session
 
-ROLES = ("admin", "clinician", "device")
 TOKEN_PREFIX = "gm_"
 
 
@@ -29,7 +29,7 @@ def hash_token(plaintext: str) -> str:
 def issue_token(db: DbSession, *, role: str, name: str | None = None, clinician_id: str | None = None,
                 patient_id: str | None = None) -> tuple[Token, str]:
     """Create a token row and return it with its plaintext (shown once; only the hash is stored). Flushes."""
-    if role not in ROLES:
+    if role not in set(Role):
         raise ValueError(f"unknown role {role!r}")
     if role == "device" and not patient_id:
         raise ValueError("a device token needs a patient_id")
@@ -64,26 +64,7 @@ class Principal:
 
     @property
     def is_admin(self) -> bool:
-        return self.role == "admin"
-
-
-def _unauthorized(detail: str) -> ProblemError:
-    return ProblemError(401, detail, slug="unauthorized", headers={"WWW-Authenticate": 'Bearer realm="gaitmon"'})
-
-
-def current_principal(request: Request, db: DbSession = Depends(get_db)) -> Principal:
-    """FastAPI dependency: the caller of a /v1 endpoint, or 401."""
-    header = request.headers.get("authorization", "")
-    scheme, _, value = header.partition(" ")
-    if not header:
-        raise _unauthorized("Missing Authorization header (expected 'Bearer <token>')")
-    if scheme.lower() != "bearer" or not value.strip():
-        raise _unauthorized("Authorization header must be 'Bearer <token>'")
-    token = db.scalar(select(Token).where(Token.token_hash == hash_token(value.strip())))
-    if token is None or token.revoked_at is not None:
-        raise _unauthorized("Invalid or revoked token")
-    return Principal(token_id=token.id, role=token.role, name=token.name, clinician_id=token.clinician_id,
-                     patient_id=token.patient_id)
+        return self.role == Role.admin
 
 
 def require_role(principal: Principal, *roles: str, action: str) -> None:

@@ -2,16 +2,24 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Request
+from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import select
 
-from server.api.common import Caller, Db, aware, finite_or_none
-from server.auth import get_session_for
+from server.auth.service import get_session_for
+from server.codec import decode_trace
+from server.deps import Caller, Db
+from server.enums import Leg
 from server.errors import ProblemError, invalid, not_found
-from server.jobs.traces import decode_trace
-from server.models import KneeAngleTrace, Session, Stride
-from server.schemas import KneeAngleOut, Leg, StrideOut, StridesOut
+from server.numbers import finite_round
+from server.results import compare
+from server.results.models import KneeAngleTrace, Stride
+from server.results.schemas import CompareOut, KneeAngleOut, StrideOut, StridesOut
+from server.results.stride_record import STORED_FLOATS
+from server.sessions.models import Session
 
 router = APIRouter(prefix="/v1/sessions", tags=["results"])
 
@@ -34,17 +42,15 @@ def get_strides(session_id: str, db: Db, caller: Caller, leg: Leg | None = Query
     if leg is not None:
         stmt = stmt.where(Stride.leg == leg)
     rows = db.scalars(stmt.order_by(Stride.leg, Stride.index)).all()
-    strides = [StrideOut(
-        leg=r.leg, index=r.index, started_at=aware(r.started_at),  # type: ignore[arg-type]
-        t_start_s=r.t_start_s, t_end_s=r.t_end_s, duration_s=finite_or_none(r.duration_s),
-        t_toe_off_s=finite_or_none(r.t_toe_off_s), stance_time_s=finite_or_none(r.stance_time_s),
-        swing_time_s=finite_or_none(r.swing_time_s), stance_pct=finite_or_none(r.stance_pct),
-        peak_swing_flexion_deg=finite_or_none(r.peak_swing_flexion_deg),
-        min_flexion_deg=finite_or_none(r.min_flexion_deg), rom_deg=finite_or_none(r.rom_deg),
-        stance_flexion_deg=finite_or_none(r.stance_flexion_deg), estimator=r.estimator,
-        quality=finite_or_none(r.quality), quality_reasons=list(r.quality_reasons or []),
-    ) for r in rows]
-    return StridesOut(session_id=session.id, strides=strides)
+    return StridesOut(session_id=session.id, strides=[stride_out(r) for r in rows])
+
+
+def stride_out(r: Stride) -> StrideOut:
+    """The response form of a stored stride (the value fields of :mod:`server.results.stride_record`)."""
+    values = {name: finite_round(getattr(r, name), None) for name in STORED_FLOATS}
+    return StrideOut(leg=r.leg, index=r.index, started_at=r.started_at, estimator=r.estimator,
+                     activity=r.activity, fallback=r.fallback, quality_reasons=list(r.quality_reasons or []),
+                     **values)
 
 
 def minmax_indices(angle_deg: np.ndarray, max_points: int) -> np.ndarray:
@@ -107,9 +113,27 @@ def get_knee_angle(session_id: str, db: Db, caller: Caller,
     finite = np.isfinite(angle[idx])
     angles = np.round(angle[idx], 3)
     return KneeAngleOut(
-        session_id=session.id, leg=trace.leg, fs_hz=trace.fs_hz,  # type: ignore[arg-type]
+        session_id=session.id, leg=Leg(trace.leg), fs_hz=trace.fs_hz,
         n_total=len(t), downsampling="minmax" if len(idx) < len(t) else "none",
         t_s=np.round(t[idx], 4).tolist(),
         angle_deg=[float(a) if f else None for a, f in zip(angles.tolist(), finite.tolist(), strict=True)],
         estimator=[str(e) if (e and f) else None for e, f in zip(est[idx].tolist(), finite.tolist(), strict=True)],
     )
+
+
+@router.get("/{session_id}/compare", response_model=CompareOut,
+            summary="Every knee estimator on this session: stride metrics per estimator and pairwise differences")
+async def compare_session(session_id: str, request: Request, caller: Caller,
+                          estimators: str | None = Query(None, description="Comma-separated subset, e.g. go,kf; "
+                                                                           "default: auto and every registered one")
+                          ) -> CompareOut:
+    names = compare.requested_estimators(estimators)
+    factory = request.app.state.sessionmaker
+    # Threads: the database read and the pipeline runs block; the event loop keeps serving meanwhile.
+    inp = await run_in_threadpool(compare.load_input, factory, caller, session_id, names)
+    try:
+        return await run_in_threadpool(compare.run_compare, inp)
+    except LookupError:
+        inp = await run_in_threadpool(partial(compare.load_input, with_streams=True), factory, caller, session_id,
+                                      names)
+        return await run_in_threadpool(compare.run_compare, inp)

@@ -10,7 +10,7 @@ Guarantees, layer by layer:
   no-op), so "complete" followed by "reprocess" does not pile up jobs.
 - no procrastinate ``lock``: the claim below already excludes concurrent processing, and a lock would be held by
   the "doing" job of a crashed worker until procrastinate declares that worker dead, delaying the recovery.
-- the atomic claim in :mod:`server.jobs.process` (``status='queued'`` -> ``'processing'``): whatever the queue
+- the atomic claim in :mod:`server.processing.jobs` (``status='queued'`` -> ``'processing'``): whatever the queue
   does (a job delivered again after a worker was presumed dead, a job deferred twice), only one runner processes
   a given queued session, and only the holder of the claim may store results.
 - recovery (periodic task ``gaitmon.recover`` every minute and at worker start): procrastinate jobs of workers
@@ -37,8 +37,8 @@ from sqlalchemy.orm import sessionmaker
 
 from server.config import Settings, get_settings
 from server.db import make_engine, make_sessionmaker
-from server.jobs import process
-from server.jobs.embedded import worker_name
+from server.processing import jobs
+from server.processing.embedded import worker_name
 
 log = logging.getLogger("gaitmon.jobs")
 
@@ -70,8 +70,8 @@ def make_app(database_url: str, settings: Settings | None = None, **pool_kwargs:
     @app.task(name=PROCESS_TASK, queue=QUEUE, pass_context=True)
     def process_session_task(context: procrastinate.JobContext, session_id: str) -> str:
         name = (context.additional_context or {}).get("worker_name") or worker_name("procrastinate")
-        heartbeat_s = max(0.5, min(process.DEFAULT_HEARTBEAT_S, settings.job_stall_seconds / 4))
-        outcome = process.process_one(_sessionmaker(database_url), session_id, worker_id=name,
+        heartbeat_s = max(0.5, min(jobs.DEFAULT_HEARTBEAT_S, settings.job_stall_seconds / 4))
+        outcome = jobs.process_one(_sessionmaker(database_url), session_id, worker_id=name,
                                       heartbeat_s=heartbeat_s)
         log.info("job %s: session %s %s", context.job.id if context.job else "?", session_id, outcome)
         return outcome
@@ -89,7 +89,7 @@ async def recover_async(app: procrastinate.App, database_url: str, settings: Set
     for job in await app.job_manager.get_stalled_jobs(queue=QUEUE, seconds_since_heartbeat=WORKER_STALLED_S):
         log.warning("procrastinate job %s (%s) of a dead worker marked failed", job.id, job.task_name)
         await app.job_manager.finish_job(job, status=Status.FAILED, delete_job=False)
-    ids = await asyncio.to_thread(process.recover_stalled, _sessionmaker(database_url),
+    ids = await asyncio.to_thread(jobs.recover_stalled, _sessionmaker(database_url),
                                   stall_seconds=settings.job_stall_seconds)
     # Also sessions that are queued but have no waiting job (e.g. the API crashed between commit and defer).
     ids += await asyncio.to_thread(_queued_without_job, database_url)

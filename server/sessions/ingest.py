@@ -1,6 +1,6 @@
 """Storing uploaded batches idempotently, and what a session has received so far (counts and gaps).
 
-Idempotency key: (session, sensor_id, seq). The content is compared by :func:`server.rawdata.content_sha256` of
+Idempotency key: (session, sensor_id, seq). The content is compared by :func:`server.codec.content_sha256` of
 the parsed values, so a replay that differs only in JSON formatting or compression is the same batch.
 """
 
@@ -14,15 +14,15 @@ from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session as DbSession
 
+from pipeline.prepare import GAP_FACTOR
+from server.codec import content_sha256, encode_samples
 from server.errors import conflict, invalid
-from server.models import Batch, Session, SessionSensor
-from server.rawdata import content_sha256, encode_samples
-from server.schemas import BatchIn
+from server.sessions.models import Batch, Session, SessionSensor
+from server.sessions.schemas import BatchIn
 
 log = logging.getLogger("gaitmon.ingest")
 
 # A step between consecutive samples longer than this many sample periods is a gap.
-GAP_PERIODS = 1.5
 MAX_LISTED_MISSING_SEQ = 100
 
 
@@ -149,7 +149,7 @@ def _sensor_received(rows: list, fs_hz: float) -> dict:
                 "missing_seq": [], "observed_rate_hz": None}
     rows = sorted(rows, key=lambda r: r.seq)
     period_ms = 1000.0 / fs_hz
-    limit = GAP_PERIODS * period_ms
+    limit = GAP_FACTOR * period_ms  # the pipeline's rule, so received.gaps matches summary.gaps
     # Steps between consecutive samples inside each batch (the steps across batch boundaries are masked out).
     t = np.frombuffer(b"".join(r.t_ms for r in rows), dtype="<f8")
     steps = np.diff(t)
@@ -186,7 +186,8 @@ def _sensor_received(rows: list, fs_hz: float) -> dict:
 
 
 def received_summary(db: DbSession, session: Session) -> dict[str, dict]:
-    """Per declared sensor: batches, samples, gaps (see :data:`GAP_PERIODS`), gap_s, time span, missing seq."""
+    """Per declared sensor: batches, samples, gaps (the pipeline's :data:`pipeline.prepare.GAP_FACTOR` rule), gap_s,
+    time span, missing seq."""
     rows = db.execute(
         select(Batch.sensor_id, Batch.seq, Batch.n_samples, Batch.t_first_ms, Batch.t_last_ms, Batch.t_ms)
         .where(Batch.session_id == session.id)

@@ -10,11 +10,11 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, StreamingResponse
 
-from server.api.common import Caller, Db
-from server.auth import get_patient_for, require_role
+from server.auth.service import get_patient_for, require_role
+from server.deps import Caller, Db
 from server.enums import StrideActivity
 from server.errors import invalid
-from server.models import Patient
+from server.patients.models import Patient
 from server.trends import exports, service
 from server.trends.attention import AttentionParams, attention_list
 from server.trends.metrics import METRICS

@@ -37,7 +37,7 @@ def wake() -> None:
 def enqueue(settings: Settings, session_id: str) -> None:
     """Make the runner pick up ``session_id`` (already committed with status "queued")."""
     if settings.resolved_job_runner == "procrastinate":
-        from server.jobs.worker import defer_session
+        from server.processing.worker import defer_session
 
         defer_session(settings.resolved_database_url, session_id)
     else:

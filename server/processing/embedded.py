@@ -1,6 +1,6 @@
 """The embedded runner: a thread that processes queued sessions (the SQLite default, no extra process).
 
-It polls for status "queued" every ``poll_s`` seconds, is woken at once by :func:`server.jobs.queue.enqueue`, and
+It polls for status "queued" every ``poll_s`` seconds, is woken at once by :func:`server.processing.queue.enqueue`, and
 periodically re-queues sessions whose worker stopped heart-beating. At start-up in the API process it re-queues
 every "processing" session: in single-process mode nobody else can be working on them.
 """
@@ -17,7 +17,7 @@ from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
 
 from server.config import Settings
-from server.jobs import process, queue
+from server.processing import jobs, queue
 
 log = logging.getLogger("gaitmon.jobs")
 
@@ -40,7 +40,7 @@ class EmbeddedRunner:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         # Heartbeat well inside the stall limit so a slow but live job is never taken over.
-        self._heartbeat_s = max(0.5, min(process.DEFAULT_HEARTBEAT_S, settings.job_stall_seconds / 4))
+        self._heartbeat_s = max(0.5, min(jobs.DEFAULT_HEARTBEAT_S, settings.job_stall_seconds / 4))
         self._recover_every_s = max(1.0, min(60.0, settings.job_stall_seconds / 2))
 
     def start(self) -> EmbeddedRunner:
@@ -72,7 +72,7 @@ class EmbeddedRunner:
         last_recover = time.monotonic()
         while not self._stop.is_set():
             try:
-                process.run_queued(self._sm, worker_id=self.name, should_stop=self._stop.is_set,
+                jobs.run_queued(self._sm, worker_id=self.name, should_stop=self._stop.is_set,
                                    heartbeat_s=self._heartbeat_s)
                 if time.monotonic() - last_recover >= self._recover_every_s:
                     self._recover(everything=False)
@@ -84,7 +84,7 @@ class EmbeddedRunner:
 
     def _recover(self, *, everything: bool) -> None:
         try:
-            ids = process.recover_stalled(self._sm, stall_seconds=self._settings.job_stall_seconds,
+            ids = jobs.recover_stalled(self._sm, stall_seconds=self._settings.job_stall_seconds,
                                           everything=everything)
         except Exception:  # noqa: BLE001
             log.exception("embedded job runner: stall recovery failed")

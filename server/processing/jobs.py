@@ -24,10 +24,12 @@ from sqlalchemy import delete, or_, select, update
 from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
 
+from server import metadata as _metadata  # noqa: F401 - runners flush rows whose foreign keys span domains
+from server.codec import encode_trace
 from server.enums import StrideActivity
-from server.jobs.traces import encode_trace
-from server.models import KneeAngleTrace, Session, Stride
+from server.results.models import KneeAngleTrace, Stride
 from server.results.stride_record import STORED_FLOATS
+from server.sessions.models import Session
 from server.trends.summaries import refresh_session
 
 log = logging.getLogger("gaitmon.jobs")
@@ -176,7 +178,7 @@ Processor = Callable[..., object]
 def process_claimed(sm: sessionmaker[DbSession], session_id: str, token: str, *,
                     heartbeat_s: float = DEFAULT_HEARTBEAT_S, processor: Processor | None = None) -> str:
     """Process a session this runner has claimed. Returns "done", "failed" or "lost" (claim taken over)."""
-    from server.rawdata import load_streams
+    from server.sessions.rawdata import load_streams
 
     processor = processor or _default_processor
     t_start = time.perf_counter()

@@ -7,11 +7,14 @@ import logging
 from fastapi import APIRouter, Query, Response
 from sqlalchemy import select
 
-from server.api.common import Caller, Db, aware
-from server.auth import create_clinician, require_role
+from server.auth.models import Clinician, Token
+from server.auth.schemas import ClinicianCreated, ClinicianIn, ClinicianOut, MeOut, TokenOut
+from server.auth.service import create_clinician, require_role
+from server.deps import Caller, Db
+from server.enums import Role
 from server.errors import not_found
-from server.models import Clinician, Patient, Token, utcnow
-from server.schemas import ClinicianCreated, ClinicianIn, ClinicianOut, MeOut, TokenOut
+from server.patients.models import Patient
+from server.utc import utcnow
 
 log = logging.getLogger("gaitmon.api")
 router = APIRouter(prefix="/v1", tags=["clinicians and tokens"])
@@ -19,7 +22,7 @@ router = APIRouter(prefix="/v1", tags=["clinicians and tokens"])
 
 @router.get("/me", response_model=MeOut, summary="The identity behind the bearer token")
 def me(caller: Caller) -> MeOut:
-    return MeOut(token_id=caller.token_id, role=caller.role, name=caller.name,  # type: ignore[arg-type]
+    return MeOut(token_id=caller.token_id, role=Role(caller.role), name=caller.name,
                  clinician_id=caller.clinician_id, patient_id=caller.patient_id)
 
 
@@ -32,22 +35,19 @@ def post_clinician(body: ClinicianIn, db: Db, caller: Caller) -> ClinicianCreate
     db.commit()
     log.info("clinician %s created by token %s", clinician.id, caller.token_id)
     return ClinicianCreated(id=clinician.id, name=clinician.name, email=clinician.email,
-                            created_at=aware(clinician.created_at), token=plaintext,  # type: ignore[arg-type]
-                            token_id=token_id or "")
+                            created_at=clinician.created_at, token=plaintext, token_id=token_id or "")
 
 
 @router.get("/clinicians", response_model=list[ClinicianOut], summary="All clinicians (admin)")
 def list_clinicians(db: Db, caller: Caller, limit: int = Query(200, ge=1, le=1000)) -> list[ClinicianOut]:
     require_role(caller, "admin", action="list clinicians")
     rows = db.scalars(select(Clinician).order_by(Clinician.created_at, Clinician.id).limit(limit)).all()
-    return [ClinicianOut(id=c.id, name=c.name, email=c.email, created_at=aware(c.created_at))  # type: ignore[arg-type]
-            for c in rows]
+    return [ClinicianOut.model_validate(c) for c in rows]
 
 
 def token_out(t: Token) -> TokenOut:
-    return TokenOut(id=t.id, role=t.role, name=t.name, clinician_id=t.clinician_id,  # type: ignore[arg-type]
-                    patient_id=t.patient_id, created_at=aware(t.created_at),  # type: ignore[arg-type]
-                    revoked_at=aware(t.revoked_at))
+    """The response form of a token's metadata."""
+    return TokenOut.model_validate(t)
 
 
 @router.delete("/tokens/{token_id}", status_code=204, response_class=Response,

@@ -13,13 +13,14 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session as DbSession
 
-from server.api.common import AppSettings, Caller, Db, aware
-from server.auth import get_patient_for, get_session_for, require_role
+from server.auth.service import get_patient_for, get_session_for, require_role
+from server.deps import AppSettings, Caller, Db
 from server.errors import ProblemError, conflict
-from server.ingest import ingest_batch, received_summary, still_in_status
-from server.jobs.queue import enqueue
-from server.models import Batch, Session, SessionSensor, utcnow
-from server.schemas import BatchIn, BatchOut, SensorOut, SessionIn, SessionOut
+from server.processing.queue import enqueue
+from server.sessions.ingest import ingest_batch, received_summary, still_in_status
+from server.sessions.models import Batch, Session, SessionSensor
+from server.sessions.schemas import BatchIn, BatchOut, SensorOut, SessionIn, SessionOut
+from server.utc import utcnow
 
 log = logging.getLogger("gaitmon.api")
 router = APIRouter(prefix="/v1/sessions", tags=["sessions and upload"])
@@ -40,16 +41,14 @@ async def parse_batch(request: Request) -> BatchIn:
 
 
 def session_out(db: DbSession, s: Session) -> SessionOut:
-    sensors = [SensorOut(sensor_id=x.sensor_id, leg=x.leg, segment=x.segment,  # type: ignore[arg-type]
-                         sample_rate_hz=x.sample_rate_hz, gyro_unit=x.gyro_unit,  # type: ignore[arg-type]
-                         acc_unit=x.acc_unit) for x in s.sensors]  # type: ignore[arg-type]
-    return SessionOut(
-        id=s.id, patient_id=s.patient_id, client_session_id=s.client_session_id,
-        started_at=aware(s.started_at), activity=s.activity, status=s.status,  # type: ignore[arg-type]
-        error=s.error, sensors=sensors, received=received_summary(db, s),  # type: ignore[arg-type]
-        summary=s.summary, algorithm_version=s.algorithm_version, created_at=aware(s.created_at),  # type: ignore[arg-type]
-        completed_at=aware(s.completed_at), processed_at=aware(s.processed_at), attempts=s.attempts or 0,
-    )
+    """The response form of a session with what each sensor received."""
+    return SessionOut.model_validate({
+        "id": s.id, "patient_id": s.patient_id, "client_session_id": s.client_session_id,
+        "started_at": s.started_at, "activity": s.activity, "status": s.status, "error": s.error,
+        "sensors": [SensorOut.model_validate(x) for x in s.sensors], "received": received_summary(db, s),
+        "summary": s.summary, "algorithm_version": s.algorithm_version, "created_at": s.created_at,
+        "completed_at": s.completed_at, "processed_at": s.processed_at, "attempts": s.attempts or 0,
+    })
 
 
 def _sensor_key(sensors: list) -> set[tuple]:
