@@ -39,6 +39,7 @@ TAGS = [
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
+    """The FastAPI application: routers, error handlers, body limits and, with SQLite, the embedded job runner."""
     settings = settings or get_settings()
     engine = make_engine(settings.resolved_database_url)
 

@@ -66,6 +66,8 @@ class _GzipInflater:
 
 
 class BodyLimitMiddleware:
+    """Rejects request bodies over the limit (also after gzip inflation) with a 413 problem."""
+
     def __init__(self, app: ASGIApp, max_body_bytes: int) -> None:
         self.app = app
         self.max_body_bytes = max_body_bytes

@@ -20,6 +20,7 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.exc import OperationalError
 
 from server.config import Settings, get_settings
+from server.enums import Role
 from server.simulate_cli import register as register_simulate
 from server.utc import utcnow
 
@@ -30,6 +31,7 @@ MIGRATION_LOCK_ID = 727_011_001
 
 
 def setup_logging(level: str) -> None:
+    """Log lines with time, level and logger name at the configured level."""
     logging.basicConfig(stream=sys.stderr, level=level.upper(),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
     # One line per plugin on every start says nothing to an operator.
@@ -37,6 +39,7 @@ def setup_logging(level: str) -> None:
 
 
 def safe_url(url: str) -> str:
+    """The database URL without its password, for logs and messages."""
     return make_url(url).render_as_string(hide_password=True)
 
 
@@ -83,10 +86,12 @@ def backfill_trend_summaries(settings: Settings) -> None:
 
 
 def auto_migrate_enabled() -> bool:
+    """Whether ``gaitmon serve`` migrates first (``GAITMON_AUTO_MIGRATE``, default true)."""
     return os.environ.get("GAITMON_AUTO_MIGRATE", "true").strip().lower() not in {"0", "false", "no", "off"}
 
 
 def cmd_serve(args: argparse.Namespace, settings: Settings) -> int:
+    """``gaitmon serve``: migrate unless disabled, then run the API with uvicorn."""
     import uvicorn
 
     from server.app import create_app
@@ -103,6 +108,7 @@ def cmd_serve(args: argparse.Namespace, settings: Settings) -> int:
 
 
 def cmd_migrate(args: argparse.Namespace, settings: Settings) -> int:
+    """``gaitmon migrate``: bring the schema and the job queue to the latest version."""
     migrate_database(settings)
     return 0
 
@@ -115,24 +121,25 @@ def _sessionmaker(settings: Settings):  # noqa: ANN202
 
 
 def cmd_create_token(args: argparse.Namespace, settings: Settings) -> int:
+    """``gaitmon create-token``: an admin token, or a clinician with its token (printed last)."""
     from server.auth.models import Token
     from server.auth.service import create_clinician, issue_token
 
-    if args.role == "clinician" and not args.name:
+    if args.role == Role.clinician and not args.name:
         print("error: --name is required for --role clinician", file=sys.stderr)
         return 2
     if auto_migrate_enabled():
         # The first command on a fresh machine is often this one, before `serve` ever ran.
         migrate_database(settings)
     with _sessionmaker(settings)() as db:
-        if args.role == "clinician":
+        if args.role == Role.clinician:
             clinician, token = create_clinician(db, args.name, email=args.email)
             db.commit()
             print(f"created clinician {clinician.id} ({clinician.name})", file=sys.stderr)
             digest = hashlib.sha256(token.encode()).hexdigest()
             token_id = db.scalars(select(Token.id).where(Token.token_hash == digest)).one()
         else:
-            row, token = issue_token(db, role="admin", name=args.name)
+            row, token = issue_token(db, role=Role.admin, name=args.name)
             db.commit()
             token_id = row.id
         print(f"created {args.role} token {token_id} (shown once; revoke with: gaitmon revoke-token {token_id})",
@@ -143,6 +150,7 @@ def cmd_create_token(args: argparse.Namespace, settings: Settings) -> int:
 
 
 def cmd_revoke_token(args: argparse.Namespace, settings: Settings) -> int:
+    """``gaitmon revoke-token``: revoke a token by its id."""
     from server.auth.models import Token
 
     with _sessionmaker(settings)() as db:
@@ -160,6 +168,7 @@ def cmd_revoke_token(args: argparse.Namespace, settings: Settings) -> int:
 
 
 def cmd_worker(args: argparse.Namespace, settings: Settings) -> int:
+    """``gaitmon worker``: process queued sessions until stopped."""
     if settings.resolved_job_runner == "procrastinate":
         from server.processing.worker import run_worker, schema_present
 
@@ -189,6 +198,7 @@ def cmd_worker(args: argparse.Namespace, settings: Settings) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``gaitmon`` command line with its subcommands."""
     parser = argparse.ArgumentParser(prog="gaitmon", description="Gait monitoring backend")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -203,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("create-token", help="create an admin token, or a clinician with its token; "
                                             "prints the token as the last line")
-    p.add_argument("--role", choices=["admin", "clinician"], required=True)
+    p.add_argument("--role", choices=[Role.admin.value, Role.clinician.value], required=True)
     p.add_argument("--name", default=None)
     p.add_argument("--email", default=None)
     p.set_defaults(func=cmd_create_token)
@@ -222,6 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``gaitmon`` command; returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
     settings = get_settings()

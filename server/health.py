@@ -17,6 +17,7 @@ router = APIRouter(tags=["health"])
 @router.get("/healthz", summary="200 when the service and its database answer, else 503",
             responses={503: {"description": "The database does not answer"}})
 def healthz(request: Request) -> JSONResponse:
+    """200 when the service and its database answer, 503 otherwise."""
     try:
         with request.app.state.engine.connect() as conn:
             conn.execute(text("SELECT 1"))

@@ -12,6 +12,8 @@ from server.utc import utcnow
 
 
 class Clinician(Base):
+    """A clinician who owns patients and sees their data."""
+
     __tablename__ = "clinicians"
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
     name: Mapped[str] = mapped_column(String(200))

@@ -22,6 +22,7 @@ router = APIRouter(prefix="/v1", tags=["clinicians and tokens"])
 
 @router.get("/me", response_model=MeOut, summary="The identity behind the bearer token")
 def me(caller: Caller) -> MeOut:
+    """The identity behind the bearer token."""
     return MeOut(token_id=caller.token_id, role=Role(caller.role), name=caller.name,
                  clinician_id=caller.clinician_id, patient_id=caller.patient_id)
 
@@ -29,9 +30,10 @@ def me(caller: Caller) -> MeOut:
 @router.post("/clinicians", status_code=201, response_model=ClinicianCreated,
              summary="Create a clinician and its first token (admin; the token is shown once)")
 def post_clinician(body: ClinicianIn, db: Db, caller: Caller) -> ClinicianCreated:
-    require_role(caller, "admin", action="create clinicians")
+    """Create a clinician and its first token (admin only)."""
+    require_role(caller, Role.admin, action="create clinicians")
     clinician, plaintext = create_clinician(db, body.name, body.email)
-    token_id = db.scalar(select(Token.id).where(Token.clinician_id == clinician.id, Token.role == "clinician"))
+    token_id = db.scalar(select(Token.id).where(Token.clinician_id == clinician.id, Token.role == Role.clinician))
     db.commit()
     log.info("clinician %s created by token %s", clinician.id, caller.token_id)
     return ClinicianCreated(id=clinician.id, name=clinician.name, email=clinician.email,
@@ -40,7 +42,8 @@ def post_clinician(body: ClinicianIn, db: Db, caller: Caller) -> ClinicianCreate
 
 @router.get("/clinicians", response_model=list[ClinicianOut], summary="All clinicians (admin)")
 def list_clinicians(db: Db, caller: Caller, limit: int = Query(200, ge=1, le=1000)) -> list[ClinicianOut]:
-    require_role(caller, "admin", action="list clinicians")
+    """Every clinician (admin only)."""
+    require_role(caller, Role.admin, action="list clinicians")
     rows = db.scalars(select(Clinician).order_by(Clinician.created_at, Clinician.id).limit(limit)).all()
     return [ClinicianOut.model_validate(c) for c in rows]
 
@@ -53,14 +56,15 @@ def token_out(t: Token) -> TokenOut:
 @router.delete("/tokens/{token_id}", status_code=204, response_class=Response,
                summary="Revoke a token (admin: any; clinician: its own and its patients' device tokens)")
 def revoke_token(token_id: str, db: Db, caller: Caller) -> Response:
-    require_role(caller, "admin", "clinician", action="revoke tokens")
+    """Revoke a token: an admin any, a clinician its own and its patients' device tokens."""
+    require_role(caller, Role.admin, Role.clinician, action="revoke tokens")
     token = db.get(Token, token_id)
     if token is None:
         raise not_found("Token")
-    if caller.role == "clinician":
-        own = token.role == "clinician" and token.clinician_id == caller.clinician_id
+    if caller.role == Role.clinician:
+        own = token.role == Role.clinician and token.clinician_id == caller.clinician_id
         patients_device = False
-        if token.role == "device" and token.patient_id:
+        if token.role == Role.device and token.patient_id:
             patient = db.get(Patient, token.patient_id)
             patients_device = patient is not None and patient.clinician_id == caller.clinician_id
         if not (own or patients_device):

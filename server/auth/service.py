@@ -23,6 +23,7 @@ TOKEN_PREFIX = "gm_"
 
 
 def hash_token(plaintext: str) -> str:
+    """The SHA-256 hex digest under which a token is stored."""
     return hashlib.sha256(plaintext.encode("utf-8")).hexdigest()
 
 
@@ -31,9 +32,9 @@ def issue_token(db: DbSession, *, role: str, name: str | None = None, clinician_
     """Create a token row and return it with its plaintext (shown once; only the hash is stored). Flushes."""
     if role not in set(Role):
         raise ValueError(f"unknown role {role!r}")
-    if role == "device" and not patient_id:
+    if role == Role.device and not patient_id:
         raise ValueError("a device token needs a patient_id")
-    if role == "clinician" and not clinician_id:
+    if role == Role.clinician and not clinician_id:
         raise ValueError("a clinician token needs a clinician_id")
     plaintext = TOKEN_PREFIX + secrets.token_urlsafe(32)
     token = Token(token_hash=hash_token(plaintext), role=role, name=name, clinician_id=clinician_id,
@@ -48,7 +49,7 @@ def create_clinician(db: DbSession, name: str, email: str | None = None) -> tupl
     clinician = Clinician(name=name, email=email)
     db.add(clinician)
     db.flush()
-    _, plaintext = issue_token(db, role="clinician", name=name, clinician_id=clinician.id)
+    _, plaintext = issue_token(db, role=Role.clinician, name=name, clinician_id=clinician.id)
     return clinician, plaintext
 
 
@@ -68,16 +69,18 @@ class Principal:
 
 
 def require_role(principal: Principal, *roles: str, action: str) -> None:
+    """403 unless the caller's role is one of ``roles``."""
     if principal.role not in roles:
         raise forbidden(f"A {principal.role} token may not {action}")
 
 
 def can_access_patient(principal: Principal, patient: Patient) -> bool:
-    if principal.role == "admin":
+    """Whether the caller may see the patient: admins all, clinicians their own, devices theirs."""
+    if principal.role == Role.admin:
         return True
-    if principal.role == "clinician":
+    if principal.role == Role.clinician:
         return patient.clinician_id is not None and patient.clinician_id == principal.clinician_id
-    return principal.role == "device" and patient.id == principal.patient_id
+    return principal.role == Role.device and patient.id == principal.patient_id
 
 
 def get_patient_for(db: DbSession, principal: Principal, patient_id: str) -> Patient:
@@ -96,9 +99,9 @@ def get_session_for(db: DbSession, principal: Principal, session_id: str, *, for
     session = db.scalar(stmt)
     if session is None:
         raise not_found("Session")
-    if principal.role == "device":
+    if principal.role == Role.device:
         ok = session.patient_id == principal.patient_id
-    elif principal.role == "admin":
+    elif principal.role == Role.admin:
         ok = True
     else:
         patient = db.get(Patient, session.patient_id)

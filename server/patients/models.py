@@ -12,6 +12,8 @@ from server.utc import utcnow
 
 
 class Patient(Base):
+    """A monitored patient, owned by a clinician."""
+
     __tablename__ = "patients"
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
     clinician_id: Mapped[str | None] = mapped_column(ForeignKey("clinicians.id", ondelete="SET NULL"), index=True)

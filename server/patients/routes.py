@@ -12,6 +12,7 @@ from server.auth.routes import token_out
 from server.auth.schemas import DeviceTokenCreated, DeviceTokenIn, TokenOut
 from server.auth.service import get_patient_for, issue_token, require_role
 from server.deps import Caller, Db
+from server.enums import Role
 from server.errors import invalid
 from server.pagination import after_cursor, decode_cursor, encode_cursor
 from server.patients.models import Patient
@@ -32,8 +33,9 @@ def patient_out(p: Patient) -> PatientOut:
 @router.post("", status_code=201, response_model=PatientOut,
              summary="Create a patient owned by the calling clinician (an admin may name the clinician)")
 def create_patient(body: PatientIn, db: Db, caller: Caller) -> PatientOut:
-    require_role(caller, "admin", "clinician", action="create patients")
-    if caller.role == "clinician":
+    """Create a patient owned by the calling clinician (an admin may name the clinician)."""
+    require_role(caller, Role.admin, Role.clinician, action="create patients")
+    if caller.role == Role.clinician:
         if body.clinician_id is not None and body.clinician_id != caller.clinician_id:
             raise invalid("clinician_id", "a clinician creates patients for themself only")
         owner = caller.clinician_id
@@ -52,9 +54,10 @@ def create_patient(body: PatientIn, db: Db, caller: Caller) -> PatientOut:
 @router.get("", response_model=PatientPage, summary="The caller's patients (admin: all), oldest first")
 def list_patients(db: Db, caller: Caller, limit: int = Query(50, ge=1, le=200),
                   cursor: str | None = Query(None, description="next_cursor of the previous page")) -> PatientPage:
-    require_role(caller, "admin", "clinician", action="list patients")
+    """The caller's patients, one page at a time."""
+    require_role(caller, Role.admin, Role.clinician, action="list patients")
     stmt = select(Patient)
-    if caller.role == "clinician":
+    if caller.role == Role.clinician:
         stmt = stmt.where(Patient.clinician_id == caller.clinician_id)
     if cursor:
         stmt = stmt.where(after_cursor(Patient.created_at, Patient.id, cursor))
@@ -66,12 +69,14 @@ def list_patients(db: Db, caller: Caller, limit: int = Query(50, ge=1, le=200),
 
 @router.get("/{patient_id}", response_model=PatientOut, summary="One patient")
 def get_patient(patient_id: str, db: Db, caller: Caller) -> PatientOut:
+    """One patient the caller may see."""
     return patient_out(get_patient_for(db, caller, patient_id))
 
 
 @router.patch("/{patient_id}", response_model=PatientOut, summary="Change a patient's details")
 def patch_patient(patient_id: str, body: PatientPatch, db: Db, caller: Caller) -> PatientOut:
-    require_role(caller, "admin", "clinician", action="change patients")
+    """Change some fields of a patient."""
+    require_role(caller, Role.admin, Role.clinician, action="change patients")
     patient = get_patient_for(db, caller, patient_id)
     for field, value in body.model_dump(exclude_unset=True).items():
         setattr(patient, field, value)
@@ -82,7 +87,8 @@ def patch_patient(patient_id: str, body: PatientPatch, db: Db, caller: Caller) -
 @router.delete("/{patient_id}", status_code=204, response_class=Response,
                summary="Delete the patient and all its data (sessions, raw batches, results, tokens)")
 def delete_patient(patient_id: str, db: Db, caller: Caller) -> Response:
-    require_role(caller, "admin", "clinician", action="delete patients")
+    """Delete a patient with every session, result and token."""
+    require_role(caller, Role.admin, Role.clinician, action="delete patients")
     patient = get_patient_for(db, caller, patient_id)
     session_ids = select(Session.id).where(Session.patient_id == patient.id).scalar_subquery()
     # Explicit deletes of the core tables (children first) so nothing depends on the database enforcing
@@ -101,10 +107,11 @@ def delete_patient(patient_id: str, db: Db, caller: Caller) -> Response:
              summary="Enrol a device: a token bound to this patient (shown once)")
 def create_device_token(patient_id: str, db: Db, caller: Caller,
                         body: DeviceTokenIn | None = None) -> DeviceTokenCreated:
-    require_role(caller, "admin", "clinician", action="create device tokens")
+    """Issue a device token for the patient's app (shown once)."""
+    require_role(caller, Role.admin, Role.clinician, action="create device tokens")
     patient = get_patient_for(db, caller, patient_id)
     name = body.name if body else None
-    token, plaintext = issue_token(db, role="device", name=name, patient_id=patient.id)
+    token, plaintext = issue_token(db, role=Role.device, name=name, patient_id=patient.id)
     db.commit()
     log.info("device token %s for patient %s created by token %s", token.id, patient.id, caller.token_id)
     return DeviceTokenCreated(token=plaintext, token_id=token.id, patient_id=patient.id, name=name)
@@ -113,9 +120,10 @@ def create_device_token(patient_id: str, db: Db, caller: Caller,
 @router.get("/{patient_id}/device-tokens", response_model=list[TokenOut],
             summary="The patient's device tokens (without their secret)")
 def list_device_tokens(patient_id: str, db: Db, caller: Caller) -> list[TokenOut]:
-    require_role(caller, "admin", "clinician", action="list device tokens")
+    """The device tokens of a patient (metadata only)."""
+    require_role(caller, Role.admin, Role.clinician, action="list device tokens")
     patient = get_patient_for(db, caller, patient_id)
-    rows = db.scalars(select(Token).where(Token.patient_id == patient.id, Token.role == "device")
+    rows = db.scalars(select(Token).where(Token.patient_id == patient.id, Token.role == Role.device)
                       .order_by(Token.created_at, Token.id)).all()
     return [token_out(t) for t in rows]
 
@@ -124,6 +132,7 @@ def list_device_tokens(patient_id: str, db: Db, caller: Caller) -> list[TokenOut
             summary="The patient's sessions, newest first")
 def list_sessions(patient_id: str, db: Db, caller: Caller, limit: int = Query(50, ge=1, le=200),
                   cursor: str | None = Query(None, description="next_cursor of the previous page")) -> SessionPage:
+    """A patient's sessions, newest first, one page at a time."""
     patient = get_patient_for(db, caller, patient_id)
     stmt = select(Session).where(Session.patient_id == patient.id)
     if cursor:

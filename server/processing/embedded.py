@@ -25,10 +25,13 @@ POLL_S = 0.5
 
 
 def worker_name(prefix: str) -> str:
+    """A name for a runner: prefix, host and process id."""
     return f"{prefix}@{socket.gethostname()}:{os.getpid()}"
 
 
 class EmbeddedRunner:
+    """The in-process job runner used with SQLite: one thread that processes queued sessions."""
+
     def __init__(self, sm: sessionmaker[DbSession], settings: Settings, *, recover_all_at_start: bool = True,
                  poll_s: float = POLL_S, name: str | None = None) -> None:
         self._sm = sm

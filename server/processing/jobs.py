@@ -17,20 +17,21 @@ import time
 import traceback
 import uuid
 from collections.abc import Callable
-from datetime import UTC, datetime, timedelta
+from datetime import datetime, timedelta
 
-import numpy as np
 from sqlalchemy import delete, or_, select, update
 from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
 
 from server import metadata as _metadata  # noqa: F401 - runners flush rows whose foreign keys span domains
 from server.codec import encode_trace
-from server.enums import StrideActivity
+from server.enums import SessionStatus, StrideActivity
+from server.numbers import json_safe
 from server.results.models import KneeAngleTrace, Stride
 from server.results.stride_record import STORED_FLOATS
 from server.sessions.models import Session
 from server.trends.summaries import refresh_session
+from server.utc import as_utc, utcnow
 
 log = logging.getLogger("gaitmon.jobs")
 
@@ -39,15 +40,6 @@ log = logging.getLogger("gaitmon.jobs")
 MAX_ATTEMPTS = 3
 DEFAULT_HEARTBEAT_S = 10.0
 MAX_ERROR_CHARS = 500
-
-
-def utcnow() -> datetime:
-    return datetime.now(UTC)
-
-
-def _aware(dt: datetime) -> datetime:
-    # SQLite returns naive datetimes; everything is stored in UTC.
-    return dt if dt.tzinfo is not None else dt.replace(tzinfo=UTC)
 
 
 def _update(db: DbSession, session_id: str, *conditions, **values) -> int:  # noqa: ANN002, ANN003
@@ -61,8 +53,9 @@ def claim(sm: sessionmaker[DbSession], session_id: str, worker_id: str = "inline
     token = f"{worker_id[:50]}:{uuid.uuid4().hex[:12]}"
     with sm() as db:
         now = utcnow()
-        changed = _update(db, session_id, Session.status == "queued",
-                          status="processing", worker_id=token, heartbeat_at=now, attempts=Session.attempts + 1)
+        changed = _update(db, session_id, Session.status == SessionStatus.queued,
+                          status=SessionStatus.processing, worker_id=token, heartbeat_at=now,
+                          attempts=Session.attempts + 1)
         db.commit()
     return token if changed == 1 else None
 
@@ -70,7 +63,7 @@ def claim(sm: sessionmaker[DbSession], session_id: str, worker_id: str = "inline
 def heartbeat(sm: sessionmaker[DbSession], session_id: str, token: str) -> bool:
     """Refresh the claim's heartbeat; False when the claim was lost (recovered by someone else)."""
     with sm() as db:
-        changed = _update(db, session_id, Session.worker_id == token, Session.status == "processing",
+        changed = _update(db, session_id, Session.worker_id == token, Session.status == SessionStatus.processing,
                           heartbeat_at=utcnow())
         db.commit()
     return changed == 1
@@ -118,19 +111,6 @@ def _refresh_trends(db: DbSession, session_id: str) -> None:
     refresh_session(db, session_id)
 
 
-def json_safe(value: object) -> object:
-    """Non-finite floats become None: PostgreSQL's JSON rejects NaN, and API clients cannot parse it either."""
-    if isinstance(value, dict):
-        return {k: json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [json_safe(v) for v in value]
-    if isinstance(value, float | np.floating):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
-
-
 def _clear_results(db: DbSession, session_id: str) -> None:
     db.execute(delete(Stride).where(Stride.session_id == session_id))
     db.execute(delete(KneeAngleTrace).where(KneeAngleTrace.session_id == session_id))
@@ -142,7 +122,7 @@ def _store_results(db: DbSession, sess_row: tuple[str, datetime], session_id: st
     columns are NOT NULL and SQLite would turn NaN into NULL (PostgreSQL would keep it), so keeping it would make
     the two databases disagree and the API emit invalid JSON."""
     patient_id, started_at = sess_row
-    started_at = _aware(started_at)
+    started_at = as_utc(started_at)
     stored = skipped = 0
     for leg, res in result.legs.items():
         for s in res.strides:
@@ -195,8 +175,9 @@ def process_claimed(sm: sessionmaker[DbSession], session_id: str, token: str, *,
             result = processor(streams, activity=activity)
             with sm() as db:
                 # The conditional update comes first: it locks the row, so a recovery cannot interleave.
-                changed = _update(db, session_id, Session.worker_id == token, Session.status == "processing",
-                                  status="done", error=None, algorithm_version=result.algorithm_version,
+                changed = _update(db, session_id, Session.worker_id == token,
+                                  Session.status == SessionStatus.processing,
+                                  status=SessionStatus.done, error=None, algorithm_version=result.algorithm_version,
                                   processed_at=utcnow(), heartbeat_at=None)
                 if changed != 1:
                     db.rollback()
@@ -222,8 +203,8 @@ def process_claimed(sm: sessionmaker[DbSession], session_id: str, token: str, *,
 
 def _mark_failed(sm: sessionmaker[DbSession], session_id: str, token: str, error: str) -> str:
     with sm() as db:
-        changed = _update(db, session_id, Session.worker_id == token, Session.status == "processing",
-                          status="failed", error=error, processed_at=utcnow(), heartbeat_at=None)
+        changed = _update(db, session_id, Session.worker_id == token, Session.status == SessionStatus.processing,
+                          status=SessionStatus.failed, error=error, processed_at=utcnow(), heartbeat_at=None)
         if changed != 1:
             db.rollback()
             return "lost"
@@ -246,8 +227,9 @@ def process_one(sm: sessionmaker[DbSession], session_id: str, *, worker_id: str 
 
 
 def queued_ids(sm: sessionmaker[DbSession], limit: int = 100) -> list[str]:
+    """Queued sessions, oldest completion first."""
     with sm() as db:
-        stmt = (select(Session.id).where(Session.status == "queued")
+        stmt = (select(Session.id).where(Session.status == SessionStatus.queued)
                 .order_by(Session.completed_at, Session.created_at).limit(limit))
         return list(db.scalars(stmt).all())
 
@@ -276,7 +258,7 @@ def recover_stalled(sm: sessionmaker[DbSession], *, stall_seconds: float, everyt
     was already interrupted ``MAX_ATTEMPTS`` times is marked failed instead.
     """
     cutoff = utcnow() - timedelta(seconds=stall_seconds)
-    stale = [Session.status == "processing"]
+    stale = [Session.status == SessionStatus.processing]
     if not everything:
         stale.append(or_(Session.heartbeat_at.is_(None), Session.heartbeat_at < cutoff))
     with sm() as db:
@@ -284,14 +266,15 @@ def recover_stalled(sm: sessionmaker[DbSession], *, stall_seconds: float, everyt
         requeued: list[str] = []
         for sid, attempts, old_worker in rows:
             # Conditioned on the same claim so a worker that heart-beats right now keeps its session.
-            same_claim = [Session.status == "processing", Session.worker_id == old_worker]
+            same_claim = [Session.status == SessionStatus.processing, Session.worker_id == old_worker]
             if (attempts or 0) >= MAX_ATTEMPTS:
                 err = (f"processing was interrupted {attempts} times (worker crash or timeout); "
                        "reprocess to try again")
-                if _update(db, sid, *same_claim, status="failed", error=err, worker_id=None, heartbeat_at=None):
+                if _update(db, sid, *same_claim, status=SessionStatus.failed, error=err, worker_id=None,
+                           heartbeat_at=None):
                     log.error("session %s: %s", sid, err)
                 continue
-            if _update(db, sid, *same_claim, status="queued", worker_id=None, heartbeat_at=None):
+            if _update(db, sid, *same_claim, status=SessionStatus.queued, worker_id=None, heartbeat_at=None):
                 log.warning("session %s: processing by %s stalled; queued again", sid, old_worker)
                 requeued.append(sid)
         db.commit()

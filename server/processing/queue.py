@@ -19,16 +19,19 @@ _wakers_lock = threading.Lock()
 
 
 def register_waker(event: threading.Event) -> None:
+    """Wake this event whenever a session is enqueued (the embedded runner)."""
     with _wakers_lock:
         _wakers.add(event)
 
 
 def unregister_waker(event: threading.Event) -> None:
+    """Stop waking this event."""
     with _wakers_lock:
         _wakers.discard(event)
 
 
 def wake() -> None:
+    """Wake every registered runner."""
     with _wakers_lock:
         for event in _wakers:
             event.set()

@@ -146,6 +146,7 @@ def defer_session(database_url: str, session_id: str) -> None:
 
 
 def close_api_apps() -> None:
+    """Close the procrastinate apps the API opened to defer jobs."""
     with _api_apps_lock:
         for app in _api_apps.values():
             app.close()
@@ -153,6 +154,7 @@ def close_api_apps() -> None:
 
 
 def schema_present(database_url: str) -> bool:
+    """Whether procrastinate's tables exist in this database."""
     with _sessionmaker(database_url)() as db:
         return db.execute(text("SELECT to_regclass('procrastinate_jobs')")).scalar() is not None
 

@@ -11,6 +11,8 @@ from server.db import Base
 
 
 class Stride(Base):
+    """One stride of one leg of a processed session (value columns: :mod:`server.results.stride_record`)."""
+
     __tablename__ = "strides"
     __table_args__ = (
         UniqueConstraint("session_id", "leg", "index"),

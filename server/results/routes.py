@@ -12,7 +12,7 @@ from sqlalchemy import select
 from server.auth.service import get_session_for
 from server.codec import decode_trace
 from server.deps import Caller, Db
-from server.enums import Leg
+from server.enums import Leg, SessionStatus
 from server.errors import ProblemError, invalid, not_found
 from server.numbers import finite_round
 from server.results import compare
@@ -25,10 +25,10 @@ router = APIRouter(prefix="/v1/sessions", tags=["results"])
 
 
 def _require_done(session: Session) -> None:
-    if session.status == "done":
+    if session.status == SessionStatus.done:
         return
     detail = f"The session is {session.status}; results exist once it is done"
-    if session.status == "failed" and session.error:
+    if session.status == SessionStatus.failed and session.error:
         detail += f" (processing failed: {session.error})"
     raise ProblemError(409, detail, title="Results not available", slug="results-not-ready")
 
@@ -36,6 +36,7 @@ def _require_done(session: Session) -> None:
 @router.get("/{session_id}/strides", response_model=StridesOut,
             summary="Every stride of the session (optionally one leg), heel strike to heel strike")
 def get_strides(session_id: str, db: Db, caller: Caller, leg: Leg | None = Query(None)) -> StridesOut:
+    """Every stride of a processed session (optionally one leg)."""
     session = get_session_for(db, caller, session_id)
     _require_done(session)
     stmt = select(Stride).where(Stride.session_id == session.id)
@@ -86,6 +87,7 @@ def get_knee_angle(session_id: str, db: Db, caller: Caller,
                    max_points: int = Query(2000, ge=10, le=200_000),
                    start_s: float | None = Query(None, description="Window start, s since session start"),
                    end_s: float | None = Query(None, description="Window end, s since session start")) -> KneeAngleOut:
+    """The continuous knee angle of one leg, min/max down-sampled to at most ``max_points``."""
     session = get_session_for(db, caller, session_id)
     _require_done(session)
     traces = db.scalars(select(KneeAngleTrace).where(KneeAngleTrace.session_id == session.id)).all()
@@ -127,6 +129,7 @@ async def compare_session(session_id: str, request: Request, caller: Caller,
                           estimators: str | None = Query(None, description="Comma-separated subset, e.g. go,kf; "
                                                                            "default: auto and every registered one")
                           ) -> CompareOut:
+    """Every knee estimator on this session (see :mod:`server.results.compare`)."""
     names = compare.requested_estimators(estimators)
     factory = request.app.state.sessionmaker
     # Threads: the database read and the pipeline runs block; the event loop keeps serving meanwhile.

@@ -16,6 +16,7 @@ from sqlalchemy.orm import Session as DbSession
 
 from pipeline.prepare import GAP_FACTOR
 from server.codec import content_sha256, encode_samples
+from server.enums import SessionStatus
 from server.errors import conflict, invalid
 from server.sessions.models import Batch, Session, SessionSensor
 from server.sessions.schemas import BatchIn
@@ -28,6 +29,8 @@ MAX_LISTED_MISSING_SEQ = 100
 
 @dataclass(frozen=True)
 class IngestOutcome:
+    """What storing a batch did: stored, or an identical replay."""
+
     created: bool  # False: identical replay of a stored batch
     sensor_id: str
     seq: int
@@ -108,13 +111,13 @@ def ingest_batch(db: DbSession, session: Session, body: BatchIn, *, max_samples:
     existing = _find_batch(db, session.id, sensor.sensor_id, body.seq)
     if existing is not None:
         return _replay_outcome(existing, digest)
-    if session.status != "receiving":
+    if session.status != SessionStatus.receiving:
         raise conflict(f"Session is {session.status}; uploads are accepted only while it is receiving",
                        slug="session-not-receiving")
 
     # Re-check the status with a write in this transaction: on SQLite this takes the write lock (a SELECT does
     # not), on PostgreSQL the row lock, so a /complete either commits before (-> 409) or waits for this batch.
-    if not still_in_status(db, session.id, ("receiving",)):
+    if not still_in_status(db, session.id, (SessionStatus.receiving,)):
         db.rollback()
         raise conflict("Session was completed; uploads are accepted only while it is receiving",
                        slug="session-not-receiving")

@@ -8,10 +8,13 @@ from sqlalchemy import JSON, DateTime, Float, ForeignKey, Integer, LargeBinary, 
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
 from server.db import Base, new_id
+from server.enums import SessionStatus
 from server.utc import utcnow
 
 
 class Session(Base):
+    """One recording session of a patient and where its processing stands."""
+
     __tablename__ = "sessions"
     __table_args__ = (UniqueConstraint("patient_id", "client_session_id"),)
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
@@ -20,7 +23,7 @@ class Session(Base):
     started_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
     activity: Mapped[str] = mapped_column(String(16), default="walking")
     # receiving | queued | processing | done | failed
-    status: Mapped[str] = mapped_column(String(16), default="receiving", index=True)
+    status: Mapped[str] = mapped_column(String(16), default=SessionStatus.receiving, index=True)
     error: Mapped[str | None] = mapped_column(Text)
     algorithm_version: Mapped[str | None] = mapped_column(String(32))
     summary: Mapped[dict | None] = mapped_column(JSON)
@@ -39,6 +42,8 @@ class Session(Base):
 
 
 class SessionSensor(Base):
+    """One declared sensor of a session: leg, segment, rate and units."""
+
     __tablename__ = "session_sensors"
     __table_args__ = (UniqueConstraint("session_id", "sensor_id"),)
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)

@@ -15,6 +15,7 @@ from sqlalchemy.orm import Session as DbSession
 
 from server.auth.service import get_patient_for, get_session_for, require_role
 from server.deps import AppSettings, Caller, Db
+from server.enums import Role, SessionStatus
 from server.errors import ProblemError, conflict
 from server.processing.queue import enqueue
 from server.sessions.ingest import ingest_batch, received_summary, still_in_status
@@ -72,6 +73,7 @@ def _same_or_conflict(existing: Session, body: SessionIn) -> Session:
                               "model": SessionOut}},
              summary="Start a session (a repeated client_session_id returns the existing one with 200)")
 def create_session(body: SessionIn, response: Response, db: Db, caller: Caller) -> SessionOut:
+    """Create a session (idempotent on the app's client_session_id)."""
     patient = get_patient_for(db, caller, body.patient_id)
     existing = _existing(db, patient.id, body.client_session_id)
     if existing is not None:
@@ -79,7 +81,8 @@ def create_session(body: SessionIn, response: Response, db: Db, caller: Caller) 
         return session_out(db, _same_or_conflict(existing, body))
     # Stored in UTC: SQLite drops the offset of an aware datetime instead of converting it.
     session = Session(patient_id=patient.id, client_session_id=body.client_session_id,
-                      started_at=body.started_at.astimezone(UTC), activity=body.activity, status="receiving")
+                      started_at=body.started_at.astimezone(UTC), activity=body.activity,
+                      status=SessionStatus.receiving)
     session.sensors = [SessionSensor(sensor_id=x.sensor_id, leg=x.leg, segment=x.segment,
                                      sample_rate_hz=x.sample_rate_hz, gyro_unit=x.gyro_unit, acc_unit=x.acc_unit)
                        for x in body.sensors]
@@ -101,6 +104,7 @@ def create_session(body: SessionIn, response: Response, db: Db, caller: Caller) 
 @router.get("/{session_id}", response_model=SessionOut,
             summary="Status, what was received per sensor (batches, samples, gaps) and the result summary")
 def get_session(session_id: str, db: Db, caller: Caller) -> SessionOut:
+    """A session with what it received and, once processed, its summary."""
     return session_out(db, get_session_for(db, caller, session_id))
 
 
@@ -114,6 +118,7 @@ def get_session(session_id: str, db: Db, caller: Caller) -> SessionOut:
              summary="Upload one batch of one sensor (idempotent per sensor_id and seq; gzip accepted)")
 def upload_batch(session_id: str, response: Response, db: Db, caller: Caller, settings: AppSettings,
                  body: BatchIn = Depends(parse_batch)) -> BatchOut:
+    """Store one batch of one sensor (idempotent on sensor_id and seq)."""
     # Row lock: a concurrent /complete waits until this batch is committed (or sees it is not).
     session = get_session_for(db, caller, session_id, for_update=True)
     try:
@@ -132,8 +137,9 @@ def upload_batch(session_id: str, response: Response, db: Db, caller: Caller, se
 @router.post("/{session_id}/complete", status_code=202, response_model=SessionOut,
              summary="No more uploads: queue the session for processing (idempotent)")
 def complete_session(session_id: str, db: Db, caller: Caller, settings: AppSettings) -> SessionOut:
+    """No more data will come: queue the session for processing."""
     session = get_session_for(db, caller, session_id, for_update=True)
-    if session.status != "receiving" or not still_in_status(db, session.id, ("receiving",)):
+    if session.status != SessionStatus.receiving or not still_in_status(db, session.id, (SessionStatus.receiving,)):
         # Already completed (idempotent): 202 with the current state.
         db.rollback()
         return session_out(db, db.get(Session, session_id, populate_existing=True) or session)
@@ -142,7 +148,7 @@ def complete_session(session_id: str, db: Db, caller: Caller, settings: AppSetti
         db.rollback()
         raise ProblemError(422, "The session has no batches: upload data before completing it",
                            title="Nothing to process", slug="session-empty")
-    session.status = "queued"
+    session.status = SessionStatus.queued
     session.error = None
     session.completed_at = utcnow()
     db.commit()
@@ -154,15 +160,17 @@ def complete_session(session_id: str, db: Db, caller: Caller, settings: AppSetti
 @router.post("/{session_id}/reprocess", status_code=202, response_model=SessionOut,
              summary="Run the current algorithm again on the stored raw data (clinician/admin)")
 def reprocess_session(session_id: str, db: Db, caller: Caller, settings: AppSettings) -> SessionOut:
-    require_role(caller, "admin", "clinician", action="reprocess sessions")
+    """Run the current algorithm again on the stored raw data."""
+    require_role(caller, Role.admin, Role.clinician, action="reprocess sessions")
     session = get_session_for(db, caller, session_id, for_update=True)
-    if session.status == "receiving":
+    if session.status == SessionStatus.receiving:
         raise conflict("The session is still receiving; complete it first", slug="session-not-completed")
-    if session.status not in ("done", "failed") or not still_in_status(db, session.id, ("done", "failed")):
+    finished = (SessionStatus.done, SessionStatus.failed)
+    if session.status not in finished or not still_in_status(db, session.id, finished):
         # Queued or being processed already: 202 with the current state.
         db.rollback()
         return session_out(db, db.get(Session, session_id, populate_existing=True) or session)
-    session.status = "queued"
+    session.status = SessionStatus.queued
     session.error = None
     session.attempts = 0
     db.commit()

@@ -25,13 +25,16 @@ from sqlalchemy.orm import Session as DbSession
 
 from server.codec import decode_values
 from server.enums import StrideActivity
+from server.numbers import finite_round
 from server.patients.models import Patient
 from server.results.models import Stride
+from server.results.stride_record import STRIDE_UNITS, STRIDE_VALUE_FIELDS
 from server.sessions.models import Session
 from server.trends import stats
 from server.trends.metrics import METRICS, MIN_QUALITY, Metric
 from server.trends.models import TrendMetricValues, TrendSessionLeg
-from server.trends.timeutil import as_utc, local_date, local_midnight, zone
+from server.trends.timeutil import local_date, local_midnight, zone
+from server.utc import as_utc, utcnow
 
 LOCAL_CODE_SYSTEM = "urn:gaitmon:codesystem:gait-metric"
 SNOMED = "http://snomed.info/sct"
@@ -44,18 +47,21 @@ FHIR_METRICS = ("peak_swing_flexion_deg", "rom_deg", "min_flexion_deg", "stance_
                 "cadence_steps_per_min")
 _NS = uuid.UUID("1b7d7c3e-3f0e-4b8e-9d0a-6a1f3c2b9e55")  # namespace of the stable Observation ids
 
+# The stride's value fields as the pipeline declares them, with the derived cadence next to the stance share.
+_CADENCE_AFTER = "stance_pct"
+VALUE_COLUMNS: tuple[str, ...] = tuple(c for name in STRIDE_VALUE_FIELDS for c in (
+    (name, "cadence_steps_per_min") if name == _CADENCE_AFTER else (name,)))
+_DECIMALS = {"s": 4, "%": 2, "deg": 2, "steps/min": 2}
+_UNITS = {**STRIDE_UNITS, "cadence_steps_per_min": METRICS["cadence_steps_per_min"].unit}
 CSV_COLUMNS = [
-    "session_id", "client_session_id", "leg", "index", "started_at", "local_date", "t_start_s", "t_end_s",
-    "duration_s", "t_toe_off_s", "stance_time_s", "swing_time_s", "stance_pct", "cadence_steps_per_min",
-    "peak_swing_flexion_deg", "min_flexion_deg", "rom_deg", "stance_flexion_deg", "estimator", "quality",
-    "quality_reasons", "included", "excluded_because", "activity", "fallback",
+    "session_id", "client_session_id", "leg", "index", "started_at", "local_date", *VALUE_COLUMNS, "estimator",
+    "quality", "quality_reasons", "included", "excluded_because", "activity", "fallback",
 ]
 
 
 def _num(x: float | None, nd: int = 4) -> str:
-    if x is None or not np.isfinite(x):
-        return ""
-    return f"{round(float(x), nd):.{nd}f}".rstrip("0").rstrip(".")
+    v = finite_round(x, nd)
+    return "" if v is None else f"{v:.{nd}f}".rstrip("0").rstrip(".")
 
 
 def _exclusions(row: Any) -> list[str]:
@@ -97,12 +103,11 @@ def strides_csv(db: DbSession, patient: Patient, start: datetime | None, end: da
         local = as_utc(s["started_at"]).astimezone(tz)
         excl = _exclusions(s)
         cadence = 120.0 / s["duration_s"] if s["duration_s"] else None
+        values = {**s, "cadence_steps_per_min": cadence}
         w.writerow([
             s["session_id"], s["client_session_id"], s["leg"], s["index"], local.isoformat(),
-            local.date().isoformat(), _num(s["t_start_s"]), _num(s["t_end_s"]), _num(s["duration_s"]),
-            _num(s["t_toe_off_s"]), _num(s["stance_time_s"]), _num(s["swing_time_s"]), _num(s["stance_pct"], 2),
-            _num(cadence, 2), _num(s["peak_swing_flexion_deg"], 2), _num(s["min_flexion_deg"], 2),
-            _num(s["rom_deg"], 2), _num(s["stance_flexion_deg"], 2), s["estimator"], _num(s["quality"], 3),
+            local.date().isoformat(), *(_num(values[c], _DECIMALS[_UNITS[c]]) for c in VALUE_COLUMNS),
+            s["estimator"], _num(s["quality"], 3),
             ";".join(s["quality_reasons"] or []), "0" if excl else "1", ";".join(excl), s["activity"],
             "1" if s["fallback"] else "0",
         ])
@@ -145,7 +150,7 @@ def daily_observations(db: DbSession, patient: Patient, start: datetime | None, 
     groups: dict[tuple[str, str, date], list[Any]] = defaultdict(list)
     for r in db.execute(q.order_by(m.started_at)):
         groups[(r.metric, r.leg, local_date(r.started_at, tz))].append(r)
-    issued = datetime.now(UTC).replace(microsecond=0).isoformat()
+    issued = utcnow().replace(microsecond=0).isoformat()
     out = []
     for (name, leg, day), rows in sorted(groups.items(), key=lambda kv: (kv[0][2], kv[0][1], kv[0][0])):
         metric = METRICS[name]
@@ -197,5 +202,5 @@ def fhir_bundle(db: DbSession, patient: Patient, start: datetime | None, end: da
     """The daily Observations of one activity as a FHIR R4 Bundle of type collection."""
     entries = daily_observations(db, patient, start, end, metrics, activity=activity)
     return {"resourceType": "Bundle", "id": str(uuid.uuid4()), "type": "collection",
-            "timestamp": datetime.now(UTC).replace(microsecond=0).isoformat(), "entry": entries}
+            "timestamp": utcnow().replace(microsecond=0).isoformat(), "entry": entries}
 

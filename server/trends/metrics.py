@@ -44,6 +44,8 @@ Direction = Literal["higher", "lower", "none"]
 
 @dataclass(frozen=True)
 class Metric:
+    """A trend metric: its source column, unit, plausibility limits and MDC."""
+
     name: str
     unit: str  # human unit, also UCUM where the two agree
     ucum: str  # UCUM code for FHIR valueQuantity.code

@@ -12,7 +12,7 @@ from fastapi.responses import JSONResponse, StreamingResponse
 
 from server.auth.service import get_patient_for, require_role
 from server.deps import Caller, Db
-from server.enums import StrideActivity
+from server.enums import Role, StrideActivity
 from server.errors import invalid
 from server.patients.models import Patient
 from server.trends import exports, service
@@ -60,6 +60,7 @@ def get_trends(patient_id: str, db: Db, caller: Caller, metric: MetricName = Met
                method: SlopeMethodName = "ols",
                window_days: Annotated[float, Query(ge=1, le=180)] = service.WINDOW_DAYS,
                activity: ActivityQ = StrideActivity.walking) -> JSONResponse:
+    """Longitudinal trend of one metric of one leg and activity."""
     patient = get_patient_for(db, caller, patient_id)
     lo, hi = _range(patient, start, end)
     return JSONResponse(service.patient_trends(db, patient, metric_name=metric.value, leg=leg, bucket=bucket,
@@ -72,6 +73,7 @@ def get_symmetry(patient_id: str, db: Db, caller: Caller,
                  metric: MetricName = MetricName.peak_swing_flexion_deg, bucket: BucketName = "week",
                  start: FromQ = None, end: ToQ = None,
                  activity: ActivityQ = StrideActivity.walking) -> JSONResponse:
+    """Affected vs other leg per bucket, for one activity."""
     patient = get_patient_for(db, caller, patient_id)
     lo, hi = _range(patient, start, end)
     return JSONResponse(service.patient_symmetry(db, patient, metric_name=metric.value, bucket=bucket, start=lo,
@@ -83,6 +85,7 @@ def get_symmetry(patient_id: str, db: Db, caller: Caller,
 def get_completeness(patient_id: str, db: Db, caller: Caller,
                      days: Annotated[int, Query(ge=1, le=366)] = 30,
                      activity: ActivityQ = StrideActivity.walking) -> JSONResponse:
+    """Days with data, strides and minutes of one activity per local day."""
     patient = get_patient_for(db, caller, patient_id)
     return JSONResponse(service.patient_completeness(db, patient, days=days, activity=activity))
 
@@ -93,7 +96,8 @@ def get_attention(db: Db, caller: Caller, limit: Annotated[int, Query(ge=1, le=2
                   silent_days: Annotated[float, Query(gt=0, le=365)] = 3.0,
                   stalled_weeks: Annotated[int, Query(ge=1, le=52)] = 4,
                   window_days: Annotated[float, Query(ge=1, le=90)] = 14.0) -> JSONResponse:
-    require_role(caller, "admin", "clinician", action="see the attention list")
+    """Patients who need attention, most severe first."""
+    require_role(caller, Role.admin, Role.clinician, action="see the attention list")
     offset = 0
     if cursor:
         if not cursor.isdigit():
@@ -109,7 +113,8 @@ def get_attention(db: Db, caller: Caller, limit: Annotated[int, Query(ge=1, le=2
             response_class=StreamingResponse)
 def get_strides_csv(patient_id: str, request: Request, db: Db, caller: Caller, start: FromQ = None,
                     end: ToQ = None, activity: ActivityQ = StrideActivity.walking) -> StreamingResponse:
-    require_role(caller, "admin", "clinician", action="export strides")
+    """Every stride of one activity of the patient as CSV."""
+    require_role(caller, Role.admin, Role.clinician, action="export strides")
     patient = get_patient_for(db, caller, patient_id)
     lo, hi = _range(patient, start, end)
     db.expunge(patient)
@@ -131,7 +136,8 @@ def get_fhir(patient_id: str, db: Db, caller: Caller, start: FromQ = None, end: 
              activity: ActivityQ = StrideActivity.walking,
              metric: Annotated[list[MetricName] | None, Query(description="repeat to choose several")] = None,
              ) -> JSONResponse:
-    require_role(caller, "admin", "clinician", action="export FHIR")
+    """Daily summaries of one activity as a FHIR R4 Bundle of Observations."""
+    require_role(caller, Role.admin, Role.clinician, action="export FHIR")
     patient = get_patient_for(db, caller, patient_id)
     lo, hi = _range(patient, start, end)
     chosen = tuple(m.value for m in metric) if metric else exports.FHIR_METRICS

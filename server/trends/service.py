@@ -45,6 +45,8 @@ def _iso(dt: datetime | None) -> str | None:
 
 @dataclass
 class SessionRow:
+    """One session's summary of one metric, leg and activity."""
+
     session_id: str
     started_at: datetime  # aware UTC
     n_included: int
@@ -235,6 +237,7 @@ def direction(metric: Metric, ch: stats.Change) -> str | None:
 
 def change_out(metric: Metric, points: list[stats.Point], t0: datetime | None,
                window_days: float = WINDOW_DAYS) -> dict[str, Any]:
+    """The baseline vs latest window change of a metric, as JSON."""
     min_n = MIN_WINDOW_DAYS if metric.column is None else MIN_WINDOW_STRIDES
     ch = stats.change(points, mdc=metric.mdc, mdc_relative=metric.mdc_relative, window_days=window_days,
                       min_n=min_n)
@@ -249,6 +252,7 @@ def change_out(metric: Metric, points: list[stats.Point], t0: datetime | None,
 
 
 def trend_out(points: list[stats.Point], method: stats.SlopeMethod) -> dict[str, Any]:
+    """The slope per week with its CI, as JSON."""
     sl = stats.slope(np.array([p.t_days for p in points]), np.array([p.mean for p in points]), method)
     per_week, ci = sl.per_week()
     return {
