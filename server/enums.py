@@ -1,4 +1,4 @@
-"""The closed vocabularies of the service: session status, token role, activity, leg, segment, estimator."""
+"""The closed vocabularies of the service: session status, token role, activity, leg, segment, sensor units."""
 
 from __future__ import annotations
 

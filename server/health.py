@@ -6,6 +6,7 @@ import logging
 
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
+from pydantic import BaseModel
 from sqlalchemy import text
 
 from server.errors import problem_response
@@ -14,7 +15,14 @@ log = logging.getLogger("gaitmon.api")
 router = APIRouter(tags=["health"])
 
 
-@router.get("/healthz", summary="200 when the service and its database answer, else 503",
+class HealthOut(BaseModel):
+    """The service and its database answer."""
+
+    status: str
+    database: str
+
+
+@router.get("/healthz", response_model=HealthOut, summary="200 when the service and its database answer, else 503",
             responses={503: {"description": "The database does not answer"}})
 def healthz(request: Request) -> JSONResponse:
     """200 when the service and its database answer, 503 otherwise."""

@@ -1,7 +1,7 @@
-"""Per-session-leg summaries the trend queries aggregate from (kept in step by :mod:`server.trends.summaries`).
+"""Per session, leg and activity summaries the trend queries aggregate from (kept by :mod:`server.trends.summaries`).
 
 A one-year daily trend reads ~365 small rows instead of ~365,000 strides: each row holds the included values of one
-metric of one session-leg as a compact float32 array plus their count, mean, sd and median.
+metric of one session, leg and activity as a compact float32 array plus their count, mean, sd and median.
 """
 
 from __future__ import annotations

@@ -18,11 +18,12 @@ from server.patients.models import Patient
 from server.trends import exports, service
 from server.trends.attention import AttentionParams, attention_list
 from server.trends.metrics import METRICS
+from server.trends.schemas import AttentionOut, CompletenessOut, FhirBundleOut, SymmetryOut, TrendsOut
 from server.trends.timeutil import parse_bound, zone
 
 log = logging.getLogger("gaitmon.api")
-# Plain JSON documents (no response_model): FastAPI's jsonable_encoder would walk a year of buckets field by field,
-# which costs more than computing them; every value is already a JSON type.
+# The routes return their JSON documents directly: FastAPI's jsonable_encoder would walk a year of buckets field by
+# field, which costs more than computing them; every value is already a JSON type. The response models document them.
 router = APIRouter(prefix="/v1", tags=["trends"])
 
 MetricName = Enum("MetricName", {name: name for name in METRICS}, type=str)  # type: ignore[misc]
@@ -54,7 +55,8 @@ def _range(patient: Patient, start: str | None, end: str | None) -> tuple[dateti
     return lo, hi
 
 
-@router.get("/patients/{patient_id}/trends", summary="Longitudinal trend of one gait metric of one leg")
+@router.get("/patients/{patient_id}/trends", response_model=TrendsOut,
+            summary="Longitudinal trend of one gait metric of one leg")
 def get_trends(patient_id: str, db: Db, caller: Caller, metric: MetricName = MetricName.peak_swing_flexion_deg,
                leg: LegName | None = None, bucket: BucketName = "day", start: FromQ = None, end: ToQ = None,
                method: SlopeMethodName = "ols",
@@ -68,7 +70,8 @@ def get_trends(patient_id: str, db: Db, caller: Caller, metric: MetricName = Met
                                                activity=activity))
 
 
-@router.get("/patients/{patient_id}/symmetry", summary="Affected vs other leg per bucket (ratio, symmetry index)")
+@router.get("/patients/{patient_id}/symmetry", response_model=SymmetryOut,
+            summary="Affected vs other leg per bucket (ratio, symmetry index)")
 def get_symmetry(patient_id: str, db: Db, caller: Caller,
                  metric: MetricName = MetricName.peak_swing_flexion_deg, bucket: BucketName = "week",
                  start: FromQ = None, end: ToQ = None,
@@ -80,7 +83,7 @@ def get_symmetry(patient_id: str, db: Db, caller: Caller,
                                                  end=hi, activity=activity))
 
 
-@router.get("/patients/{patient_id}/completeness",
+@router.get("/patients/{patient_id}/completeness", response_model=CompletenessOut,
             summary="Remote-monitoring view: days with data, strides and walking minutes per local day")
 def get_completeness(patient_id: str, db: Db, caller: Caller,
                      days: Annotated[int, Query(ge=1, le=366)] = 30,
@@ -90,7 +93,8 @@ def get_completeness(patient_id: str, db: Db, caller: Caller,
     return JSONResponse(service.patient_completeness(db, patient, days=days, activity=activity))
 
 
-@router.get("/attention", summary="Patients who need attention (declining, stalled, silent, sensor trouble)")
+@router.get("/attention", response_model=AttentionOut,
+            summary="Patients who need attention (declining, stalled, silent, sensor trouble)")
 def get_attention(db: Db, caller: Caller, limit: Annotated[int, Query(ge=1, le=200)] = 50,
                   cursor: str | None = None, metric: MetricName = MetricName.peak_swing_flexion_deg,
                   silent_days: Annotated[float, Query(gt=0, le=365)] = 3.0,
@@ -131,7 +135,8 @@ def get_strides_csv(patient_id: str, request: Request, db: Db, caller: Caller, s
                              headers={"Content-Disposition": f'attachment; filename="{name}"'})
 
 
-@router.get("/patients/{patient_id}/fhir", summary="Daily summaries as a FHIR R4 Bundle (collection) of Observations")
+@router.get("/patients/{patient_id}/fhir", response_model=FhirBundleOut,
+            summary="Daily summaries as a FHIR R4 Bundle (collection) of Observations")
 def get_fhir(patient_id: str, db: Db, caller: Caller, start: FromQ = None, end: ToQ = None,
              activity: ActivityQ = StrideActivity.walking,
              metric: Annotated[list[MetricName] | None, Query(description="repeat to choose several")] = None,

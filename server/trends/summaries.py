@@ -1,4 +1,4 @@
-"""Keep the per-session-leg trend summaries in step with the stride table.
+"""Keep the per session, leg and activity trend summaries in step with the stride table.
 
 ``refresh_session`` is called by the job runner after every processing run (success or failure); ``backfill``
 creates summaries for processed sessions that lack them (sessions processed before this module existed, or whose
