@@ -16,8 +16,8 @@ RUN python -c "import tomllib; print('\n'.join(tomllib.load(open('pyproject.toml
 
 COPY pipeline ./pipeline
 COPY server ./server
+# server/migrations links to the top-level Alembic scripts; the wheel ships them inside the service.
 COPY migrations ./migrations
-COPY bench ./bench
 RUN pip install --no-deps . \
     && useradd --system --uid 10001 --home-dir /data --create-home gaitmon
 

@@ -27,16 +27,18 @@ import numpy as np
 from sqlalchemy import create_engine, insert, text
 from sqlalchemy.engine import make_url
 
-from server.auth import create_clinician
+from server.auth.service import create_clinician
 from server.config import Settings
-from server.db import make_engine, make_sessionmaker
+from server.db import make_engine, make_sessionmaker, new_id
 from server.migrate import upgrade_to_head
-from server.models import Patient, Session, new_id, utcnow
+from server.patients.models import Patient
+from server.sessions.models import Session
 from server.trends import service
 from server.trends.attention import attention_list
 from server.trends.models import TrendMetricValues, TrendSessionLeg
-from server.trends.seed import add_session
 from server.trends.summaries import summarise_leg
+from server.utc import utcnow
+from tests.support.seed import add_session
 
 NOW = datetime.now(UTC).replace(microsecond=0)
 
@@ -45,14 +47,14 @@ def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def _synthetic_leg(rng: np.random.Generator, n: int, peak: float, fallback: float) -> tuple[dict, np.ndarray, list]:
+def _synthetic_leg(rng: np.random.Generator, n: int, peak: float,
+                   fallback: float) -> tuple[dict, np.ndarray, np.ndarray]:
     dur = rng.normal(1.1, 0.05, n)
     cols = {"peak_swing_flexion_deg": rng.normal(peak, 3.0, n), "rom_deg": rng.normal(peak - 2, 3.0, n),
             "min_flexion_deg": rng.normal(2.0, 1.0, n), "stance_flexion_deg": rng.normal(15.0, 3.0, n),
             "duration_s": dur, "swing_time_s": 0.4 * dur, "stance_pct": rng.normal(60.0, 2.0, n)}
     quality = np.where(rng.random(n) < 0.03, 0.2, 1.0)
-    est = ["cf" if x < fallback else "go" for x in rng.random(n)]
-    return cols, quality, est
+    return cols, quality, rng.random(n) < fallback
 
 
 def seed_cohort(factory, clinician_id: str, n_patients: int, strides: int = 200) -> None:  # noqa: ANN001
@@ -68,12 +70,12 @@ def seed_cohort(factory, clinician_id: str, n_patients: int, strides: int = 200)
             sid = new_id()
             started = NOW - timedelta(days=d, hours=float(rng.uniform(0, 10)))
             peak = {"declining": 45 + 0.4 * d, "improving": 62 - 0.4 * d}.get(kind, 55.0)
-            cols, quality, est = _synthetic_leg(rng, strides, peak, 0.6 if kind == "sensor" else 0.02)
-            leg_row, metric_rows = summarise_leg(cols, quality, est, n_gaps=int(rng.poisson(0.2)))
+            cols, quality, fallback = _synthetic_leg(rng, strides, peak, 0.6 if kind == "sensor" else 0.02)
+            leg_row, metric_rows = summarise_leg(cols, quality, fallback, n_gaps=int(rng.poisson(0.2)))
             sessions.append({"id": sid, "patient_id": pid, "client_session_id": sid, "started_at": started,
                              "activity": "walking", "status": "done", "algorithm_version": "bench",
                              "created_at": started, "processed_at": started, "attempts": 1})
-            key = {"session_id": sid, "leg": "left", "patient_id": pid, "started_at": started}
+            key = {"session_id": sid, "leg": "left", "activity": "walking", "patient_id": pid, "started_at": started}
             legs.append({**key, **leg_row, "algorithm_version": "bench", "refreshed_at": utcnow()})
             metrics.extend({**key, **m} for m in metric_rows)
         with factory() as db:

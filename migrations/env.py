@@ -6,7 +6,7 @@ from alembic import context
 from sqlalchemy import engine_from_config, pool
 
 from server.config import get_settings
-from server.db import all_metadata
+from server.metadata import all_metadata
 from server.migrate import include_name
 
 config = context.config
@@ -18,12 +18,14 @@ def _url() -> str:
 
 
 def run_migrations_offline() -> None:
+    """Emit the migration SQL for the configured URL without connecting."""
     context.configure(url=_url(), target_metadata=target_metadata, literal_binds=True, render_as_batch=True)
     with context.begin_transaction():
         context.run_migrations()
 
 
 def run_migrations_online() -> None:
+    """Run the migrations on the caller's connection, or on a new one to the configured URL."""
     connectable = config.attributes.get("connection")
     if connectable is None:
         connectable = engine_from_config({"sqlalchemy.url": _url()}, prefix="sqlalchemy.", poolclass=pool.NullPool)

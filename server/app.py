@@ -9,12 +9,17 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 from starlette.middleware.gzip import GZipMiddleware
 
-from server.api import clinicians, compare, health, patients, results, sessions
-from server.api.body_limit import BodyLimitMiddleware
+from server import health
+from server import metadata as _metadata  # noqa: F401 - registers every table before the first query
+from server.auth import routes as auth_routes
+from server.body_limit import BodyLimitMiddleware
 from server.config import Settings, get_settings
 from server.db import make_engine, make_sessionmaker
 from server.errors import install_error_handlers
-from server.trends import router as trends_router
+from server.patients import routes as patient_routes
+from server.results import routes as result_routes
+from server.sessions import routes as session_routes
+from server.trends import routes as trend_routes
 
 log = logging.getLogger("gaitmon.api")
 
@@ -34,6 +39,7 @@ TAGS = [
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
+    """The FastAPI application: routers, error handlers, body limits and, with SQLite, the embedded job runner."""
     settings = settings or get_settings()
     engine = make_engine(settings.resolved_database_url)
 
@@ -41,7 +47,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         handle = None
         if settings.resolved_job_runner == "embedded":
-            from server.jobs import embedded
+            from server.processing import embedded
 
             handle = embedded.start(app.state.sessionmaker, settings)
         try:
@@ -61,11 +67,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # Responses too: a full-resolution knee-angle trace or an export is mostly digits and shrinks ~4x.
     app.add_middleware(GZipMiddleware, minimum_size=1024)
     app.include_router(health.router)
-    app.include_router(clinicians.router)
-    app.include_router(patients.router)
-    app.include_router(sessions.router)
-    app.include_router(results.router)
+    app.include_router(auth_routes.router)
+    app.include_router(patient_routes.router)
+    app.include_router(session_routes.router)
+    app.include_router(result_routes.router)
     # Routers of other modules are included below this line (one line each).
-    app.include_router(trends_router.router)
-    app.include_router(compare.router)
+    app.include_router(trend_routes.router)
     return app

@@ -14,13 +14,15 @@ import os
 import signal
 import sys
 from collections.abc import Sequence
-from datetime import UTC, datetime
 
 from sqlalchemy import select, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import OperationalError
 
 from server.config import Settings, get_settings
+from server.enums import Role
+from server.simulate_cli import register as register_simulate
+from server.utc import utcnow
 
 log = logging.getLogger("gaitmon.cli")
 
@@ -29,6 +31,7 @@ MIGRATION_LOCK_ID = 727_011_001
 
 
 def setup_logging(level: str) -> None:
+    """Log lines with time, level and logger name at the configured level."""
     logging.basicConfig(stream=sys.stderr, level=level.upper(),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
     # One line per plugin on every start says nothing to an operator.
@@ -36,6 +39,7 @@ def setup_logging(level: str) -> None:
 
 
 def safe_url(url: str) -> str:
+    """The database URL without its password, for logs and messages."""
     return make_url(url).render_as_string(hide_password=True)
 
 
@@ -50,7 +54,7 @@ def migrate_database(settings: Settings) -> None:
         backfill_trend_summaries(settings)
         return
     from server.db import make_engine
-    from server.jobs.worker import apply_schema
+    from server.processing.worker import apply_schema
 
     engine = make_engine(url)
     try:
@@ -82,10 +86,12 @@ def backfill_trend_summaries(settings: Settings) -> None:
 
 
 def auto_migrate_enabled() -> bool:
+    """Whether ``gaitmon serve`` migrates first (``GAITMON_AUTO_MIGRATE``, default true)."""
     return os.environ.get("GAITMON_AUTO_MIGRATE", "true").strip().lower() not in {"0", "false", "no", "off"}
 
 
 def cmd_serve(args: argparse.Namespace, settings: Settings) -> int:
+    """``gaitmon serve``: migrate unless disabled, then run the API with uvicorn."""
     import uvicorn
 
     from server.app import create_app
@@ -102,35 +108,38 @@ def cmd_serve(args: argparse.Namespace, settings: Settings) -> int:
 
 
 def cmd_migrate(args: argparse.Namespace, settings: Settings) -> int:
+    """``gaitmon migrate``: bring the schema and the job queue to the latest version."""
     migrate_database(settings)
     return 0
 
 
 def _sessionmaker(settings: Settings):  # noqa: ANN202
+    from server import metadata as _metadata  # noqa: F401 - the commands write rows whose keys span domains
     from server.db import make_engine, make_sessionmaker
 
     return make_sessionmaker(make_engine(settings.resolved_database_url))
 
 
 def cmd_create_token(args: argparse.Namespace, settings: Settings) -> int:
-    from server.auth import create_clinician, issue_token
-    from server.models import Token
+    """``gaitmon create-token``: an admin token, or a clinician with its token (printed last)."""
+    from server.auth.models import Token
+    from server.auth.service import create_clinician, issue_token
 
-    if args.role == "clinician" and not args.name:
+    if args.role == Role.clinician and not args.name:
         print("error: --name is required for --role clinician", file=sys.stderr)
         return 2
     if auto_migrate_enabled():
         # The first command on a fresh machine is often this one, before `serve` ever ran.
         migrate_database(settings)
     with _sessionmaker(settings)() as db:
-        if args.role == "clinician":
+        if args.role == Role.clinician:
             clinician, token = create_clinician(db, args.name, email=args.email)
             db.commit()
             print(f"created clinician {clinician.id} ({clinician.name})", file=sys.stderr)
             digest = hashlib.sha256(token.encode()).hexdigest()
             token_id = db.scalars(select(Token.id).where(Token.token_hash == digest)).one()
         else:
-            row, token = issue_token(db, role="admin", name=args.name)
+            row, token = issue_token(db, role=Role.admin, name=args.name)
             db.commit()
             token_id = row.id
         print(f"created {args.role} token {token_id} (shown once; revoke with: gaitmon revoke-token {token_id})",
@@ -141,7 +150,8 @@ def cmd_create_token(args: argparse.Namespace, settings: Settings) -> int:
 
 
 def cmd_revoke_token(args: argparse.Namespace, settings: Settings) -> int:
-    from server.models import Token
+    """``gaitmon revoke-token``: revoke a token by its id."""
+    from server.auth.models import Token
 
     with _sessionmaker(settings)() as db:
         row = db.get(Token, args.token_id)
@@ -149,7 +159,7 @@ def cmd_revoke_token(args: argparse.Namespace, settings: Settings) -> int:
             print(f"error: no token with id {args.token_id}", file=sys.stderr)
             return 1
         if row.revoked_at is None:
-            row.revoked_at = datetime.now(UTC)
+            row.revoked_at = utcnow()
             db.commit()
             print(f"token {row.id} revoked", file=sys.stderr)
         else:
@@ -158,15 +168,16 @@ def cmd_revoke_token(args: argparse.Namespace, settings: Settings) -> int:
 
 
 def cmd_worker(args: argparse.Namespace, settings: Settings) -> int:
+    """``gaitmon worker``: process queued sessions until stopped."""
     if settings.resolved_job_runner == "procrastinate":
-        from server.jobs.worker import run_worker, schema_present
+        from server.processing.worker import run_worker, schema_present
 
         if not schema_present(settings.resolved_database_url):
             print("error: the job queue schema is missing; run `gaitmon migrate` first", file=sys.stderr)
             return 1
         run_worker(settings, concurrency=args.concurrency)
         return 0
-    from server.jobs.embedded import EmbeddedRunner, worker_name
+    from server.processing.embedded import EmbeddedRunner, worker_name
 
     if args.concurrency != 1:
         log.warning("--concurrency is ignored with the %s runner (one session at a time)",
@@ -186,13 +197,8 @@ def cmd_worker(args: argparse.Namespace, settings: Settings) -> int:
     return 0
 
 
-def _simulate_missing(args: argparse.Namespace, settings: Settings) -> int:
-    print("error: `gaitmon simulate` is not available in this build (server.simulate_cli is missing)",
-          file=sys.stderr)
-    return 2
-
-
 def build_parser() -> argparse.ArgumentParser:
+    """The ``gaitmon`` command line with its subcommands."""
     parser = argparse.ArgumentParser(prog="gaitmon", description="Gait monitoring backend")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -207,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("create-token", help="create an admin token, or a clinician with its token; "
                                             "prints the token as the last line")
-    p.add_argument("--role", choices=["admin", "clinician"], required=True)
+    p.add_argument("--role", choices=[Role.admin.value, Role.clinician.value], required=True)
     p.add_argument("--name", default=None)
     p.add_argument("--email", default=None)
     p.set_defaults(func=cmd_create_token)
@@ -221,17 +227,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--concurrency", type=int, default=1)
     p.set_defaults(func=cmd_worker)
 
-    try:
-        from server.simulate_cli import register
-    except ImportError:
-        p = sub.add_parser("simulate", help="(unavailable in this build)")
-        p.set_defaults(func=_simulate_missing)
-    else:
-        register(sub)
+    register_simulate(sub)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``gaitmon`` command; returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
     settings = get_settings()

@@ -9,6 +9,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
 class Settings(BaseSettings):
+    """The service's settings, from ``GAITMON_*`` environment variables."""
+
     model_config = SettingsConfigDict(env_prefix="GAITMON_", env_file=".env", extra="ignore")
 
     data_dir: Path = Path("data")
@@ -44,4 +46,5 @@ class Settings(BaseSettings):
 
 @lru_cache
 def get_settings() -> Settings:
+    """The settings of this process (read once)."""
     return Settings()

@@ -1,16 +1,25 @@
-"""Engine, sessions and the metadata of every model module (for Alembic and the schema check)."""
+"""Engine, sessions and the declarative base every domain's models derive from."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import uuid
 
-from fastapi import Request
-from sqlalchemy import MetaData, create_engine, event
+from sqlalchemy import create_engine, event
 from sqlalchemy.engine import Engine
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
+
+
+def new_id() -> str:
+    """A new primary key: 32 hex digits of a random UUID."""
+    return uuid.uuid4().hex
+
+
+class Base(DeclarativeBase):
+    """Declarative base of every table (every change needs an Alembic migration in ``migrations/versions``)."""
 
 
 def make_engine(url: str) -> Engine:
+    """The engine for a database URL (SQLite: WAL, foreign keys and a busy timeout on every connection)."""
     if url.startswith("sqlite"):
         engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
 
@@ -28,18 +37,5 @@ def make_engine(url: str) -> Engine:
 
 
 def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:
+    """Sessions whose objects stay readable after commit (responses are built after the commit)."""
     return sessionmaker(bind=engine, expire_on_commit=False)
-
-
-def get_db(request: Request) -> Iterator[Session]:
-    """FastAPI dependency: one ORM session per request, from the app's sessionmaker."""
-    with request.app.state.sessionmaker() as db:
-        yield db
-
-
-def all_metadata() -> MetaData:
-    """The metadata with every model module imported (add new model modules here)."""
-    from server import models
-    from server.trends import models as _trend_models  # noqa: F401 - registers the trend summary tables
-
-    return models.Base.metadata

@@ -19,6 +19,7 @@ MAX_FIELD_ERRORS = 50
 
 
 def problem_type(slug: str) -> str:
+    """The ``type`` URI of a problem slug."""
     return f"urn:gaitmon:problem:{slug}"
 
 
@@ -31,6 +32,7 @@ def _default_slug(status: int) -> str:
 
 def problem_body(status: int, detail: str, *, title: str | None = None, slug: str | None = None,
                  instance: str | None = None, errors: list[dict[str, str]] | None = None) -> dict[str, Any]:
+    """An RFC 9457 problem details body."""
     try:
         default_title = HTTPStatus(status).phrase
     except ValueError:
@@ -51,6 +53,7 @@ def problem_body(status: int, detail: str, *, title: str | None = None, slug: st
 def problem_response(status: int, detail: str, *, title: str | None = None, slug: str | None = None,
                      instance: str | None = None, errors: list[dict[str, str]] | None = None,
                      headers: dict[str, str] | None = None) -> JSONResponse:
+    """An RFC 9457 problem details response."""
     return JSONResponse(
         problem_body(status, detail, title=title, slug=slug, instance=instance, errors=errors),
         status_code=status, media_type=PROBLEM_JSON, headers=headers,
@@ -72,14 +75,17 @@ class ProblemError(Exception):
 
 
 def not_found(what: str) -> ProblemError:
+    """A 404 problem for a resource the caller may not see or that does not exist."""
     return ProblemError(404, f"{what} not found", slug="not-found")
 
 
 def forbidden(detail: str) -> ProblemError:
+    """A 403 problem: the caller's role may never do this."""
     return ProblemError(403, detail, slug="forbidden")
 
 
 def conflict(detail: str, slug: str = "conflict") -> ProblemError:
+    """A 409 problem: the request conflicts with the resource's state."""
     return ProblemError(409, detail, slug=slug)
 
 
@@ -102,6 +108,7 @@ def _field_name(loc: tuple[Any, ...]) -> str:
 
 
 def validation_errors(exc: RequestValidationError) -> list[dict[str, str]]:
+    """The pydantic errors of a request as the problem's ``errors`` list."""
     errs = exc.errors()
     # a JSON syntax error's location is ("body", <byte offset>): the field is the body itself
     out = [{"field": "body" if e.get("type") == "json_invalid" else _field_name(tuple(e.get("loc", ()))),
@@ -149,6 +156,7 @@ async def _unhandled_handler(request: Request, exc: Exception) -> JSONResponse:
 
 
 def install_error_handlers(app: FastAPI) -> None:
+    """Turn every error, including unexpected ones, into a problem details response."""
     app.add_exception_handler(ProblemError, _problem_error_handler)
     app.add_exception_handler(RequestValidationError, _validation_handler)
     app.add_exception_handler(StarletteHTTPException, _http_exception_handler)

@@ -7,7 +7,8 @@ from pathlib import Path
 from alembic import command
 from alembic.config import Config
 
-MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
+# In the repository a link to the top-level migrations/; in an installed wheel the scripts themselves.
+MIGRATIONS_DIR = Path(__file__).parent / "migrations"
 
 
 def include_name(name: str | None, type_: str, parent_names: dict) -> bool:
@@ -16,6 +17,7 @@ def include_name(name: str | None, type_: str, parent_names: dict) -> bool:
 
 
 def alembic_config(database_url: str) -> Config:
+    """The Alembic configuration for a database URL, with the scripts shipped in the package."""
     cfg = Config()
     cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
     cfg.set_main_option("sqlalchemy.url", database_url.replace("%", "%%"))
@@ -23,4 +25,5 @@ def alembic_config(database_url: str) -> Config:
 
 
 def upgrade_to_head(database_url: str) -> None:
+    """Migrate the database to the newest revision."""
     command.upgrade(alembic_config(database_url), "head")

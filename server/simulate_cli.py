@@ -180,6 +180,7 @@ def upload(client: httpx.Client, create: dict, batches: list[dict], concurrency:
 
 
 def wait_for_result(client: httpx.Client, sid: str, timeout_s: float = 300.0, poll_s: float = 1.0) -> dict:
+    """Poll the session until it is done or failed, or the timeout passes."""
     deadline = time.monotonic() + timeout_s
     while True:
         sess = _check(_request(client, "GET", f"/v1/sessions/{sid}"), (200,), "get session")
@@ -191,6 +192,7 @@ def wait_for_result(client: httpx.Client, sid: str, timeout_s: float = 300.0, po
 
 
 def print_result(client: httpx.Client, sess: dict, truth: dict | None) -> None:
+    """Print the processed session's summary and its strides against the simulator's truth."""
     print(f"session {sess['id']}: {sess['status']}"
           + (f" ({sess.get('error')})" if sess.get("error") else "")
           + f", algorithm {sess.get('algorithm_version')}")
@@ -224,6 +226,7 @@ def print_result(client: httpx.Client, sess: dict, truth: dict | None) -> None:
 
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add ``gaitmon simulate`` to the command line."""
     p = subparsers.add_parser("simulate", help="simulate a session: write it as JSON or upload it to a server",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--pattern", choices=PATTERNS, default="normal")
@@ -281,6 +284,7 @@ def _build(args: argparse.Namespace) -> tuple[dict, list[dict], dict | None]:
 
 
 def run(args: argparse.Namespace) -> int:
+    """``gaitmon simulate``: upload a simulated session to a running service and report the result."""
     if not args.out and not args.server:
         _log("error: give --out FILE and/or --server URL (with --token and --patient-id)")
         return 2

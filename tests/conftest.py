@@ -110,5 +110,5 @@ def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
 
 @pytest.fixture
 def settings(database_url: str, tmp_path: Path) -> Settings:
-    # job_runner "manual": tests drive the queue themselves (see server.jobs) unless a test asks otherwise.
+    # job_runner "manual": tests drive the queue themselves (see server.processing) unless a test asks otherwise.
     return Settings(database_url=database_url, data_dir=tmp_path / "data", job_runner="manual")

@@ -1,1 +1,1 @@
-"""Longitudinal trends for clinicians: per-session summaries, statistics, attention list and exports (issue 4)."""
+"""Longitudinal trends for clinicians: per-session summaries, statistics, attention list and exports."""

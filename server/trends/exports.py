@@ -23,12 +23,18 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session as DbSession
 
-from server.models import Patient, Session, Stride
+from server.codec import decode_values
+from server.enums import StrideActivity
+from server.numbers import finite_round
+from server.patients.models import Patient
+from server.results.models import Stride
+from server.results.stride_record import STRIDE_UNITS, STRIDE_VALUE_FIELDS
+from server.sessions.models import Session
 from server.trends import stats
 from server.trends.metrics import METRICS, MIN_QUALITY, Metric
 from server.trends.models import TrendMetricValues, TrendSessionLeg
-from server.trends.summaries import decode_values
-from server.trends.timeutil import as_utc, local_date, local_midnight, zone
+from server.trends.timeutil import local_date, local_midnight, zone
+from server.utc import as_utc, utcnow
 
 LOCAL_CODE_SYSTEM = "urn:gaitmon:codesystem:gait-metric"
 SNOMED = "http://snomed.info/sct"
@@ -41,18 +47,21 @@ FHIR_METRICS = ("peak_swing_flexion_deg", "rom_deg", "min_flexion_deg", "stance_
                 "cadence_steps_per_min")
 _NS = uuid.UUID("1b7d7c3e-3f0e-4b8e-9d0a-6a1f3c2b9e55")  # namespace of the stable Observation ids
 
+# The stride's value fields as the pipeline declares them, with the derived cadence next to the stance share.
+_CADENCE_AFTER = "stance_pct"
+VALUE_COLUMNS: tuple[str, ...] = tuple(c for name in STRIDE_VALUE_FIELDS for c in (
+    (name, "cadence_steps_per_min") if name == _CADENCE_AFTER else (name,)))
+_DECIMALS = {"s": 4, "%": 2, "deg": 2, "steps/min": 2}
+_UNITS = {**STRIDE_UNITS, "cadence_steps_per_min": METRICS["cadence_steps_per_min"].unit}
 CSV_COLUMNS = [
-    "session_id", "client_session_id", "leg", "index", "started_at", "local_date", "t_start_s", "t_end_s",
-    "duration_s", "t_toe_off_s", "stance_time_s", "swing_time_s", "stance_pct", "cadence_steps_per_min",
-    "peak_swing_flexion_deg", "min_flexion_deg", "rom_deg", "stance_flexion_deg", "estimator", "quality",
-    "quality_reasons", "included", "excluded_because",
+    "session_id", "client_session_id", "leg", "index", "started_at", "local_date", *VALUE_COLUMNS, "estimator",
+    "quality", "quality_reasons", "included", "excluded_because", "activity", "fallback",
 ]
 
 
 def _num(x: float | None, nd: int = 4) -> str:
-    if x is None or not np.isfinite(x):
-        return ""
-    return f"{round(float(x), nd):.{nd}f}".rstrip("0").rstrip(".")
+    v = finite_round(x, nd)
+    return "" if v is None else f"{v:.{nd}f}".rstrip("0").rstrip(".")
 
 
 def _exclusions(row: Any) -> list[str]:
@@ -71,8 +80,9 @@ def _exclusions(row: Any) -> list[str]:
 
 
 def strides_csv(db: DbSession, patient: Patient, start: datetime | None, end: datetime | None,
-                chunk: int = 2000) -> Iterator[str]:
-    """Stream the patient's strides as RFC 4180 CSV (header first; times ISO 8601 in the patient's zone)."""
+                chunk: int = 2000, *, activity: str = StrideActivity.walking) -> Iterator[str]:
+    """Stream the patient's strides of one activity as RFC 4180 CSV (header first; times ISO 8601 in the
+    patient's zone)."""
     tz = zone(patient.timezone)
     buf = io.StringIO()
     w = csv.writer(buf)
@@ -80,7 +90,7 @@ def strides_csv(db: DbSession, patient: Patient, start: datetime | None, end: da
     yield buf.getvalue()
     # Core rows, not ORM objects: a year of strides is ~10^5-10^6 rows.
     q = (select(*Stride.__table__.c, Session.client_session_id).join(Session, Session.id == Stride.session_id)
-         .where(Stride.patient_id == patient.id))
+         .where(Stride.patient_id == patient.id, Stride.activity == activity))
     if start is not None:
         q = q.where(Stride.started_at >= start.astimezone(UTC))
     if end is not None:
@@ -93,13 +103,13 @@ def strides_csv(db: DbSession, patient: Patient, start: datetime | None, end: da
         local = as_utc(s["started_at"]).astimezone(tz)
         excl = _exclusions(s)
         cadence = 120.0 / s["duration_s"] if s["duration_s"] else None
+        values = {**s, "cadence_steps_per_min": cadence}
         w.writerow([
             s["session_id"], s["client_session_id"], s["leg"], s["index"], local.isoformat(),
-            local.date().isoformat(), _num(s["t_start_s"]), _num(s["t_end_s"]), _num(s["duration_s"]),
-            _num(s["t_toe_off_s"]), _num(s["stance_time_s"]), _num(s["swing_time_s"]), _num(s["stance_pct"], 2),
-            _num(cadence, 2), _num(s["peak_swing_flexion_deg"], 2), _num(s["min_flexion_deg"], 2),
-            _num(s["rom_deg"], 2), _num(s["stance_flexion_deg"], 2), s["estimator"], _num(s["quality"], 3),
-            ";".join(s["quality_reasons"] or []), "0" if excl else "1", ";".join(excl),
+            local.date().isoformat(), *(_num(values[c], _DECIMALS[_UNITS[c]]) for c in VALUE_COLUMNS),
+            s["estimator"], _num(s["quality"], 3),
+            ";".join(s["quality_reasons"] or []), "0" if excl else "1", ";".join(excl), s["activity"],
+            "1" if s["fallback"] else "0",
         ])
         if n % chunk == 0:
             yield buf.getvalue()
@@ -123,15 +133,16 @@ def _component(code: str, display: str, value: dict[str, Any] | int) -> dict[str
 
 
 def daily_observations(db: DbSession, patient: Patient, start: datetime | None, end: datetime | None,
-                       metrics: tuple[str, ...] = FHIR_METRICS) -> list[dict[str, Any]]:
+                       metrics: tuple[str, ...] = FHIR_METRICS, *,
+                       activity: str = StrideActivity.walking) -> list[dict[str, Any]]:
     """One Observation per local day, leg and metric: the day's mean as value, median/sd/p10/p90/count as
     components. Only included (quality-passing, plausible) strides count."""
     tz = zone(patient.timezone)
     m, s = TrendMetricValues, TrendSessionLeg
     q = (select(m.metric, m.leg, m.started_at, m.session_id, m.n_included, m.n_implausible, m.values,
                 s.n_low_quality, s.algorithm_version)
-         .join(s, (s.session_id == m.session_id) & (s.leg == m.leg))
-         .where(m.patient_id == patient.id, m.metric.in_(metrics)))
+         .join(s, (s.session_id == m.session_id) & (s.leg == m.leg) & (s.activity == m.activity))
+         .where(m.patient_id == patient.id, m.metric.in_(metrics), m.activity == activity))
     if start is not None:
         q = q.where(m.started_at >= start.astimezone(UTC))
     if end is not None:
@@ -139,7 +150,7 @@ def daily_observations(db: DbSession, patient: Patient, start: datetime | None, 
     groups: dict[tuple[str, str, date], list[Any]] = defaultdict(list)
     for r in db.execute(q.order_by(m.started_at)):
         groups[(r.metric, r.leg, local_date(r.started_at, tz))].append(r)
-    issued = datetime.now(UTC).replace(microsecond=0).isoformat()
+    issued = utcnow().replace(microsecond=0).isoformat()
     out = []
     for (name, leg, day), rows in sorted(groups.items(), key=lambda kv: (kv[0][2], kv[0][1], kv[0][0])):
         metric = METRICS[name]
@@ -147,7 +158,9 @@ def daily_observations(db: DbSession, patient: Patient, start: datetime | None, 
         d = stats.describe(values)
         if d.n == 0 or leg not in KNEE_SITE:
             continue
-        oid = str(uuid.uuid5(_NS, f"{patient.id}/{leg}/{name}/{day.isoformat()}"))
+        # Walking keeps the id it always had; other activities get ids of their own.
+        suffix = "" if activity == StrideActivity.walking else f"/{activity}"
+        oid = str(uuid.uuid5(_NS, f"{patient.id}/{leg}/{name}/{day.isoformat()}{suffix}"))
         code, site = KNEE_SITE[leg]
         versions = sorted({r.algorithm_version for r in rows if r.algorithm_version})
         n_excluded = sum(r.n_implausible + (r.n_low_quality or 0) for r in rows)
@@ -167,7 +180,7 @@ def daily_observations(db: DbSession, patient: Patient, start: datetime | None, 
                     "system": "http://terminology.hl7.org/CodeSystem/observation-category", "code": "activity",
                     "display": "Activity"}]}],
                 "code": {"coding": [{"system": LOCAL_CODE_SYSTEM, "code": name, "display": metric.title}],
-                         "text": f"{metric.title}, daily mean ({leg} leg)"},
+                         "text": f"{metric.title}, daily mean ({leg} leg{'' if not suffix else ', ' + activity})"},
                 "subject": {"reference": f"Patient/{patient.id}",
                             **({"display": patient.display_name} if patient.display_name else {})},
                 "effectivePeriod": {"start": local_midnight(day, tz).isoformat(),
@@ -185,8 +198,9 @@ def daily_observations(db: DbSession, patient: Patient, start: datetime | None, 
 
 
 def fhir_bundle(db: DbSession, patient: Patient, start: datetime | None, end: datetime | None,
-                metrics: tuple[str, ...] = FHIR_METRICS) -> dict[str, Any]:
-    entries = daily_observations(db, patient, start, end, metrics)
+                metrics: tuple[str, ...] = FHIR_METRICS, *, activity: str = StrideActivity.walking) -> dict[str, Any]:
+    """The daily Observations of one activity as a FHIR R4 Bundle of type collection."""
+    entries = daily_observations(db, patient, start, end, metrics, activity=activity)
     return {"resourceType": "Bundle", "id": str(uuid.uuid4()), "type": "collection",
-            "timestamp": datetime.now(UTC).replace(microsecond=0).isoformat(), "entry": entries}
+            "timestamp": utcnow().replace(microsecond=0).isoformat(), "entry": entries}
 

@@ -38,14 +38,14 @@ import numpy as np
 MIN_QUALITY = 0.5
 # Sessions with fewer included strides are too noisy to be one point of the session-level trend.
 MIN_STRIDES_PER_SESSION = 5
-# The estimator the pipeline prefers; strides by anything else are a fallback (sensor trouble indicator).
-PRIMARY_ESTIMATORS = frozenset({"go"})
 
 Direction = Literal["higher", "lower", "none"]
 
 
 @dataclass(frozen=True)
 class Metric:
+    """A trend metric: its source column, unit, plausibility limits and MDC."""
+
     name: str
     unit: str  # human unit, also UCUM where the two agree
     ucum: str  # UCUM code for FHIR valueQuantity.code
@@ -88,7 +88,3 @@ METRICS: dict[str, Metric] = {m.name: m for m in [
 
 # Metrics stored per session-leg as value arrays (everything that comes from a stride column).
 STRIDE_METRICS: tuple[str, ...] = tuple(name for name, m in METRICS.items() if m.column is not None)
-
-
-def get_metric(name: str) -> Metric:
-    return METRICS[name]

@@ -1,7 +1,7 @@
-"""Per-session-leg summaries the trend queries aggregate from (kept in step by :mod:`server.trends.summaries`).
+"""Per session, leg and activity summaries the trend queries aggregate from (kept by :mod:`server.trends.summaries`).
 
 A one-year daily trend reads ~365 small rows instead of ~365,000 strides: each row holds the included values of one
-metric of one session-leg as a compact float32 array plus their count, mean, sd and median.
+metric of one session, leg and activity as a compact float32 array plus their count, mean, sd and median.
 """
 
 from __future__ import annotations
@@ -11,16 +11,18 @@ from datetime import datetime
 from sqlalchemy import DateTime, Float, ForeignKey, Index, Integer, LargeBinary, String
 from sqlalchemy.orm import Mapped, mapped_column
 
-from server.models import Base, utcnow
+from server.db import Base
+from server.utc import utcnow
 
 
 class TrendSessionLeg(Base):
-    """Counts of one leg of one processed session: strides, quality exclusions, fallbacks, gaps, walking time."""
+    """Counts of one leg and activity of one processed session: strides, quality exclusions, fallbacks, gaps, time."""
 
     __tablename__ = "trend_session_legs"
-    __table_args__ = (Index("ix_trend_session_legs_patient_time", "patient_id", "started_at"),)
+    __table_args__ = (Index("ix_trend_session_legs_patient_time", "patient_id", "activity", "started_at"),)
     session_id: Mapped[str] = mapped_column(ForeignKey("sessions.id", ondelete="CASCADE"), primary_key=True)
     leg: Mapped[str] = mapped_column(String(5), primary_key=True)
+    activity: Mapped[str] = mapped_column(String(16), primary_key=True)  # walking | running, never pooled
     # Denormalised from the session so the per-patient time-range scan needs no join.
     patient_id: Mapped[str] = mapped_column(ForeignKey("patients.id", ondelete="CASCADE"))
     started_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
@@ -34,7 +36,7 @@ class TrendSessionLeg(Base):
 
 
 class TrendMetricValues(Base):
-    """The included (quality-passing, plausible) values of one metric of one session-leg.
+    """The included (quality-passing, plausible) values of one metric of one session, leg and activity.
 
     ``values`` is little-endian float32, ascending (quantiles of one session need no sort); ``n_implausible``
     counts quality-passing strides outside the metric's plausibility limits (low-quality strides are counted
@@ -43,10 +45,12 @@ class TrendMetricValues(Base):
 
     __tablename__ = "trend_metric_values"
     __table_args__ = (
-        Index("ix_trend_metric_values_patient_metric_leg_time", "patient_id", "metric", "leg", "started_at"),
+        Index("ix_trend_metric_values_patient_metric_leg_time", "patient_id", "metric", "leg", "activity",
+              "started_at"),
     )
     session_id: Mapped[str] = mapped_column(ForeignKey("sessions.id", ondelete="CASCADE"), primary_key=True)
     leg: Mapped[str] = mapped_column(String(5), primary_key=True)
+    activity: Mapped[str] = mapped_column(String(16), primary_key=True)
     metric: Mapped[str] = mapped_column(String(40), primary_key=True)
     patient_id: Mapped[str] = mapped_column(ForeignKey("patients.id", ondelete="CASCADE"))
     started_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))

@@ -14,7 +14,6 @@ Method (also in the README):
 
 from __future__ import annotations
 
-import math
 from collections import defaultdict
 from dataclasses import dataclass
 from datetime import UTC, date, datetime, timedelta
@@ -24,22 +23,20 @@ import numpy as np
 from sqlalchemy import and_, func, select
 from sqlalchemy.orm import Session as DbSession
 
-from server.models import Batch, Patient, Session
+from server.codec import decode_values
+from server.enums import SessionStatus, StrideActivity
+from server.numbers import finite_round
+from server.patients.models import Patient
+from server.sessions.models import Batch, Session
 from server.trends import stats
 from server.trends.metrics import METRICS, MIN_QUALITY, MIN_STRIDES_PER_SESSION, Metric
 from server.trends.models import TrendMetricValues, TrendSessionLeg
-from server.trends.summaries import decode_values
-from server.trends.timeutil import Bucket, as_utc, bucket_bounds, bucket_date, local_date, local_midnight, zone
+from server.trends.timeutil import Bucket, bucket_bounds, bucket_date, local_date, local_midnight, zone
+from server.utc import as_utc, utcnow
 
 WINDOW_DAYS = 14.0
 MIN_WINDOW_STRIDES = 20
 MIN_WINDOW_DAYS = 3  # count metrics: days with data per change window
-
-
-def _f(x: float | None, nd: int = 4) -> float | None:
-    if x is None or not math.isfinite(x):
-        return None
-    return round(float(x), nd)
 
 
 def _iso(dt: datetime | None) -> str | None:
@@ -48,6 +45,8 @@ def _iso(dt: datetime | None) -> str | None:
 
 @dataclass
 class SessionRow:
+    """One session's summary of one metric, leg and activity."""
+
     session_id: str
     started_at: datetime  # aware UTC
     n_included: int
@@ -60,6 +59,7 @@ class SessionRow:
     p10: float | None = None
     p90: float | None = None
     values: bytes | None = None
+    activity: str = StrideActivity.walking
 
 
 def _time_filter(col: Any, start: datetime | None, end: datetime | None) -> list[Any]:
@@ -71,47 +71,51 @@ def _time_filter(col: Any, start: datetime | None, end: datetime | None) -> list
     return conds
 
 
-def legs_with_data(db: DbSession, patient_id: str) -> list[str]:
-    """Legs with at least one stride, most strides first."""
+def legs_with_data(db: DbSession, patient_id: str, activity: str = StrideActivity.walking) -> list[str]:
+    """Legs with at least one stride of the activity, most strides first."""
     rows = db.execute(
         select(TrendSessionLeg.leg, func.sum(TrendSessionLeg.n_strides))
-        .where(TrendSessionLeg.patient_id == patient_id).group_by(TrendSessionLeg.leg)
+        .where(TrendSessionLeg.patient_id == patient_id, TrendSessionLeg.activity == activity)
+        .group_by(TrendSessionLeg.leg)
     ).all()
     return [leg for leg, n in sorted(rows, key=lambda r: -(r[1] or 0)) if (n or 0) > 0]
 
 
-def default_leg(db: DbSession, patient: Patient) -> str | None:
-    legs = legs_with_data(db, patient.id)
+def default_leg(db: DbSession, patient: Patient, activity: str = StrideActivity.walking) -> str | None:
+    """The affected leg when it has data (or nothing has), else the leg with the most strides."""
+    legs = legs_with_data(db, patient.id, activity)
     if patient.affected_leg and (patient.affected_leg in legs or not legs):
         return patient.affected_leg
     return legs[0] if legs else None
 
 
 def load_session_rows(db: DbSession, patient_id: str, metric: Metric, leg: str, start: datetime | None,
-                      end: datetime | None) -> list[SessionRow]:
+                      end: datetime | None, activity: str = StrideActivity.walking) -> list[SessionRow]:
     """The session summaries of one metric and leg in time order, without value arrays (see :func:`attach_values`)."""
     if metric.column is None:  # count metric: from the session-leg counts
         q = (select(TrendSessionLeg.session_id, TrendSessionLeg.started_at, TrendSessionLeg.n_strides,
                     TrendSessionLeg.n_low_quality)
              .where(TrendSessionLeg.patient_id == patient_id, TrendSessionLeg.leg == leg,
+                    TrendSessionLeg.activity == activity,
                     *_time_filter(TrendSessionLeg.started_at, start, end))
              .order_by(TrendSessionLeg.started_at))
         out = []
         for sid, t, n, low in db.execute(q):
             ok = (n or 0) - (low or 0)
-            out.append(SessionRow(sid, as_utc(t), ok, low or 0, low or 0, 0, float(ok), None))
+            out.append(SessionRow(sid, as_utc(t), ok, low or 0, low or 0, 0, float(ok), None, activity=activity))
         return out
     m, s = TrendMetricValues, TrendSessionLeg
     q = (select(m.session_id, m.started_at, m.n_included, m.n_implausible, m.mean, m.sd, m.median, m.p10, m.p90,
                 s.n_low_quality)
-         .join(s, and_(s.session_id == m.session_id, s.leg == m.leg))
-         .where(m.patient_id == patient_id, m.metric == metric.name, m.leg == leg,
+         .join(s, and_(s.session_id == m.session_id, s.leg == m.leg, s.activity == m.activity))
+         .where(m.patient_id == patient_id, m.metric == metric.name, m.leg == leg, m.activity == activity,
                 *_time_filter(m.started_at, start, end))
          .order_by(m.started_at))
     out = []
     for sid, t, n, n_impl, mean, sd, med, p10, p90, low in db.execute(q):
         low = low or 0
-        out.append(SessionRow(sid, as_utc(t), n, low + n_impl, low, n_impl, mean, sd, med, p10, p90))
+        out.append(SessionRow(sid, as_utc(t), n, low + n_impl, low, n_impl, mean, sd, med, p10, p90,
+                              activity=activity))
     return out
 
 
@@ -119,15 +123,17 @@ def attach_values(db: DbSession, metric: Metric, leg: str, rows: list[SessionRow
     """Load the value arrays of these rows (only buckets pooling several sessions need them: the arrays are the
     bulk of the bytes, ~4 kB per 1,000 strides)."""
     ids = [r.session_id for r in rows if r.values is None and r.n_included]
-    blobs: dict[str, bytes] = {}
+    blobs: dict[tuple[str, str], bytes] = {}
     m = TrendMetricValues
+    activities = sorted({r.activity for r in rows})
     for i in range(0, len(ids), 500):
-        for sid, blob in db.execute(select(m.session_id, m.values).where(
-                m.session_id.in_(ids[i:i + 500]), m.metric == metric.name, m.leg == leg)):
-            blobs[sid] = blob
+        for sid, act, blob in db.execute(select(m.session_id, m.activity, m.values).where(
+                m.session_id.in_(ids[i:i + 500]), m.metric == metric.name, m.leg == leg,
+                m.activity.in_(activities))):
+            blobs[(sid, act)] = blob
     for r in rows:
         if r.values is None:
-            r.values = blobs.get(r.session_id, b"")
+            r.values = blobs.get((r.session_id, r.activity), b"")
 
 
 def _describe_rows(rows: list[SessionRow]) -> stats.Describe:
@@ -181,8 +187,9 @@ def _bucket_stats(db: DbSession, metric: Metric, leg: str, rows: list[SessionRow
             "n_sessions": len({r.session_id for r in grp}),
             "n_strides": int(sum(r.n_included for r in grp)),
             "n_excluded": int(sum(r.n_excluded for r in grp)),
-            "mean": _f(d.mean), "sd": _f(d.sd), "median": _f(d.median), "p10": _f(d.p10), "p90": _f(d.p90),
-            "cv": _f(d.cv), "n_values": d.n,
+            "mean": finite_round(d.mean), "sd": finite_round(d.sd), "median": finite_round(d.median),
+            "p10": finite_round(d.p10), "p90": finite_round(d.p90),
+            "cv": finite_round(d.cv), "n_values": d.n,
         })
     return out
 
@@ -211,8 +218,8 @@ def _window_out(w: stats.Window | None, t0: datetime | None) -> dict[str, Any] |
         return None
     return {
         "start": _iso(t0 + timedelta(days=w.start_days)), "end": _iso(t0 + timedelta(days=w.end_days)),
-        "n_sessions": w.n_sessions, "n": w.n, "mean": _f(w.mean), "sd": _f(w.sd),
-        "ci95": None if w.ci95 is None else [_f(w.ci95[0]), _f(w.ci95[1])], "ci_basis": w.ci_basis,
+        "n_sessions": w.n_sessions, "n": w.n, "mean": finite_round(w.mean), "sd": finite_round(w.sd),
+        "ci95": None if w.ci95 is None else [finite_round(w.ci95[0]), finite_round(w.ci95[1])], "ci_basis": w.ci_basis,
     }
 
 
@@ -230,13 +237,14 @@ def direction(metric: Metric, ch: stats.Change) -> str | None:
 
 def change_out(metric: Metric, points: list[stats.Point], t0: datetime | None,
                window_days: float = WINDOW_DAYS) -> dict[str, Any]:
+    """The baseline vs latest window change of a metric, as JSON."""
     min_n = MIN_WINDOW_DAYS if metric.column is None else MIN_WINDOW_STRIDES
     ch = stats.change(points, mdc=metric.mdc, mdc_relative=metric.mdc_relative, window_days=window_days,
                       min_n=min_n)
     return {
-        "baseline": _f(ch.baseline.mean) if ch.baseline else None,
-        "latest": _f(ch.latest.mean) if ch.latest else None,
-        "delta": _f(ch.delta), "mdc": _f(ch.mdc), "significant": ch.significant,
+        "baseline": finite_round(ch.baseline.mean) if ch.baseline else None,
+        "latest": finite_round(ch.latest.mean) if ch.latest else None,
+        "delta": finite_round(ch.delta), "mdc": finite_round(ch.mdc), "significant": ch.significant,
         "direction": direction(metric, ch),
         "baseline_window": _window_out(ch.baseline, t0), "latest_window": _window_out(ch.latest, t0),
         "window_days": window_days, "reasons": ch.reasons,
@@ -244,28 +252,31 @@ def change_out(metric: Metric, points: list[stats.Point], t0: datetime | None,
 
 
 def trend_out(points: list[stats.Point], method: stats.SlopeMethod) -> dict[str, Any]:
+    """The slope per week with its CI, as JSON."""
     sl = stats.slope(np.array([p.t_days for p in points]), np.array([p.mean for p in points]), method)
     per_week, ci = sl.per_week()
     return {
-        "slope_per_week": _f(per_week, 6), "ci95": [_f(ci[0], 6), _f(ci[1], 6)] if ci else [None, None],
-        "n": sl.n, "method": method, "p_value": _f(sl.p_value, 6),
+        "slope_per_week": finite_round(per_week, 6),
+        "ci95": [finite_round(ci[0], 6), finite_round(ci[1], 6)] if ci else [None, None],
+        "n": sl.n, "method": method, "p_value": finite_round(sl.p_value, 6),
         "basis": "days" if len(points) and points[0].n == 1 and points[0].sd is None else "sessions",
     }
 
 
 def patient_trends(db: DbSession, patient: Patient, *, metric_name: str, leg: str | None, bucket: Bucket,
                    start: datetime | None, end: datetime | None, method: stats.SlopeMethod = "ols",
-                   window_days: float = WINDOW_DAYS) -> dict[str, Any]:
+                   window_days: float = WINDOW_DAYS, activity: str = StrideActivity.walking) -> dict[str, Any]:
+    """Buckets, slope and change of one metric of one leg and activity (walking and running are never pooled)."""
     metric = METRICS[metric_name]
     tz = zone(patient.timezone)
-    leg = leg or default_leg(db, patient)
-    rows = load_session_rows(db, patient.id, metric, leg, start, end) if leg else []
+    leg = leg or default_leg(db, patient, activity)
+    rows = load_session_rows(db, patient.id, metric, leg, start, end, activity) if leg else []
     buckets = _bucket_stats(db, metric, leg, rows, bucket, tz)
     points, t0 = session_points(metric, rows, tz)
     trend_basis_unit = "per local day" if metric.column is None else "per session"
     return {
         "patient_id": patient.id, "metric": metric.name, "unit": metric.unit, "leg": leg, "bucket": bucket,
-        "timezone": tz.key, "from": _iso(start), "to": _iso(end),
+        "activity": str(activity), "timezone": tz.key, "from": _iso(start), "to": _iso(end),
         "buckets": buckets,
         "trend": trend_out(points, method),
         "change": change_out(metric, points, t0, window_days),
@@ -282,7 +293,8 @@ def patient_trends(db: DbSession, patient: Patient, *, metric_name: str, leg: st
 
 
 def patient_symmetry(db: DbSession, patient: Patient, *, metric_name: str, bucket: Bucket,
-                     start: datetime | None, end: datetime | None) -> dict[str, Any]:
+                     start: datetime | None, end: datetime | None,
+                     activity: str = StrideActivity.walking) -> dict[str, Any]:
     """Affected vs other leg per bucket: ratio of bucket means and the symmetry index
     SI = 100 * (affected - other) / (0.5 * (affected + other)) (Robinson, Herzog & Nigg 1987, J Manipulative Physiol
     Ther 10:172). SI 0 is perfect symmetry; negative means the affected leg reaches less. Without a recorded
@@ -292,7 +304,7 @@ def patient_symmetry(db: DbSession, patient: Patient, *, metric_name: str, bucke
     ref = patient.affected_leg or "left"
     other = "right" if ref == "left" else "left"
     by_leg = {leg: {b["start"]: b for b in _bucket_stats(db, metric, leg, load_session_rows(
-        db, patient.id, metric, leg, start, end), bucket, tz)} for leg in (ref, other)}
+        db, patient.id, metric, leg, start, end, activity), bucket, tz)} for leg in (ref, other)}
     out = []
     for key in sorted(set(by_leg[ref]) | set(by_leg[other])):
         a, o = by_leg[ref].get(key), by_leg[other].get(key)
@@ -304,22 +316,24 @@ def patient_symmetry(db: DbSession, patient: Patient, *, metric_name: str, bucke
         out.append({
             "start": key, "reference": {"n_strides": (a or {}).get("n_strides", 0), "mean": am},
             "other": {"n_strides": (o or {}).get("n_strides", 0), "mean": om},
-            "ratio": _f(ratio), "symmetry_index_pct": _f(si, 2),
+            "ratio": finite_round(ratio), "symmetry_index_pct": finite_round(si, 2),
         })
     return {"patient_id": patient.id, "metric": metric.name, "unit": metric.unit, "bucket": bucket,
-            "affected_leg": patient.affected_leg, "reference_leg": ref, "other_leg": other, "timezone": tz.key,
+            "activity": str(activity), "affected_leg": patient.affected_leg, "reference_leg": ref,
+            "other_leg": other, "timezone": tz.key,
             "from": _iso(start), "to": _iso(end), "buckets": out}
 
 
-def patient_completeness(db: DbSession, patient: Patient, *, days: int = 30,
-                         now: datetime | None = None) -> dict[str, Any]:
+def patient_completeness(db: DbSession, patient: Patient, *, days: int = 30, now: datetime | None = None,
+                         activity: str = StrideActivity.walking) -> dict[str, Any]:
     """The remote-monitoring view: which of the last ``days`` local days have data, strides and walking minutes.
 
     A session's strides/walking time is that of its busiest leg (both legs walk the same cycles; adding them would
-    double-count). ``n_sessions`` counts every session started that day, processed or not.
+    double-count); strides and time count only the given activity. ``n_sessions`` counts every session started
+    that day, processed or not.
     """
     tz = zone(patient.timezone)
-    now = as_utc(now or datetime.now(UTC))
+    now = as_utc(now or utcnow())
     today = now.astimezone(tz).date()
     first = today - timedelta(days=days - 1)
     start = local_midnight(first, tz).astimezone(UTC)
@@ -331,7 +345,8 @@ def patient_completeness(db: DbSession, patient: Patient, *, days: int = 30,
     legs = db.execute(
         select(TrendSessionLeg.session_id, TrendSessionLeg.n_strides, TrendSessionLeg.n_low_quality,
                TrendSessionLeg.walking_s)
-        .where(TrendSessionLeg.patient_id == patient.id, *_time_filter(TrendSessionLeg.started_at, start, end))
+        .where(TrendSessionLeg.patient_id == patient.id, TrendSessionLeg.activity == activity,
+               *_time_filter(TrendSessionLeg.started_at, start, end))
     ).all()
     per_session: dict[str, tuple[int, int, float]] = {}
     for sid, n, low, walk in legs:
@@ -345,7 +360,7 @@ def patient_completeness(db: DbSession, patient: Patient, *, days: int = 30,
         if d is None:
             continue
         d["n_sessions"] += 1
-        d["n_failed"] += status == "failed"
+        d["n_failed"] += status == SessionStatus.failed
         ok, n_all, walk = per_session.get(sid, (0, 0, 0.0))
         d["n_strides"] += ok
         d["n_strides_all"] += n_all
@@ -357,8 +372,8 @@ def patient_completeness(db: DbSession, patient: Patient, *, days: int = 30,
                  "n_strides": v["n_strides"], "n_strides_all": v["n_strides_all"],
                  "walking_min": round(v["walking_s"] / 60.0, 2)} for d, v in sorted(day_rows.items())]
     return {
-        "patient_id": patient.id, "timezone": tz.key, "days": days, "from": first.isoformat(),
-        "to": today.isoformat(),
+        "patient_id": patient.id, "activity": str(activity), "timezone": tz.key, "days": days,
+        "from": first.isoformat(), "to": today.isoformat(),
         "days_with_data": sum(1 for v in day_rows.values() if v["n_strides"] > 0),
         "days_with_sessions": sum(1 for v in day_rows.values() if v["n_sessions"] > 0),
         "strides_total": sum(v["n_strides"] for v in day_rows.values()),

@@ -26,6 +26,8 @@ SlopeMethod = Literal["ols", "theil_sen"]
 
 @dataclass(frozen=True)
 class Describe:
+    """Descriptive statistics of a set of values."""
+
     n: int
     mean: float | None
     sd: float | None
@@ -182,6 +184,7 @@ def theil_sen_slope(t_days: np.ndarray, y: np.ndarray) -> Slope:
 
 
 def slope(t_days: np.ndarray, y: np.ndarray, method: SlopeMethod = "ols") -> Slope:
+    """Slope of ``y`` over ``t`` (days) by least squares or Theil-Sen, with its 95 % CI."""
     return theil_sen_slope(t_days, y) if method == "theil_sen" else ols_slope(t_days, y)
 
 
@@ -213,6 +216,8 @@ def pool(points: Sequence[Point]) -> tuple[int, float | None, float | None]:
 
 @dataclass(frozen=True)
 class Window:
+    """The session-level statistics of one time window."""
+
     start_days: float
     end_days: float
     n_sessions: int
@@ -262,6 +267,8 @@ def window_summary(points: Sequence[Point], start_days: float, end_days: float) 
 
 @dataclass(frozen=True)
 class Change:
+    """Baseline vs latest window: the difference and whether it is significant."""
+
     baseline: Window | None
     latest: Window | None
     delta: float | None

@@ -1,4 +1,4 @@
-"""Keep the per-session-leg trend summaries in step with the stride table.
+"""Keep the per session, leg and activity trend summaries in step with the stride table.
 
 ``refresh_session`` is called by the job runner after every processing run (success or failure); ``backfill``
 creates summaries for processed sessions that lack them (sessions processed before this module existed, or whose
@@ -15,22 +15,18 @@ from sqlalchemy import delete, exists, func, or_, select
 from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
 
-from server.models import Session, SessionSensor, Stride, utcnow
-from server.trends.metrics import METRICS, MIN_QUALITY, PRIMARY_ESTIMATORS, STRIDE_METRICS
+from server.codec import encode_values
+from server.enums import SessionStatus, StrideActivity
+from server.results.models import Stride
+from server.sessions.models import Session, SessionSensor
+from server.trends.metrics import METRICS, MIN_QUALITY, STRIDE_METRICS
 from server.trends.models import TrendMetricValues, TrendSessionLeg
 from server.trends.stats import quantiles_sorted
+from server.utc import utcnow
 
 log = logging.getLogger(__name__)
 
 _COLUMNS = sorted({METRICS[m].column for m in STRIDE_METRICS if METRICS[m].column})
-
-
-def encode_values(values: np.ndarray) -> bytes:
-    return np.ascontiguousarray(values, dtype="<f4").tobytes()
-
-
-def decode_values(blob: bytes) -> np.ndarray:
-    return np.frombuffer(blob, dtype="<f4")
 
 
 def _quantiles(sorted_values: np.ndarray) -> dict[str, float | None]:
@@ -40,9 +36,9 @@ def _quantiles(sorted_values: np.ndarray) -> dict[str, float | None]:
     return {"median": median, "p10": p10, "p90": p90}
 
 
-def summarise_leg(columns: dict[str, np.ndarray], quality: np.ndarray, estimators: list[str], *,
+def summarise_leg(columns: dict[str, np.ndarray], quality: np.ndarray, fallback: np.ndarray, *,
                   walking_s: float | None = None, n_gaps: int = 0) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """The summary of one leg of one session from its stride columns (arrays in stride order).
+    """The summary of one leg and activity of one session from its stride columns (arrays in stride order).
 
     Returns the :class:`TrendSessionLeg` counts and one :class:`TrendMetricValues` field dict per stride metric.
     A stride is included in a metric when quality >= MIN_QUALITY and its value is within the metric's limits.
@@ -51,7 +47,7 @@ def summarise_leg(columns: dict[str, np.ndarray], quality: np.ndarray, estimator
     durations = columns.get("duration_s", np.empty(0))
     leg_row = {
         "n_strides": int(ok.size), "n_low_quality": int((~ok).sum()),
-        "n_fallback": sum(1 for e in estimators if e not in PRIMARY_ESTIMATORS),
+        "n_fallback": int(np.count_nonzero(np.asarray(fallback, dtype=bool))),
         "n_gaps": int(n_gaps),
         "walking_s": float(walking_s) if walking_s is not None else float(np.nansum(durations)),
     }
@@ -72,48 +68,77 @@ def summarise_leg(columns: dict[str, np.ndarray], quality: np.ndarray, estimator
 
 
 def refresh_session(db: DbSession, session_id: str) -> int:
-    """Replace the trend summaries of one session from its Stride rows; returns the number of legs summarised.
+    """Replace the trend summaries of one session from its Stride rows; returns the number of rows summarised
+    (one per leg and activity).
 
     Only sessions with status ``done`` get summaries (a failed run leaves none, so its strides never enter a
-    trend). Flushes; the caller commits.
+    trend). Walking and running strides of one leg are summarised apart: a trend never pools them. Flushes; the
+    caller commits.
     """
     db.execute(delete(TrendMetricValues).where(TrendMetricValues.session_id == session_id))
     db.execute(delete(TrendSessionLeg).where(TrendSessionLeg.session_id == session_id))
     sess = db.get(Session, session_id)
-    if sess is None or sess.status != "done":
+    if sess is None or sess.status != SessionStatus.done:
         db.flush()
         return 0
     cols = [getattr(Stride, c) for c in _COLUMNS]
     rows = db.execute(
-        select(Stride.leg, Stride.quality, Stride.estimator, *cols).where(Stride.session_id == session_id)
-        .order_by(Stride.leg, Stride.index)
+        select(Stride.leg, Stride.activity, Stride.quality, Stride.fallback, *cols)
+        .where(Stride.session_id == session_id).order_by(Stride.leg, Stride.index)
     ).all()
     legs_summary = ((sess.summary or {}).get("legs") or {}) if isinstance(sess.summary, dict) else {}
     sensor_legs = db.execute(
         select(SessionSensor.leg).where(SessionSensor.session_id == session_id).distinct()
     ).scalars().all()
-    legs = sorted({r.leg for r in rows} | set(sensor_legs) | set(legs_summary))
+    groups = _leg_activities(rows, [*sensor_legs, *legs_summary], legs_summary, sess.activity)
     now = utcnow()
-    for leg in legs:
-        leg_rows = [r for r in rows if r.leg == leg]
+    for leg, activity in groups:
+        group = [r for r in rows if r.leg == leg and r.activity == activity]
         info = legs_summary.get(leg) or {}
-        columns = {c: np.array([getattr(r, c) for r in leg_rows], dtype=np.float64) for c in _COLUMNS}
+        columns = {c: np.array([getattr(r, c) for r in group], dtype=np.float64) for c in _COLUMNS}
+        # The leg's time and gaps belong to the activity the leg was processed as.
+        own = activity == _leg_activity(info, {a for g, a in groups if g == leg}, sess.activity)
         leg_row, metric_rows = summarise_leg(
-            columns, np.array([r.quality for r in leg_rows], dtype=np.float64), [r.estimator for r in leg_rows],
-            walking_s=info.get("walking_s"), n_gaps=int(info.get("gaps") or 0))
-        key = {"session_id": session_id, "leg": leg, "patient_id": sess.patient_id, "started_at": sess.started_at}
+            columns, np.array([r.quality for r in group], dtype=np.float64),
+            np.array([bool(r.fallback) for r in group], dtype=bool),
+            walking_s=info.get("walking_s") if own else None, n_gaps=int(info.get("gaps") or 0) if own else 0)
+        key = {"session_id": session_id, "leg": leg, "activity": activity, "patient_id": sess.patient_id,
+               "started_at": sess.started_at}
         db.add(TrendSessionLeg(**key, **leg_row, algorithm_version=sess.algorithm_version, refreshed_at=now))
         for mr in metric_rows:
             db.add(TrendMetricValues(**key, **mr))
     db.flush()
-    return len(legs)
+    return len(groups)
+
+
+def _leg_activity(info: dict[str, Any], stride_activities: set[str], session_activity: str | None) -> str:
+    """The activity a leg was processed as: the pipeline's diagnostics, else the one activity of its strides, else
+    what the session's activity implies."""
+    diagnostics = info.get("diagnostics")
+    said = diagnostics.get("activity") if isinstance(diagnostics, dict) else None
+    if said in set(StrideActivity):
+        return StrideActivity(said)
+    if len(stride_activities) == 1:
+        return StrideActivity(next(iter(stride_activities)))
+    return StrideActivity.of_session(session_activity)
+
+
+def _leg_activities(rows: list[Any], other_legs: list[str], legs_summary: dict[str, Any],
+                    session_activity: str | None) -> list[tuple[str, str]]:
+    """(leg, activity) pairs to summarise: every pair with strides, and every leg without strides once (so its
+    gaps and time still count, under the activity it was processed as)."""
+    pairs = {(r.leg, r.activity) for r in rows}
+    with_strides = {leg for leg, _ in pairs}
+    for leg in set(other_legs) - with_strides:
+        pairs.add((leg, _leg_activity(legs_summary.get(leg) or {}, set(), session_activity)))
+    return sorted(pairs)
 
 
 def stale_session_ids(db: DbSession, limit: int | None = None) -> list[str]:
     """Processed sessions without a summary, or whose summary predates their last processing run."""
     newest = (select(func.min(TrendSessionLeg.refreshed_at)).where(TrendSessionLeg.session_id == Session.id)
               .scalar_subquery())
-    q = (select(Session.id).where(Session.status == "done")
+    q = (select(Session.id).where(Session.status == SessionStatus.done)
          .where(or_(~exists().where(TrendSessionLeg.session_id == Session.id),
                     Session.processed_at > newest))
          .order_by(Session.started_at))

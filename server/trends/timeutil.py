@@ -6,22 +6,21 @@ from datetime import UTC, date, datetime, time, timedelta
 from typing import Literal
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
+from server.utc import as_utc
+
 Bucket = Literal["day", "week"]
 
 
 def zone(name: str | None) -> ZoneInfo:
+    """The patient's time zone (UTC when unknown)."""
     try:
         return ZoneInfo(name or "UTC")
     except (ZoneInfoNotFoundError, ValueError):
         return ZoneInfo("UTC")
 
 
-def as_utc(dt: datetime) -> datetime:
-    """Stored times are UTC; SQLite hands them back naive."""
-    return dt.replace(tzinfo=UTC) if dt.tzinfo is None else dt.astimezone(UTC)
-
-
 def local_date(dt: datetime, tz: ZoneInfo) -> date:
+    """The local calendar date of a stored instant."""
     return as_utc(dt).astimezone(tz).date()
 
 
@@ -36,6 +35,7 @@ def local_midnight(day: date, tz: ZoneInfo) -> datetime:
 
 
 def bucket_bounds(start_day: date, bucket: Bucket, tz: ZoneInfo) -> tuple[datetime, datetime]:
+    """The UTC-aware start and end of a bucket in the patient's zone."""
     days = 7 if bucket == "week" else 1
     return local_midnight(start_day, tz), local_midnight(start_day + timedelta(days=days), tz)
 

@@ -54,9 +54,10 @@ def insert_simulated_session(url: str, *, n_strides: int = 16, seed: int = 4) ->
     import numpy as np
 
     from pipeline.simulate import SimConfig, simulate_session
+    from server.codec import content_sha256, encode_samples
     from server.db import make_engine, make_sessionmaker
-    from server.models import Batch, Patient, Session, SessionSensor
-    from server.rawdata import content_sha256, encode_samples
+    from server.patients.models import Patient
+    from server.sessions.models import Batch, Session, SessionSensor
 
     sim = simulate_session(SimConfig(n_strides=n_strides, seed=seed))
     engine = make_engine(url)

@@ -26,7 +26,7 @@ from sqlalchemy import create_engine, text
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, simulate_session
 from pipeline.types import RawSensorStream
-from server.db import all_metadata
+from server.metadata import all_metadata
 from server.simulate_cli import session_to_requests
 from tests.integration.conftest import free_port, gaitmon_command, server_env
 

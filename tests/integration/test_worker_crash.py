@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from sqlalchemy import create_engine, text
 
-from server.jobs.worker import close_api_apps, defer_session
+from server.processing.worker import close_api_apps, defer_session
 from tests.integration.conftest import gaitmon_command, insert_simulated_session, server_env
 
 STALL_S = 2

@@ -15,9 +15,9 @@ from sqlalchemy import func, select
 from sqlalchemy.engine import Engine
 
 from server.app import create_app
-from server.auth import issue_token
+from server.auth.service import issue_token
 from server.config import Settings
-from server.db import all_metadata
+from server.metadata import all_metadata
 
 SENSORS_LEFT = [
     {"sensor_id": "L-thigh", "leg": "left", "segment": "thigh", "sample_rate_hz": 100, "gyro_unit": "deg/s",

@@ -8,9 +8,9 @@ from datetime import UTC, datetime
 import numpy as np
 import pytest
 
+from server.codec import encode_trace
 from server.config import Settings
-from server.jobs.traces import encode_trace
-from server.models import KneeAngleTrace, Stride
+from server.results.models import KneeAngleTrace, Stride
 from tests.server.helpers import Api, batch_body, bearer, count_rows, open_api
 
 

@@ -1,4 +1,4 @@
-"""server.rawdata: binary round trip and reassembly of batches into pipeline streams."""
+"""server.codec and server.sessions.rawdata: binary round trip and reassembly of batches into pipeline streams."""
 
 from __future__ import annotations
 
@@ -6,9 +6,11 @@ from datetime import UTC, datetime
 
 import numpy as np
 
+from server.codec import content_sha256, decode_samples, encode_samples
 from server.db import make_engine, make_sessionmaker
-from server.models import Batch, Patient, Session, SessionSensor
-from server.rawdata import content_sha256, decode_samples, encode_samples, load_streams
+from server.patients.models import Patient
+from server.sessions.models import Batch, Session, SessionSensor
+from server.sessions.rawdata import load_streams
 
 
 def test_encode_decode_round_trip_keeps_time_exact_and_xyz_to_float32() -> None:

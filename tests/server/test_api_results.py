@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from pipeline.simulate import SimConfig, simulate_session
-from server.api.results import minmax_indices
 from server.config import Settings
-from server.jobs.process import run_queued
+from server.processing.jobs import run_queued
+from server.results.routes import minmax_indices
 from server.simulate_cli import arrange_batches, session_to_requests
 from tests.server.helpers import Api, bearer, count_rows, open_api
 

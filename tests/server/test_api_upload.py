@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 from sqlalchemy import func, select
 
-from server import ingest
-from server.api.body_limit import _GzipInflater, _Reject
+from server.body_limit import _GzipInflater, _Reject
 from server.config import Settings
 from server.errors import ProblemError
-from server.models import Batch, Session
-from server.rawdata import load_streams
-from server.schemas import BatchIn
+from server.sessions import ingest
+from server.sessions.models import Batch, Session
+from server.sessions.rawdata import load_streams
+from server.sessions.schemas import BatchIn
 from tests.server.helpers import Api, batch_body, bearer, count_rows, open_api
 
 
@@ -312,3 +312,20 @@ def test_malformed_json_names_the_body(api: Api) -> None:
     r = api.client.post("/v1/patients", content=b'{"display_name": ', headers={**bearer(clin),
                                                                             "Content-Type": "application/json"})
     assert r.status_code == 422 and r.json()["errors"][0]["field"] == "body"
+
+
+@pytest.mark.parametrize(("jump_periods", "gaps"), [(1.6, 0), (1.9, 1)])
+def test_time_jumps_count_as_gaps_by_the_pipelines_rule(api: Api, jump_periods: float, gaps: int) -> None:
+    """received.gaps uses the pipeline's gap threshold (GAP_FACTOR sample periods), so it agrees with the
+    processing summary's gaps: a step of 1.6 periods is no gap to either, 1.9 periods is one to both."""
+    from pipeline.prepare import GAP_FACTOR
+
+    assert 1.6 < GAP_FACTOR < 1.9
+    _, dev, sess = api.setup_device_session()
+    t = np.arange(20) * 10.0
+    t[10:] += (jump_periods - 1.0) * 10.0
+    body = batch_body("L-shank", 0, n=20)
+    body["timestamps_ms"] = t.tolist()
+    assert api.upload(dev, sess["id"], body).status_code == 201
+    rec = api.client.get(f"/v1/sessions/{sess['id']}", headers=bearer(dev)).json()["received"]
+    assert rec["L-shank"]["gaps"] == gaps

@@ -9,10 +9,10 @@ import pytest
 
 from pipeline.simulate import SimConfig, simulate_session
 from pipeline.types import LegResult, SessionResult, StrideMetrics
-from server.api import compare
-from server.api.compare import compare_results
 from server.config import Settings
-from server.jobs.process import run_queued
+from server.processing.jobs import run_queued
+from server.results import compare
+from server.results.compare import compare_results
 from server.simulate_cli import session_to_requests
 from tests.server.helpers import Api, bearer, open_api
 
@@ -115,3 +115,9 @@ def test_compare_running_session_over_http(api: Api, monkeypatch: pytest.MonkeyP
     assert again.status_code == 200 and again.json() == body
     fresh = c.get(url + "?estimators=go", headers=bearer(clin)).json()  # not cached: every estimator fails
     assert fresh["estimators"] == [] and fresh["failed"] == {"go": "recomputed"}
+
+
+def test_the_estimator_set_is_normalised_for_the_cache() -> None:
+    assert compare.requested_estimators("kf, go,kf") == ("kf", "go")
+    assert compare.estimator_set(("kf", "go", "kf")) == compare.estimator_set(("go", "kf")) == ("go", "kf")
+    assert compare.requested_estimators(None)[0] == "auto"

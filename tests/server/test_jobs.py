@@ -17,13 +17,14 @@ import pytest
 from sqlalchemy import func, select, update
 
 from pipeline.types import LegResult, SessionResult, StrideMetrics
+from server.codec import content_sha256, decode_trace, encode_samples, encode_trace
 from server.config import Settings
 from server.db import make_engine, make_sessionmaker
-from server.jobs import process, queue
-from server.jobs.embedded import EmbeddedRunner
-from server.jobs.traces import decode_trace, encode_trace
-from server.models import Batch, KneeAngleTrace, Patient, Session, SessionSensor, Stride
-from server.rawdata import content_sha256, encode_samples
+from server.patients.models import Patient
+from server.processing import jobs, queue
+from server.processing.embedded import EmbeddedRunner
+from server.results.models import KneeAngleTrace, Stride
+from server.sessions.models import Batch, Session, SessionSensor
 
 FS_HZ = 100.0
 STARTED_AT = datetime(2026, 11, 21, 9, 30, tzinfo=UTC)
@@ -108,8 +109,8 @@ def get(sm, sid: str) -> Session:  # noqa: ANN001
 
 def test_claim_is_exclusive(sm) -> None:  # noqa: ANN001
     sid = make_session(sm)
-    first = process.claim(sm, sid, "a")
-    second = process.claim(sm, sid, "b")
+    first = jobs.claim(sm, sid, "a")
+    second = jobs.claim(sm, sid, "b")
     assert first is not None and first.startswith("a:")
     assert second is None
     row = get(sm, sid)
@@ -124,7 +125,7 @@ def test_concurrent_claims_one_winner(sm) -> None:  # noqa: ANN001
 
     def claimer(i: int) -> None:
         barrier.wait()
-        wins.append(process.claim(sm, sid, f"w{i}"))
+        wins.append(jobs.claim(sm, sid, f"w{i}"))
 
     threads = [threading.Thread(target=claimer, args=(i,)) for i in range(6)]
     for t in threads:
@@ -138,7 +139,7 @@ def test_concurrent_claims_one_winner(sm) -> None:  # noqa: ANN001
 
 def test_process_stores_strides_and_trace(sm) -> None:  # noqa: ANN001
     sid = make_session(sm, seconds=6.0)
-    assert process.run_queued(sm, processor=data_processor()) == 1
+    assert jobs.run_queued(sm, processor=data_processor()) == 1
     row = get(sm, sid)
     assert row.status == "done" and row.error is None and row.algorithm_version == "test-1"
     assert row.summary["legs"]["left"]["n_strides"] == 5
@@ -168,18 +169,18 @@ def test_trend_summaries_follow_the_results(sm) -> None:  # noqa: ANN001
             return [(r.leg, r.n_strides) for r in rows]
 
     sid = make_session(sm)
-    process.run_queued(sm, processor=data_processor())
+    jobs.run_queued(sm, processor=data_processor())
     assert legs(sid) == [("left", 5)]
     with sm() as db:
         db.execute(update(Session).where(Session.id == sid).values(status="queued"))
         db.commit()
-    process.run_queued(sm, processor=failing_processor)
+    jobs.run_queued(sm, processor=failing_processor)
     assert legs(sid) == []  # a failed run leaves nothing in the trends
 
 
 def test_non_finite_values_never_reach_the_database(sm) -> None:  # noqa: ANN001
     sid = make_session(sm)
-    process.run_queued(sm, processor=data_processor(nan_peaks=True))
+    jobs.run_queued(sm, processor=data_processor(nan_peaks=True))
     row = get(sm, sid)
     assert row.status == "done", row.error
     # The pipeline's own summary has a NaN median; stored JSON has null, the same on SQLite and PostgreSQL.
@@ -193,13 +194,13 @@ def test_non_finite_values_never_reach_the_database(sm) -> None:  # noqa: ANN001
 
 def test_reprocess_replaces_results(sm) -> None:  # noqa: ANN001
     sid = make_session(sm, seconds=6.0)
-    process.run_queued(sm, processor=data_processor(stride_s=1.0))
+    jobs.run_queued(sm, processor=data_processor(stride_s=1.0))
     assert n_strides(sm, sid) == 5
     # What the reprocess endpoint does: back to queued, then the runner goes again.
     with sm() as db:
         db.execute(update(Session).where(Session.id == sid).values(status="queued", error=None))
         db.commit()
-    assert process.run_queued(sm, processor=data_processor(stride_s=0.5, version="test-2")) == 1
+    assert jobs.run_queued(sm, processor=data_processor(stride_s=0.5, version="test-2")) == 1
     assert n_strides(sm, sid) == 11
     row = get(sm, sid)
     assert (row.status, row.algorithm_version, row.attempts) == ("done", "test-2", 2)
@@ -211,12 +212,12 @@ def test_reprocess_replaces_results(sm) -> None:  # noqa: ANN001
 def test_failure_is_readable_and_clears_old_results(sm) -> None:  # noqa: ANN001
     sid = make_session(sm)
     other = make_session(sm, seed=1)
-    process.run_queued(sm, processor=data_processor())
+    jobs.run_queued(sm, processor=data_processor())
     assert n_strides(sm, sid) == 5
     with sm() as db:
         db.execute(update(Session).where(Session.id == sid).values(status="queued"))
         db.commit()
-    assert process.run_queued(sm, processor=failing_processor) == 1
+    assert jobs.run_queued(sm, processor=failing_processor) == 1
     row = get(sm, sid)
     assert row.status == "failed"
     assert row.error == "no shank sensor data for leg left: check the sensor placement"
@@ -231,47 +232,47 @@ def test_session_without_data_fails_in_the_real_path(sm) -> None:  # noqa: ANN00
     with sm() as db:
         db.query(Batch).filter(Batch.session_id == sid).delete()
         db.commit()
-    assert process.run_queued(sm) == 1
+    assert jobs.run_queued(sm) == 1
     row = get(sm, sid)
     assert row.status == "failed"
-    assert row.error and "\n" not in row.error and len(row.error) <= process.MAX_ERROR_CHARS
+    assert row.error and "\n" not in row.error and len(row.error) <= jobs.MAX_ERROR_CHARS
 
 
 def test_stalled_processing_is_recovered(sm) -> None:  # noqa: ANN001
     stale = make_session(sm, seed=1)
     live = make_session(sm, seed=2)
     for sid in (stale, live):
-        assert process.claim(sm, sid, "dead-worker")
+        assert jobs.claim(sm, sid, "dead-worker")
     with sm() as db:
         db.execute(update(Session).where(Session.id == stale)
                    .values(heartbeat_at=datetime.now(UTC) - timedelta(seconds=600)))
         db.commit()
-    assert process.recover_stalled(sm, stall_seconds=300) == [stale]
+    assert jobs.recover_stalled(sm, stall_seconds=300) == [stale]
     assert get(sm, stale).status == "queued" and get(sm, stale).worker_id is None
     assert get(sm, live).status == "processing"  # fresh heartbeat: still owned by its worker
-    assert process.run_queued(sm, processor=data_processor()) == 1
+    assert jobs.run_queued(sm, processor=data_processor()) == 1
     assert get(sm, stale).status == "done" and get(sm, stale).attempts == 2
     # Single-process start-up: every processing session is orphaned.
-    assert process.recover_stalled(sm, stall_seconds=300, everything=True) == [live]
+    assert jobs.recover_stalled(sm, stall_seconds=300, everything=True) == [live]
 
 
 def test_crash_loop_ends_failed(sm) -> None:  # noqa: ANN001
     sid = make_session(sm)
-    for _ in range(process.MAX_ATTEMPTS):
-        assert process.claim(sm, sid, "crashing")
-        assert process.recover_stalled(sm, stall_seconds=0, everything=True) in ([sid], [])
+    for _ in range(jobs.MAX_ATTEMPTS):
+        assert jobs.claim(sm, sid, "crashing")
+        assert jobs.recover_stalled(sm, stall_seconds=0, everything=True) in ([sid], [])
     row = get(sm, sid)
     assert row.status == "failed" and "interrupted 3 times" in row.error
 
 
 def test_worker_that_lost_its_claim_stores_nothing(sm) -> None:  # noqa: ANN001
     sid = make_session(sm)
-    slow_token = process.claim(sm, sid, "slow")
+    slow_token = jobs.claim(sm, sid, "slow")
     # The slow worker is presumed dead, the session recovered and finished by another worker...
-    assert process.recover_stalled(sm, stall_seconds=0, everything=True) == [sid]
-    assert process.run_queued(sm, worker_id="fast", processor=data_processor(stride_s=1.0)) == 1
+    assert jobs.recover_stalled(sm, stall_seconds=0, everything=True) == [sid]
+    assert jobs.run_queued(sm, worker_id="fast", processor=data_processor(stride_s=1.0)) == 1
     # ...then the slow one finishes: its results are discarded, the fast one's stay.
-    outcome = process.process_claimed(sm, sid, slow_token, processor=data_processor(stride_s=0.5))
+    outcome = jobs.process_claimed(sm, sid, slow_token, processor=data_processor(stride_s=0.5))
     assert outcome == "lost"
     assert n_strides(sm, sid) == 5
     assert get(sm, sid).worker_id.startswith("fast:")
@@ -292,9 +293,9 @@ def test_trace_encoding_places_gaps_on_the_grid() -> None:
 
 def test_embedded_runner_wakes_on_enqueue_and_recovers_at_start(settings: Settings, sm,  # noqa: ANN001
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(process, "_default_processor", data_processor())
+    monkeypatch.setattr(jobs, "_default_processor", data_processor())
     orphan = make_session(sm, seed=1)
-    assert process.claim(sm, orphan, "killed-api")  # left "processing" by a killed API process
+    assert jobs.claim(sm, orphan, "killed-api")  # left "processing" by a killed API process
     # A long poll interval: only the wake-up by enqueue can make the runner react quickly.
     runner = EmbeddedRunner(sm, settings, recover_all_at_start=True, poll_s=30.0).start()
     try:
@@ -314,7 +315,7 @@ def test_embedded_runner_wakes_on_enqueue_and_recovers_at_start(settings: Settin
 
 @pytest.fixture
 def pg_settings(postgres_url: str, tmp_path) -> Settings:  # noqa: ANN001
-    from server.jobs.worker import apply_schema
+    from server.processing.worker import apply_schema
     from tests.conftest import _truncate_all
 
     apply_schema(postgres_url)
@@ -327,9 +328,9 @@ def test_procrastinate_worker_processes_deferred_jobs_once(pg_settings: Settings
     """The multi-machine path: the API defers to the PostgreSQL queue, a separate worker processes it."""
     from sqlalchemy import text
 
-    from server.jobs import worker
+    from server.processing import worker
 
-    monkeypatch.setattr(process, "_default_processor", data_processor())
+    monkeypatch.setattr(jobs, "_default_processor", data_processor())
     sm = make_sessionmaker(make_engine(pg_settings.resolved_database_url))
     url = pg_settings.resolved_database_url
     try:
@@ -363,16 +364,16 @@ def test_procrastinate_recovery_requeues_and_frees_dead_jobs(pg_settings: Settin
 
     from sqlalchemy import text
 
-    from server.jobs import worker
+    from server.processing import worker
 
-    monkeypatch.setattr(process, "_default_processor", data_processor())
+    monkeypatch.setattr(jobs, "_default_processor", data_processor())
     sm = make_sessionmaker(make_engine(pg_settings.resolved_database_url))
     url = pg_settings.resolved_database_url
     try:
         stalled = make_session(sm, seed=1)
         orphan = make_session(sm, seed=2)  # queued, but the API died before deferring its job
         queue.enqueue(pg_settings, stalled)
-        assert process.claim(sm, stalled, "dead-machine")
+        assert jobs.claim(sm, stalled, "dead-machine")
         with sm() as db:
             db.execute(update(Session).where(Session.id == stalled)
                        .values(heartbeat_at=datetime.now(UTC) - timedelta(hours=1)))

@@ -12,9 +12,11 @@ import pytest
 from sqlalchemy import select
 
 from server import cli
+from server.auth.models import Clinician, Token
 from server.config import Settings
 from server.db import make_engine, make_sessionmaker
-from server.models import Clinician, Session, Stride, Token
+from server.results.models import Stride
+from server.sessions.models import Session
 from tests.integration.conftest import gaitmon_command, insert_simulated_session, server_env
 
 

@@ -12,7 +12,7 @@ from alembic.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from sqlalchemy import create_engine, inspect
 
-from server.db import all_metadata
+from server.metadata import all_metadata
 from server.migrate import alembic_config, include_name, upgrade_to_head
 from tests.conftest import fresh_postgres_database
 
@@ -101,4 +101,50 @@ def test_gaitmon_migrate_is_idempotent_and_installs_the_queue(empty_url: str, tm
     else:
         assert {"procrastinate_jobs", "procrastinate_workers"} <= tables
     # The queue's tables are not ours: the schema check still sees no difference.
+    assert _diff(empty_url) == []
+
+
+def test_0004_backfills_stride_activity_and_fallback_and_migrate_refills_trends(empty_url: str,
+                                                                               tmp_path: Path) -> None:
+    from sqlalchemy import text
+
+    from server.cli import migrate_database
+    from server.config import Settings
+
+    cfg = alembic_config(empty_url)
+    command.upgrade(cfg, "0003")
+    engine = create_engine(empty_url)
+    stride_cols = ("t_start_s, t_end_s, duration_s, t_toe_off_s, stance_time_s, swing_time_s, stance_pct, "
+                   "peak_swing_flexion_deg, min_flexion_deg, rom_deg, stance_flexion_deg, quality")
+    try:
+        with engine.begin() as conn:
+            conn.execute(text("INSERT INTO patients (id, timezone, created_at) VALUES ('p1', 'UTC', :t)"),
+                         {"t": "2026-11-01 00:00:00+00:00"})
+            for sid, activity, estimators in (("run", "running", ["ekf"] * 6), ("walk", "walking",
+                                                                                ["go"] * 4 + ["cf"] * 2)):
+                conn.execute(text(
+                    "INSERT INTO sessions (id, patient_id, client_session_id, started_at, activity, status, "
+                    "created_at, attempts, processed_at) VALUES (:id, 'p1', :id, :t, :a, 'done', :t, 1, :t)"),
+                    {"id": sid, "a": activity, "t": "2026-11-02 10:00:00+00:00"})
+                for i, est in enumerate(estimators):
+                    conn.execute(text(
+                        f"INSERT INTO strides (session_id, patient_id, leg, \"index\", started_at, estimator, "
+                        f"quality_reasons, {stride_cols}) VALUES (:sid, 'p1', 'left', :i, :t, :est, '[]', "
+                        "1, 2.1, 1.1, 1.7, 0.66, 0.44, 60, 60, 2, 58, 15, 1)"),
+                        {"sid": sid, "i": i, "est": est, "t": "2026-11-02 10:00:01+00:00"})
+        migrate_database(Settings(database_url=empty_url, data_dir=tmp_path / "data"))
+        with engine.connect() as conn:
+            strides = conn.execute(text(
+                "SELECT session_id, estimator, activity, fallback FROM strides ORDER BY session_id, \"index\""
+            )).all()
+            trends = conn.execute(text(
+                "SELECT session_id, activity, n_strides, n_fallback FROM trend_session_legs ORDER BY session_id"
+            )).all()
+    finally:
+        engine.dispose()
+    assert [(s, e, a, bool(f)) for s, e, a, f in strides] == [
+        ("run", "ekf", "running", False)] * 6 + [("walk", "go", "walking", False)] * 4 + [
+        ("walk", "cf", "walking", True)] * 2
+    # The running patient's strides are no fallback; the trends are rebuilt per activity.
+    assert trends == [("run", "running", 6, 0), ("walk", "walking", 6, 2)]
     assert _diff(empty_url) == []

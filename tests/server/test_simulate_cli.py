@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pipeline.simulate import SimConfig, simulate_session
-from server.schemas import BatchIn, SessionIn
+from server.sessions.schemas import BatchIn, SessionIn
 from server.simulate_cli import arrange_batches, register, session_to_requests, upload
 
 

@@ -12,8 +12,8 @@ import pytest
 from fhir.resources.R4B.bundle import Bundle
 
 from server.config import Settings
-from server.trends.seed import add_session
 from tests.server.helpers import Api, bearer, open_api
+from tests.support.seed import add_session
 
 T0 = datetime(2026, 10, 5, 9, 0, tzinfo=UTC)
 

@@ -11,14 +11,17 @@ import pytest
 from sqlalchemy import select
 from sqlalchemy.orm import Session as DbSession
 
+from server.auth.models import Clinician
+from server.codec import decode_values
 from server.db import make_engine, make_sessionmaker
-from server.models import Clinician, Patient, Session
+from server.patients.models import Patient
+from server.sessions.models import Session
 from server.trends import service
 from server.trends.attention import AttentionParams, attention_list
 from server.trends.models import TrendMetricValues, TrendSessionLeg
-from server.trends.seed import add_session
-from server.trends.summaries import backfill, decode_values, refresh_session, stale_session_ids
+from server.trends.summaries import backfill, refresh_session, stale_session_ids
 from server.trends.timeutil import parse_bound, zone
+from tests.support.seed import add_session
 
 NOW = datetime(2026, 11, 20, 12, 0, tzinfo=UTC)
 
@@ -54,20 +57,21 @@ def test_refresh_counts_quality_and_plausibility_exclusions(factory) -> None:
         peaks = np.array([50, 51, 52, 53, 54, 55, 56, 150, 58, 59], dtype=float)
         quality = np.array([1, 1, 0.2, 1, 1, 0.1, 1, 1, 1, 1], dtype=float)
         sid = add_session(db, p.id, NOW, {"left": {"n": 10, "peak_swing_flexion_deg": peaks, "quality": quality,
-                                                    "estimator": ["go"] * 7 + ["cf"] * 3}})
+                                                    "estimator": ["go"] * 7 + ["cf"] * 3,
+                                                    "fallback": [False] * 7 + [True] * 3}})
         db.commit()
-        leg = db.get(TrendSessionLeg, (sid, "left"))
+        leg = db.get(TrendSessionLeg, (sid, "left", "walking"))
         assert (leg.n_strides, leg.n_low_quality, leg.n_fallback) == (10, 2, 3)
-        peak = db.get(TrendMetricValues, (sid, "left", "peak_swing_flexion_deg"))
+        peak = db.get(TrendMetricValues, (sid, "left", "walking", "peak_swing_flexion_deg"))
         # quality drops 52 and 55; plausibility drops 150 (> 140 deg).
         assert (peak.n_included, peak.n_implausible) == (7, 1)
         expected = [50, 51, 53, 54, 56, 58, 59]
         assert decode_values(peak.values).tolist() == expected
         assert peak.mean == pytest.approx(np.mean(expected))
         assert peak.median == pytest.approx(54.0)
-        rom = db.get(TrendMetricValues, (sid, "left", "rom_deg"))
+        rom = db.get(TrendMetricValues, (sid, "left", "walking", "rom_deg"))
         assert rom.n_implausible == 1  # 150 - 2 = 148 deg ROM is implausible too
-        cad = db.get(TrendMetricValues, (sid, "left", "cadence_steps_per_min"))
+        cad = db.get(TrendMetricValues, (sid, "left", "walking", "cadence_steps_per_min"))
         assert cad.mean == pytest.approx(120.0 / 1.1)
 
 
@@ -237,7 +241,7 @@ def test_backfill_summarises_sessions_without_summary(factory) -> None:
         assert stale_session_ids(db) == [sid]
     assert backfill(factory) == 1
     with factory() as db:
-        assert db.get(TrendSessionLeg, (sid, "left")).n_strides == 10
+        assert db.get(TrendSessionLeg, (sid, "left", "walking")).n_strides == 10
         assert stale_session_ids(db) == []
     assert backfill(factory) == 0
 
@@ -265,7 +269,8 @@ def test_attention_flags_declining_stalled_silent_and_sensor_trouble(factory) ->
         silent = _patient(db, clinician=c.id)
         _sessions(db, silent, [5], 50)
         troubled = _patient(db, clinician=c.id)
-        _sessions(db, troubled, [2, 1], [50, 50], n=60, estimator=["go"] * 20 + ["cf"] * 40)
+        _sessions(db, troubled, [2, 1], [50, 50], n=60, estimator=["go"] * 20 + ["cf"] * 40,
+                  fallback=[False] * 20 + [True] * 40)
         foreign = _patient(db, clinician=other.id)
         _sessions(db, foreign, [27, 24, 21, 12, 8, 1], [60, 61, 59, 45, 46, 44])
         db.commit()

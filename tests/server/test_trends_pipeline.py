@@ -10,7 +10,7 @@ import pytest
 
 from pipeline.simulate import SimConfig, simulate_session
 from server.config import Settings
-from server.jobs.process import run_queued
+from server.processing.jobs import run_queued
 from server.simulate_cli import session_to_requests
 from tests.server.helpers import Api, bearer, open_api
 
@@ -61,3 +61,44 @@ def test_rising_peak_flexion_over_three_weekly_sessions(api: Api) -> None:
     for b, sim in zip(buckets, truths, strict=True):
         true = [s.peak_swing_flexion_deg for s in sim.truth["left"].strides if s.steady]
         assert b["median"] == pytest.approx(sorted(true)[len(true) // 2], abs=7.0)
+
+
+def test_a_patient_who_runs_is_not_flagged_for_sensor_trouble_and_runs_never_pool_with_walks(api: Api) -> None:
+    """Running strides come from the running path's primary estimator: they are no fallback, and they form a
+    trend of their own (the walking trend of a patient who only runs is empty)."""
+    _, clin = api.clinician()
+    patient = api.patient(clin, affected_leg="left")
+    dev = api.device(clin, patient["id"])
+    now = datetime.now(UTC).replace(microsecond=0)
+    for day in (3, 1):
+        sim = simulate_session(SimConfig(pattern="running", seed=day, n_strides=60, legs=("left",)))
+        create, batches = session_to_requests(sim, batch_size=1000, patient_id=patient["id"],
+                                              started_at=now - timedelta(days=day))
+        r = api.client.post("/v1/sessions", json=create, headers=bearer(dev))
+        assert r.status_code == 201, r.text
+        sid = r.json()["id"]
+        for body in batches:
+            assert api.upload(dev, sid, body).status_code == 201
+        assert api.client.post(f"/v1/sessions/{sid}/complete", headers=bearer(dev)).status_code == 202
+    assert run_queued(api.client.app.state.sessionmaker) == 2  # type: ignore[attr-defined]
+    strides = api.client.get(f"/v1/sessions/{sid}/strides", headers=bearer(clin)).json()
+    n_running = len(strides["strides"] if isinstance(strides, dict) else strides)
+    assert n_running >= 50
+
+    attention = api.client.get("/v1/attention", headers=bearer(clin))
+    assert attention.status_code == 200, attention.text
+    flags = {f["kind"] for it in attention.json()["items"] if it["patient"]["id"] == patient["id"]
+             for f in it["flags"]}
+    assert "sensor_trouble" not in flags
+
+    def trend(**params: str) -> dict:
+        r = api.client.get(f"/v1/patients/{patient['id']}/trends",
+                           params={"metric": "peak_swing_flexion_deg", "bucket": "day", **params},
+                           headers=bearer(clin))
+        assert r.status_code == 200, r.text
+        return r.json()
+
+    assert sum(b["n_strides"] for b in trend()["buckets"]) == 0
+    running = trend(activity="running")
+    assert running["activity"] == "running"
+    assert sum(b["n_strides"] for b in running["buckets"]) >= 100

@@ -1,0 +1,70 @@
+"""Bodies of the patient endpoints."""
+
+from __future__ import annotations
+
+from typing import Annotated
+from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
+
+from pydantic import BaseModel, Field, field_validator
+
+from server.enums import Leg
+from server.schema_types import OrmOut, StrictIn, UtcDatetime
+
+
+def known_timezone(value: str) -> str:
+    """The IANA time zone name, or a validation error."""
+    try:
+        ZoneInfo(value)
+    except (ZoneInfoNotFoundError, ValueError) as exc:
+        raise ValueError(f"unknown IANA time zone {value!r}") from exc
+    return value
+
+
+class PatientIn(StrictIn):
+    """A new patient."""
+
+    external_id: Annotated[str, Field(max_length=200)] | None = None
+    display_name: Annotated[str, Field(max_length=200)] | None = None
+    affected_leg: Leg | None = None
+    timezone: Annotated[str, Field(max_length=64)] = "UTC"
+    clinician_id: str | None = Field(None, description="Admin only: the clinician who owns the patient.")
+
+    @field_validator("timezone")
+    @classmethod
+    def _known_timezone(cls, value: str) -> str:
+        return known_timezone(value)
+
+
+class PatientPatch(StrictIn):
+    """Fields to change; fields left out stay as they are (null clears an optional field)."""
+
+    external_id: Annotated[str, Field(max_length=200)] | None = None
+    display_name: Annotated[str, Field(max_length=200)] | None = None
+    affected_leg: Leg | None = None
+    timezone: Annotated[str, Field(max_length=64)] | None = None
+
+    @field_validator("timezone")
+    @classmethod
+    def _known_timezone(cls, value: str | None) -> str:
+        if value is None:
+            raise ValueError("timezone cannot be null")
+        return known_timezone(value)
+
+
+class PatientOut(OrmOut):
+    """A patient."""
+
+    id: str
+    clinician_id: str | None
+    external_id: str | None
+    display_name: str | None
+    affected_leg: Leg | None
+    timezone: str
+    created_at: UtcDatetime
+
+
+class PatientPage(BaseModel):
+    """One page of patients and the cursor of the next."""
+
+    items: list[PatientOut]
+    next_cursor: str | None

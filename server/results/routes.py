@@ -1,0 +1,142 @@
+"""Results of a processed session: strides and the continuous knee angle (down-sampled)."""
+
+from __future__ import annotations
+
+from functools import partial
+
+import numpy as np
+from fastapi import APIRouter, Query, Request
+from fastapi.concurrency import run_in_threadpool
+from sqlalchemy import select
+
+from server.auth.service import get_session_for
+from server.codec import decode_trace
+from server.deps import Caller, Db
+from server.enums import Leg, SessionStatus
+from server.errors import ProblemError, invalid, not_found
+from server.numbers import finite_round
+from server.results import compare
+from server.results.models import KneeAngleTrace, Stride
+from server.results.schemas import CompareOut, KneeAngleOut, StrideOut, StridesOut
+from server.results.stride_record import STORED_FLOATS
+from server.sessions.models import Session
+
+router = APIRouter(prefix="/v1/sessions", tags=["results"])
+
+
+def _require_done(session: Session) -> None:
+    if session.status == SessionStatus.done:
+        return
+    detail = f"The session is {session.status}; results exist once it is done"
+    if session.status == SessionStatus.failed and session.error:
+        detail += f" (processing failed: {session.error})"
+    raise ProblemError(409, detail, title="Results not available", slug="results-not-ready")
+
+
+@router.get("/{session_id}/strides", response_model=StridesOut,
+            summary="Every stride of the session (optionally one leg), heel strike to heel strike")
+def get_strides(session_id: str, db: Db, caller: Caller, leg: Leg | None = Query(None)) -> StridesOut:
+    """Every stride of a processed session (optionally one leg)."""
+    session = get_session_for(db, caller, session_id)
+    _require_done(session)
+    stmt = select(Stride).where(Stride.session_id == session.id)
+    if leg is not None:
+        stmt = stmt.where(Stride.leg == leg)
+    rows = db.scalars(stmt.order_by(Stride.leg, Stride.index)).all()
+    return StridesOut(session_id=session.id, strides=[stride_out(r) for r in rows])
+
+
+def stride_out(r: Stride) -> StrideOut:
+    """The response form of a stored stride (the value fields of :mod:`server.results.stride_record`)."""
+    values = {name: finite_round(getattr(r, name), None) for name in STORED_FLOATS}
+    return StrideOut(leg=r.leg, index=r.index, started_at=r.started_at, estimator=r.estimator,
+                     activity=r.activity, fallback=r.fallback, quality_reasons=list(r.quality_reasons or []),
+                     **values)
+
+
+def minmax_indices(angle_deg: np.ndarray, max_points: int) -> np.ndarray:
+    """Indices of a min/max-preserving down-sample to at most ``max_points`` samples.
+
+    The trace is cut into ``max_points // 2`` equal buckets; each keeps its smallest and largest finite sample in
+    time order, so peak swing flexion and full extension survive any zoom level (plain striding would drop them).
+    A bucket with no finite sample keeps its first sample (null), so a gap longer than a bucket still breaks
+    the plotted line; a gap shorter than a bucket is bridged.
+    """
+    n = len(angle_deg)
+    if n <= max_points:
+        return np.arange(n)
+    n_buckets = max(1, max_points // 2)
+    k = -(-n // n_buckets)
+    rows = -(-n // k)
+    padded = np.full(rows * k, np.nan)
+    padded[:n] = angle_deg
+    grid = padded.reshape(rows, k)
+    empty = np.all(np.isnan(grid), axis=1)
+    lo = np.argmin(np.where(np.isnan(grid), np.inf, grid), axis=1)
+    hi = np.argmax(np.where(np.isnan(grid), -np.inf, grid), axis=1)
+    lo[empty] = 0
+    hi[empty] = 0
+    base = np.arange(rows) * k
+    return np.unique(np.concatenate([base + lo, base + hi]))
+
+
+@router.get("/{session_id}/knee-angle", response_model=KneeAngleOut,
+            summary="The continuous knee flexion estimate of one leg, min/max down-sampled to max_points")
+def get_knee_angle(session_id: str, db: Db, caller: Caller,
+                   leg: Leg | None = Query(None, description="Required when both legs were measured"),
+                   max_points: int = Query(2000, ge=10, le=200_000),
+                   start_s: float | None = Query(None, description="Window start, s since session start"),
+                   end_s: float | None = Query(None, description="Window end, s since session start")) -> KneeAngleOut:
+    """The continuous knee angle of one leg, min/max down-sampled to at most ``max_points``."""
+    session = get_session_for(db, caller, session_id)
+    _require_done(session)
+    traces = db.scalars(select(KneeAngleTrace).where(KneeAngleTrace.session_id == session.id)).all()
+    if leg is None:
+        if len(traces) > 1:
+            raise invalid("leg", "this session has both legs; choose leg=left or leg=right")
+        if not traces:
+            raise not_found("Knee angle trace")
+        trace = traces[0]
+    else:
+        trace = next((tr for tr in traces if tr.leg == leg), None)
+        if trace is None:
+            raise not_found(f"Knee angle of the {leg} leg")
+    if start_s is not None and end_s is not None and end_s <= start_s:
+        raise invalid("end_s", "end_s must be after start_s")
+    t, angle, est = decode_trace(trace.t0_s, trace.fs_hz, trace.n, trace.angle_deg, trace.estimator_codes,
+                                 trace.estimator_names)
+    keep = np.ones(len(t), dtype=bool)
+    if start_s is not None:
+        keep &= t >= start_s
+    if end_s is not None:
+        keep &= t <= end_s
+    t, angle, est = t[keep], angle[keep], est[keep]
+    idx = minmax_indices(angle, max_points)
+    finite = np.isfinite(angle[idx])
+    angles = np.round(angle[idx], 3)
+    return KneeAngleOut(
+        session_id=session.id, leg=Leg(trace.leg), fs_hz=trace.fs_hz,
+        n_total=len(t), downsampling="minmax" if len(idx) < len(t) else "none",
+        t_s=np.round(t[idx], 4).tolist(),
+        angle_deg=[float(a) if f else None for a, f in zip(angles.tolist(), finite.tolist(), strict=True)],
+        estimator=[str(e) if (e and f) else None for e, f in zip(est[idx].tolist(), finite.tolist(), strict=True)],
+    )
+
+
+@router.get("/{session_id}/compare", response_model=CompareOut,
+            summary="Every knee estimator on this session: stride metrics per estimator and pairwise differences")
+async def compare_session(session_id: str, request: Request, caller: Caller,
+                          estimators: str | None = Query(None, description="Comma-separated subset, e.g. go,kf; "
+                                                                           "default: auto and every registered one")
+                          ) -> CompareOut:
+    """Every knee estimator on this session (see :mod:`server.results.compare`)."""
+    names = compare.requested_estimators(estimators)
+    factory = request.app.state.sessionmaker
+    # Threads: the database read and the pipeline runs block; the event loop keeps serving meanwhile.
+    inp = await run_in_threadpool(compare.load_input, factory, caller, session_id, names)
+    try:
+        return await run_in_threadpool(compare.run_compare, inp)
+    except LookupError:
+        inp = await run_in_threadpool(partial(compare.load_input, with_streams=True), factory, caller, session_id,
+                                      names)
+        return await run_in_threadpool(compare.run_compare, inp)

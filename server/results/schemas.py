@@ -1,0 +1,102 @@
+"""Bodies of the result endpoints. The stride fields come from :mod:`server.results.stride_record`."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field, create_model
+
+from server.enums import Leg, StrideActivity
+from server.results.stride_record import STRIDE_UNITS
+from server.schema_types import OrmOut, UtcDatetime
+
+# A stored stride always has its two heel strikes; any other value may be missing.
+_ALWAYS_PRESENT = frozenset({"t_start_s", "t_end_s"})
+
+
+def _value_field(name: str) -> tuple[Any, Any]:
+    kind: Any = float if name in _ALWAYS_PRESENT else float | None
+    return kind, Field(..., description=f"unit: {STRIDE_UNITS[name]}")
+
+
+StrideOut = create_model(
+    "StrideOut",
+    __doc__="One stride of one leg: its values (units in the names) and where its angle came from.",
+    leg=(Leg, ...),
+    index=(int, ...),
+    started_at=(UtcDatetime, ...),
+    __base__=OrmOut,
+    **{name: _value_field(name) for name in STRIDE_UNITS},
+    estimator=(str, ...),
+    quality=(float | None, ...),
+    quality_reasons=(list[str], ...),
+    activity=(StrideActivity, Field(..., description="what the stride was processed as; trends never pool them")),
+    fallback=(bool, Field(..., description="the angle came from the fallback of the activity's primary estimator")),
+)
+
+
+class StridesOut(BaseModel):
+    """The strides of a processed session."""
+
+    session_id: str
+    strides: list[StrideOut]
+
+
+class KneeAngleOut(BaseModel):
+    """The continuous knee flexion of one leg, possibly down-sampled."""
+
+    session_id: str
+    leg: Leg
+    fs_hz: float = Field(description="Sample rate of the full-resolution trace")
+    n_total: int = Field(description="Samples of the full trace inside the requested window")
+    downsampling: Literal["none", "minmax"]
+    t_s: list[float]
+    angle_deg: list[float | None]
+    estimator: list[str | None]
+
+
+class MetricSummary(BaseModel):
+    """A stride metric's summary over one estimator's strides."""
+
+    mean: float | None
+    median: float | None
+    sd: float | None
+
+
+class EstimatorSummary(BaseModel):
+    """One estimator's strides on one leg."""
+
+    n_strides: int
+    peak_swing_flexion_deg: MetricSummary
+    rom_deg: MetricSummary
+    min_flexion_deg: MetricSummary
+    stride_estimators: dict[str, int] = Field(description="Strides per estimator that produced them (auto mixes)")
+
+
+class PairDifference(BaseModel):
+    """How far two estimators' continuous angle traces are apart."""
+
+    a: str
+    b: str
+    rms_deg: float | None = Field(description="RMS of the sample-wise difference of the two angle traces")
+    mean_deg: float | None = Field(description="Mean of a - b: the part of the difference that is an offset")
+    n_samples: int
+
+
+class LegComparison(BaseModel):
+    """Every estimator on one leg."""
+
+    estimators: dict[str, EstimatorSummary]
+    pairs: list[PairDifference]
+
+
+class CompareOut(BaseModel):
+    """Every knee estimator side by side on one session."""
+
+    session_id: str
+    activity: str
+    algorithm_version: str
+    estimators: list[str]
+    failed: dict[str, str] = Field(description="Estimators that could not run on this session, with the reason")
+    legs: dict[str, LegComparison]
+    warnings: list[str]

@@ -1,0 +1,165 @@
+"""Bodies of the session, upload and processing-summary endpoints."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, model_validator
+
+from pipeline.prepare import GAP_FACTOR
+from server.enums import AccUnit, Activity, GyroUnit, Leg, Segment, SessionStatus
+from server.schema_types import FiniteFloat, OrmOut, StrictIn, UtcDatetime, Xyz
+
+
+class SensorIn(StrictIn):
+    """One sensor of a new session."""
+
+    sensor_id: Annotated[str, Field(min_length=1, max_length=64)]
+    leg: Leg
+    segment: Segment
+    sample_rate_hz: Annotated[float, Field(ge=1, le=2000, allow_inf_nan=False)]
+    gyro_unit: GyroUnit = GyroUnit.deg_s
+    acc_unit: AccUnit = AccUnit.m_s2
+
+
+class SessionIn(StrictIn):
+    """A new recording session with its sensors."""
+
+    patient_id: str
+    client_session_id: Annotated[str, Field(min_length=1, max_length=200)]
+    started_at: AwareDatetime
+    activity: Activity = Activity.walking
+    sensors: Annotated[list[SensorIn], Field(min_length=1, max_length=16)]
+
+    @model_validator(mode="after")
+    def _unique_sensors(self) -> SessionIn:
+        ids = [s.sensor_id for s in self.sensors]
+        if len(set(ids)) != len(ids):
+            raise ValueError("sensor_id values must be unique within a session")
+        places = [(s.leg, s.segment) for s in self.sensors]
+        if len(set(places)) != len(places):
+            raise ValueError("at most one sensor per leg and segment")
+        return self
+
+
+class SensorOut(OrmOut):
+    """A sensor of a session."""
+
+    sensor_id: str
+    leg: Leg
+    segment: Segment
+    sample_rate_hz: float
+    gyro_unit: GyroUnit
+    acc_unit: AccUnit
+
+
+class ReceivedOut(BaseModel):
+    """What arrived of one sensor."""
+
+    batches: int
+    samples: int
+    gaps: int = Field(description=f"Detected gaps: missing seq numbers or time jumps > {GAP_FACTOR:g} sample "
+                                  "periods (the pipeline's gap rule)")
+    gap_s: float = Field(description="Total time missing inside gaps, seconds")
+    first_t_s: float | None
+    last_t_s: float | None
+    missing_seq: list[int] = Field(description="Missing seq numbers between the lowest and highest received "
+                                               "(at most 100 listed)")
+    observed_rate_hz: float | None = Field(description="Sample rate implied by the timestamps (median step)")
+
+
+class LegSummaryOut(BaseModel):
+    """The processing summary of one leg (:meth:`pipeline.types.SessionResult.summary`)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    n_strides: int
+    walking_s: float | None = None
+    peak_swing_flexion_deg_median: float | None = None
+    rom_deg_median: float | None = None
+    estimators: dict[str, int] = Field(default_factory=dict)
+    gaps: int = 0
+    diagnostics: dict[str, Any] | None = Field(
+        None, description="The pipeline's per-leg diagnostics (activity, axis fit residual, absolute reference, "
+                          "shank clock lag, ...), when it reports them")
+
+
+class SessionSummaryOut(BaseModel):
+    """The processing summary stored with a session."""
+
+    model_config = ConfigDict(extra="allow")
+
+    algorithm_version: str | None = None
+    activity: str | None = None
+    warnings: list[str] = Field(default_factory=list)
+    legs: dict[str, LegSummaryOut] = Field(default_factory=dict)
+
+
+class SessionOut(OrmOut):
+    """A session with what it received and, once processed, its summary."""
+
+    id: str
+    patient_id: str
+    client_session_id: str
+    started_at: UtcDatetime
+    activity: Activity
+    status: SessionStatus
+    error: str | None
+    sensors: list[SensorOut]
+    received: dict[str, ReceivedOut]
+    summary: SessionSummaryOut | None
+    algorithm_version: str | None
+    created_at: UtcDatetime
+    completed_at: UtcDatetime | None
+    processed_at: UtcDatetime | None
+    attempts: int
+
+
+class SessionListItem(OrmOut):
+    """A session in a patient's list."""
+
+    id: str
+    patient_id: str
+    client_session_id: str
+    started_at: UtcDatetime
+    activity: Activity
+    status: SessionStatus
+    algorithm_version: str | None
+    summary: SessionSummaryOut | None
+
+
+class SessionPage(BaseModel):
+    """One page of sessions and the cursor of the next."""
+
+    items: list[SessionListItem]
+    next_cursor: str | None
+
+
+class BatchIn(StrictIn):
+    """One BLE batch of one sensor."""
+
+    sensor_id: Annotated[str, Field(min_length=1, max_length=64)]
+    seq: Annotated[int, Field(ge=0, le=2**31 - 1)]
+    t0_ms: FiniteFloat
+    gyro: list[Xyz]
+    acc: list[Xyz]
+    timestamps_ms: list[FiniteFloat] | None = None
+
+    @model_validator(mode="after")
+    def _same_lengths(self) -> BatchIn:
+        if len(self.gyro) != len(self.acc):
+            raise ValueError(f"gyro has {len(self.gyro)} rows but acc has {len(self.acc)}")
+        if self.timestamps_ms is not None and len(self.timestamps_ms) != len(self.gyro):
+            raise ValueError(f"timestamps_ms has {len(self.timestamps_ms)} values but gyro has {len(self.gyro)} rows")
+        if not self.gyro:
+            raise ValueError("a batch needs at least one sample")
+        return self
+
+
+class BatchOut(BaseModel):
+    """The acknowledgement of a stored (or replayed) batch."""
+
+    sensor_id: str
+    seq: int
+    samples: int
+    duplicate: bool = Field(description="true when this was an identical replay of a stored batch (HTTP 200)")
