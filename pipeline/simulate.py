@@ -162,6 +162,8 @@ class TruthStride:
 
 @dataclass
 class LegTruth:
+    """Ground truth of one leg: the knee angle on a 500 Hz grid, gait events, strides and walking bouts."""
+
     leg: str
     t_s: np.ndarray  # true time (session clock), uniform at 500 Hz
     angle_deg: np.ndarray  # knee flexion
@@ -177,6 +179,8 @@ class LegTruth:
 
 @dataclass
 class SimSession:
+    """One simulated session: the raw streams as a phone would upload them and the truth per leg."""
+
     config: SimConfig
     activity: str
     duration_s: float
@@ -288,7 +292,7 @@ def _move_duration_s(kind: str) -> float:
     return _MOVE_REPS * (1.5 + 2.5 + 1.5 + 2.0)  # sit_to_stand: down, seated, up, standing
 
 
-def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator) -> _Timeline:
+def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator) -> _Timeline:  # noqa: C901 - one pass over the bout/break plan keeps the random draws in a fixed order (seeded outputs stay reproducible)
     """Lay out bouts and breaks; return the smooth global envelopes on the 500 Hz grid."""
     stride_s = spec.stride_s * float(np.clip(1 + 0.05 * rng.standard_normal(), 0.9, 1.1))
     total_strides = cfg.n_strides if cfg.n_strides is not None else (None if cfg.duration_s else 40)
@@ -665,7 +669,7 @@ def _mounting(rng: np.random.Generator, cfg: SimConfig, leg: str, seg: str, left
     return m @ left_mounts[seg] @ m @ perturb
 
 
-def simulate_session(cfg: SimConfig) -> SimSession:
+def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the draw order is part of every seed's output
     """Simulate one recording session; see the module docstring for the model."""
     if cfg.pattern not in _SPECS:
         raise ValueError(f"unknown pattern {cfg.pattern!r}; expected one of {PATTERNS}")
