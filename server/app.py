@@ -7,6 +7,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from fastapi_offline import FastAPIOffline
 from starlette.middleware.gzip import GZipMiddleware
 
 from server.api import clinicians, compare, health, patients, results, sessions
@@ -14,6 +15,7 @@ from server.api.body_limit import BodyLimitMiddleware
 from server.config import Settings, get_settings
 from server.db import make_engine, make_sessionmaker
 from server.errors import install_error_handlers
+from server.ops import install as install_ops
 from server.trends import router as trends_router
 
 log = logging.getLogger("gaitmon.api")
@@ -51,8 +53,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 handle.stop()
             engine.dispose()
 
-    app = FastAPI(title="gaitmon", version="1.0.0", description=DESCRIPTION, openapi_tags=TAGS,
-                  lifespan=lifespan)
+    # /docs and /redoc with Swagger UI and ReDoc from the fastapi-offline package: no CDN, works offline.
+    app = FastAPIOffline(title="gaitmon", version="1.0.0", description=DESCRIPTION, openapi_tags=TAGS,
+                         lifespan=lifespan, swagger_ui_parameters={"validatorUrl": None})
     app.state.settings = settings
     app.state.engine = engine
     app.state.sessionmaker = make_sessionmaker(engine)
@@ -60,6 +63,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes)
     # Responses too: a full-resolution knee-angle trace or an export is mostly digits and shrinks ~4x.
     app.add_middleware(GZipMiddleware, minimum_size=1024)
+    install_ops(app, settings)
     app.include_router(health.router)
     app.include_router(clinicians.router)
     app.include_router(patients.router)

@@ -19,6 +19,7 @@ from server.errors import ProblemError, conflict
 from server.ingest import ingest_batch, received_summary, still_in_status
 from server.jobs.queue import enqueue
 from server.models import Batch, Session, SessionSensor, utcnow
+from server.ops import metrics as ops_metrics
 from server.schemas import BatchIn, BatchOut, SensorOut, SessionIn, SessionOut
 
 log = logging.getLogger("gaitmon.api")
@@ -124,6 +125,7 @@ def upload_batch(session_id: str, response: Response, db: Db, caller: Caller, se
                  exc.status, exc.detail)
         raise
     response.status_code = 201 if outcome.created else 200
+    ops_metrics.batch_ingested(outcome.samples, stored=outcome.created)
     log.info("batch session=%s sensor=%s seq=%d samples=%d -> %s", session_id, outcome.sensor_id, outcome.seq,
              outcome.samples, "stored" if outcome.created else "duplicate")
     return BatchOut(sensor_id=outcome.sensor_id, seq=outcome.seq, samples=outcome.samples,
