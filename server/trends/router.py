@@ -10,7 +10,7 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, StreamingResponse
 
-from server.api.common import Caller, Db
+from server.api.common import AppSettings, Caller, Db
 from server.auth import get_patient_for, require_role
 from server.errors import invalid
 from server.models import Patient
@@ -121,7 +121,7 @@ def get_strides_csv(patient_id: str, request: Request, db: Db, caller: Caller, s
 
 
 @router.get("/patients/{patient_id}/fhir", summary="Daily summaries as a FHIR R4 Bundle (collection) of Observations")
-def get_fhir(patient_id: str, db: Db, caller: Caller, start: FromQ = None, end: ToQ = None,
+def get_fhir(patient_id: str, db: Db, caller: Caller, settings: AppSettings, start: FromQ = None, end: ToQ = None,
              metric: Annotated[list[MetricName] | None, Query(description="repeat to choose several")] = None,
              ) -> JSONResponse:
     require_role(caller, "admin", "clinician", action="export FHIR")
@@ -130,4 +130,5 @@ def get_fhir(patient_id: str, db: Db, caller: Caller, start: FromQ = None, end: 
     chosen = tuple(m.value for m in metric) if metric else exports.FHIR_METRICS
     if any(METRICS[m].column is None for m in chosen):
         raise invalid("metric", "count metrics have no daily Observation; choose stride metrics")
-    return JSONResponse(exports.fhir_bundle(db, patient, lo, hi, chosen), media_type="application/fhir+json")
+    bundle = exports.fhir_bundle(db, patient, lo, hi, chosen, identifier_system=settings.fhir_identifier_system)
+    return JSONResponse(bundle, media_type="application/fhir+json")
