@@ -206,8 +206,8 @@ def cmd_worker(args: argparse.Namespace, settings: Settings) -> int:
 
 
 def _simulate_missing(args: argparse.Namespace, settings: Settings) -> int:
-    print("error: `gaitmon simulate` is not available in this build (server.simulate_cli is missing)",
-          file=sys.stderr)
+    print(f"error: `gaitmon simulate` is not available in this build ({args.import_error}; "
+          "an editable install made before a package was added needs `pip install -e .` again)", file=sys.stderr)
     return 2
 
 
@@ -243,9 +243,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     try:
         from server.simulate_cli import register
-    except ImportError:
+    except ImportError as exc:
         p = sub.add_parser("simulate", help="(unavailable in this build)")
-        p.set_defaults(func=_simulate_missing)
+        p.add_argument("ignored", nargs=argparse.REMAINDER)  # say why, whatever the options
+        p.set_defaults(func=_simulate_missing, import_error=str(exc))
     else:
         register(sub)
     return parser

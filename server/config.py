@@ -34,8 +34,8 @@ class Settings(BaseSettings):
     # Comma-separated origins a browser app may call the API from ("*" for any); empty: CORS off.
     cors_origins: str = ""
     # Rate limits in the `limits` notation ("N/second|minute|hour", several separated by ";"); empty: no limit.
-    rate_limit_per_token: str = "1200/minute;60/second"
-    rate_limit_per_ip: str = "6000/minute;300/second"
+    rate_limit_per_token: str = "3000/minute"
+    rate_limit_per_ip: str = "12000/minute"
     # Failed authentications (401) one client address may cause before its unknown tokens get 429.
     rate_limit_auth_failures_per_ip: str = "20/minute"
     # Where the counters live: memory:// (per process) or a `limits` storage URI such as redis://host:6379.

@@ -38,7 +38,7 @@ KNOWN_GOOD_MAX = 10_000
 
 
 def parse_limits(spec: str) -> list[RateLimitItem]:
-    """``"1200/minute;100/second"`` -> limit items; an empty string means no limit."""
+    """``"3000/minute;100/second"`` -> limit items; an empty string means no limit."""
     return parse_many(spec) if spec.strip() else []
 
 
