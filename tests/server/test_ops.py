@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import shutil
+import subprocess
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -186,3 +189,17 @@ def test_serve_uses_host_and_port_settings(monkeypatch: pytest.MonkeyPatch, tmp_
     assert (seen["host"], seen["port"]) == ("0.0.0.0", 8123)
     assert cli.cmd_serve(cli.build_parser().parse_args(["serve", "--port", "9000"]), settings) == 0
     assert seen["port"] == 9000
+
+
+def test_metrics_of_several_processes_are_summed_in_multiprocess_mode(tmp_path: Path) -> None:
+    repo = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PROMETHEUS_MULTIPROC_DIR": str(tmp_path)}
+    count = "from server.ops import metrics; metrics.batch_ingested(10, stored=True)"
+    for _ in range(2):  # two API processes, each counting one stored batch of 10 samples
+        subprocess.run([sys.executable, "-c", count], env=env, cwd=repo, check=True, timeout=60)
+    scrape = ("from sqlalchemy import create_engine; from sqlalchemy.orm import sessionmaker; "
+              "from server.ops import metrics; print(metrics.render(sessionmaker(create_engine('sqlite://'))).decode())")
+    out = subprocess.run([sys.executable, "-c", scrape], env=env, cwd=repo, check=True, timeout=60,
+                         capture_output=True, text=True).stdout
+    assert "gaitmon_samples_ingested_total 20.0" in out
+    assert 'gaitmon_batches_total{result="stored"} 2.0' in out
