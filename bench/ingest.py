@@ -13,8 +13,6 @@ and the time until ``done`` is measured. Only loopback traffic; every wait is bo
 from __future__ import annotations
 
 import argparse
-import gzip
-import json
 import os
 import socket
 import statistics
@@ -29,6 +27,7 @@ import httpx
 from sqlalchemy import create_engine, text
 from sqlalchemy.engine import make_url
 
+from gaitmon.client import Client
 from pipeline.simulate import SimConfig, simulate_session
 from server.simulate_cli import session_to_requests
 
@@ -72,16 +71,12 @@ def _wait_healthy(base: str, timeout_s: float = 60.0) -> None:
 def _phone(base: str, token: str, create: dict, batches: list[dict]) -> tuple[str, list[float]]:
     """One app: create the session, upload its batches one after the other; returns id and latencies (s)."""
     latencies: list[float] = []
-    with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=60) as client:
-        sid = client.post("/v1/sessions", json=create).raise_for_status().json()["id"]
+    with Client(base, token, timeout_s=60) as client:
+        sid = client.create_session(**create).id
         for body in batches:
-            data = gzip.compress(json.dumps(body, separators=(",", ":")).encode())
             t0 = time.perf_counter()
-            resp = client.post(f"/v1/sessions/{sid}/batches", content=data,
-                               headers={"Content-Type": "application/json", "Content-Encoding": "gzip"})
+            client.upload_batch(sid, body)
             latencies.append(time.perf_counter() - t0)
-            if resp.status_code not in (200, 201):
-                raise RuntimeError(f"batch rejected: {resp.status_code} {resp.text[:200]}")
     return sid, latencies
 
 
@@ -90,6 +85,9 @@ def run(args: argparse.Namespace) -> None:
     env = {k: v for k, v in os.environ.items() if not k.startswith("GAITMON_")}
     env["GAITMON_DATA_DIR"] = str(tmp / "data")
     env["GAITMON_LOG_LEVEL"] = "WARNING"
+    # Every simulated phone shares 127.0.0.1: a per-address limit would measure the limit, not the server.
+    # The per-token limit stays on (each phone has its own token, as in the field).
+    env["GAITMON_RATE_LIMIT_PER_IP"] = ""
     if args.postgres:
         env["GAITMON_DATABASE_URL"] = _fresh_pg(args.pg_url, args.pg_db)
         env["GAITMON_JOB_RUNNER"] = "procrastinate"
@@ -98,6 +96,7 @@ def run(args: argparse.Namespace) -> None:
     base = f"http://127.0.0.1:{port}"
     procs: list[subprocess.Popen] = []
     logs = (tmp / "server.log").open("wb")
+    clinician: Client | None = None
     try:
         subprocess.run(_gaitmon() + ["migrate"], env=env, check=True, capture_output=True, timeout=120)
         procs.append(subprocess.Popen(_gaitmon() + ["serve", "--port", str(port)], env=env, stdout=logs,
@@ -107,15 +106,15 @@ def run(args: argparse.Namespace) -> None:
         _wait_healthy(base)
         admin = subprocess.run(_gaitmon() + ["create-token", "--role", "admin"], env=env, check=True,
                                capture_output=True, text=True, timeout=60).stdout.strip().splitlines()[-1]
-        h = {"Authorization": f"Bearer {admin}"}
-        clin = httpx.post(f"{base}/v1/clinicians", json={"name": "bench"}, headers=h).raise_for_status().json()
-        hc = {"Authorization": f"Bearer {clin['token']}"}
+        with Client(base, admin) as as_admin:
+            clin_token = as_admin.create_clinician("bench").token
+        clinician = Client(base, clin_token, timeout_s=30)
 
         _log(f"simulating {args.phones} sessions of {args.minutes:g} min at {args.fs:g} Hz ...")
         phones = []
         for k in range(args.phones):
-            pid = httpx.post(f"{base}/v1/patients", json={"display_name": f"p{k}"}, headers=hc).json()["id"]
-            dev = httpx.post(f"{base}/v1/patients/{pid}/device-tokens", headers=hc).json()["token"]
+            pid = clinician.create_patient(display_name=f"p{k}").id
+            dev = clinician.create_device_token(pid).token
             sim = simulate_session(SimConfig(pattern="normal", fs_hz=args.fs, duration_s=60 * args.minutes,
                                              seed=200 + k))
             create, batches = session_to_requests(sim, batch_size=args.batch_size, patient_id=pid,
@@ -133,17 +132,17 @@ def run(args: argparse.Namespace) -> None:
         _log("completing the sessions and waiting for processing ...")
         t1 = time.perf_counter()
         for (dev, _, _), (sid, _) in zip(phones, results, strict=True):
-            httpx.post(f"{base}/v1/sessions/{sid}/complete", headers={"Authorization": f"Bearer {dev}"},
-                       timeout=30).raise_for_status()
+            with Client(base, dev) as phone:
+                phone.complete_session(sid)
         pending = {sid for sid, _ in results}
         deadline = time.monotonic() + args.timeout_s
         strides = 0
         while pending and time.monotonic() < deadline:
             for sid in list(pending):
-                s = httpx.get(f"{base}/v1/sessions/{sid}", headers=hc, timeout=30).json()
-                if s["status"] in ("done", "failed"):
+                s = clinician.get_session(sid)
+                if s.finished:
                     pending.discard(sid)
-                    legs = (s.get("summary") or {}).get("legs", {})
+                    legs = (s.summary or {}).get("legs", {})
                     strides += sum(v.get("n_strides", 0) for v in legs.values())
             time.sleep(0.2)
         process_s = time.perf_counter() - t1
@@ -166,6 +165,8 @@ def run(args: argparse.Namespace) -> None:
         print(f"| real time uploaded per wall second | {recorded_s / upload_s:.0f} s of recording |")
         print(f"| complete -> all {args.phones} sessions done | {process_s:.1f} s ({strides} strides) |")
     finally:
+        if clinician is not None:
+            clinician.close()
         for p in procs:
             p.terminate()
         for p in procs:

@@ -7,6 +7,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from fastapi_offline import FastAPIOffline
 from starlette.middleware.gzip import GZipMiddleware
 
 from server import health
@@ -16,6 +17,7 @@ from server.body_limit import BodyLimitMiddleware
 from server.config import Settings, get_settings
 from server.db import make_engine, make_sessionmaker
 from server.errors import install_error_handlers
+from server.ops import install as install_ops
 from server.patients import routes as patient_routes
 from server.results import routes as result_routes
 from server.sessions import routes as session_routes
@@ -57,8 +59,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 handle.stop()
             engine.dispose()
 
-    app = FastAPI(title="gaitmon", version="1.0.0", description=DESCRIPTION, openapi_tags=TAGS,
-                  lifespan=lifespan)
+    # /docs and /redoc with Swagger UI and ReDoc from the fastapi-offline package: no CDN, works offline.
+    app = FastAPIOffline(title="gaitmon", version="1.0.0", description=DESCRIPTION, openapi_tags=TAGS,
+                         lifespan=lifespan, swagger_ui_parameters={"validatorUrl": None})
     app.state.settings = settings
     app.state.engine = engine
     app.state.sessionmaker = make_sessionmaker(engine)
@@ -66,6 +69,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes)
     # Responses too: a full-resolution knee-angle trace or an export is mostly digits and shrinks ~4x.
     app.add_middleware(GZipMiddleware, minimum_size=1024)
+    install_ops(app, settings)
     app.include_router(health.router)
     app.include_router(auth_routes.router)
     app.include_router(patient_routes.router)

@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import importlib.metadata
 import inspect
 import logging
-import os
 import signal
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from sqlalchemy import select, text
 from sqlalchemy.engine import make_url
@@ -21,6 +22,7 @@ from sqlalchemy.exc import OperationalError
 
 from server.config import Settings, get_settings
 from server.enums import Role
+from server.ops.logs import setup_logging
 from server.simulate_cli import register as register_simulate
 from server.utc import utcnow
 
@@ -30,12 +32,12 @@ log = logging.getLogger("gaitmon.cli")
 MIGRATION_LOCK_ID = 727_011_001
 
 
-def setup_logging(level: str) -> None:
-    """Log lines with time, level and logger name at the configured level."""
-    logging.basicConfig(stream=sys.stderr, level=level.upper(),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
-    # One line per plugin on every start says nothing to an operator.
-    logging.getLogger("alembic.runtime.plugins").setLevel(logging.WARNING)
+def package_version() -> str:
+    """The installed distribution's version (``gaitmon --version``)."""
+    try:
+        return importlib.metadata.version("gaitmon")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown (not installed)"
 
 
 def safe_url(url: str) -> str:
@@ -85,9 +87,14 @@ def backfill_trend_summaries(settings: Settings) -> None:
         factory.kw["bind"].dispose()
 
 
-def auto_migrate_enabled() -> bool:
-    """Whether ``gaitmon serve`` migrates first (``GAITMON_AUTO_MIGRATE``, default true)."""
-    return os.environ.get("GAITMON_AUTO_MIGRATE", "true").strip().lower() not in {"0", "false", "no", "off"}
+def describe_database(settings: Settings) -> str:
+    """The database a command uses, for stderr: the absolute SQLite path says which file a relative data dir hit."""
+    url = settings.resolved_database_url
+    if settings.is_sqlite:
+        path = Path(make_url(url).database or "")
+        state = "" if path.exists() else " (new file: no server has used it yet)"
+        return f"{path}{state}"
+    return safe_url(url)
 
 
 def cmd_serve(args: argparse.Namespace, settings: Settings) -> int:
@@ -96,14 +103,18 @@ def cmd_serve(args: argparse.Namespace, settings: Settings) -> int:
 
     from server.app import create_app
 
-    if auto_migrate_enabled():
+    host = args.host or settings.host
+    port = args.port if args.port is not None else settings.port
+    if settings.auto_migrate:
         migrate_database(settings)
     else:
         log.info("GAITMON_AUTO_MIGRATE=false: not migrating")
     app = create_app(settings)
-    log.info("gaitmon serving on http://%s:%d (database %s, jobs %s)", args.host, args.port,
+    log.info("gaitmon %s serving on http://%s:%d (database %s, jobs %s)", package_version(), host, port,
              safe_url(settings.resolved_database_url), settings.resolved_job_runner)
-    uvicorn.run(app, host=args.host, port=args.port, log_level=settings.log_level.lower(), proxy_headers=True)
+    # log_config=None: uvicorn's loggers propagate to ours (request id, JSON format) instead of printing their own.
+    uvicorn.run(app, host=host, port=port, log_level=settings.log_level.lower(), proxy_headers=True,
+                log_config=None)
     return 0
 
 
@@ -128,7 +139,9 @@ def cmd_create_token(args: argparse.Namespace, settings: Settings) -> int:
     if args.role == Role.clinician and not args.name:
         print("error: --name is required for --role clinician", file=sys.stderr)
         return 2
-    if auto_migrate_enabled():
+    # Said before anything is written: run from another directory, a relative GAITMON_DATA_DIR means another file.
+    print(f"database: {describe_database(settings)}", file=sys.stderr)
+    if settings.auto_migrate:
         # The first command on a fresh machine is often this one, before `serve` ever ran.
         migrate_database(settings)
     with _sessionmaker(settings)() as db:
@@ -200,12 +213,13 @@ def cmd_worker(args: argparse.Namespace, settings: Settings) -> int:
 def build_parser() -> argparse.ArgumentParser:
     """The ``gaitmon`` command line with its subcommands."""
     parser = argparse.ArgumentParser(prog="gaitmon", description="Gait monitoring backend")
+    parser.add_argument("--version", action="version", version=f"gaitmon {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("serve", help="run the HTTP API (migrates the database first unless "
                                      "GAITMON_AUTO_MIGRATE=false)")
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--host", default=None, help="listen address (default: GAITMON_HOST, 127.0.0.1)")
+    p.add_argument("--port", type=int, default=None, help="listen port (default: GAITMON_PORT, 8000)")
     p.set_defaults(func=cmd_serve)
 
     p = sub.add_parser("migrate", help="bring the database schema (and the job queue schema) to the latest version")
@@ -236,7 +250,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     settings = get_settings()
-    setup_logging(settings.log_level)
+    setup_logging(settings.log_level, settings.log_format)
     func = args.func
     # simulate_cli's handlers may take (args) only; ours take (args, settings).
     try:

@@ -3,16 +3,16 @@
     gaitmon simulate --pattern normal --minutes 2 --fs 100 --seed 1 --out session.json
     gaitmon simulate --pattern crouch --server http://127.0.0.1:8000 --token T --patient-id P --wait
 
-The upload follows /work/shared/contract/api-v1.md: ``POST /v1/sessions``, gzip'd ``POST .../batches`` of
-``--batch-size`` samples per sensor (optionally shuffled and partly duplicated to exercise idempotency),
-``POST .../complete``, then with ``--wait`` polling until processing ends and printing the stride summary next to
-the simulator's ground truth. :func:`session_to_requests` is the reusable part (server integration tests use it).
+The upload goes through :mod:`gaitmon.client` and follows the contract: ``POST /v1/sessions``, gzip'd
+``POST .../batches`` of ``--batch-size`` samples per sensor (optionally shuffled and partly duplicated to exercise
+idempotency), ``POST .../complete``, then with ``--wait`` polling until processing ends and printing the stride
+summary next to the simulator's ground truth. :func:`session_to_requests` is the reusable part (server
+integration tests use it).
 """
 
 from __future__ import annotations
 
 import argparse
-import gzip
 import json
 import logging
 import random
@@ -28,9 +28,8 @@ from typing import Any
 import httpx
 import numpy as np
 
+from gaitmon.client import ApiError, Client, Session
 from pipeline.simulate import PATTERNS, SimConfig, SimSession, simulate_session
-
-RETRY_STATUS = {429, 502, 503, 504}
 
 
 def _log(msg: str) -> None:
@@ -122,95 +121,46 @@ def truth_summary(sim: SimSession) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# HTTP
+# HTTP (through gaitmon.client: retries, gzip, typed answers)
 
 
-def _request(client: httpx.Client, method: str, url: str, retries: int = 5, **kw: Any) -> httpx.Response:
-    """One request, retried with exponential back-off on network errors and 429/502/503/504."""
-    delay = 0.5
-    for attempt in range(retries + 1):
-        try:
-            resp = client.request(method, url, **kw)
-        except httpx.TransportError as exc:
-            if attempt == retries:
-                raise
-            _log(f"  {method} {url}: {type(exc).__name__}; retrying in {delay:.1f} s")
-        else:
-            if resp.status_code not in RETRY_STATUS or attempt == retries:
-                return resp
-            _log(f"  {method} {url}: HTTP {resp.status_code}; retrying in {delay:.1f} s")
-        time.sleep(delay)
-        delay = min(delay * 2, 8.0)
-    raise AssertionError("unreachable")
-
-
-def _check(resp: httpx.Response, ok: tuple[int, ...], what: str) -> dict:
-    if resp.status_code not in ok:
-        raise RuntimeError(f"{what}: HTTP {resp.status_code}: {resp.text[:500]}")
-    return resp.json() if resp.content else {}
-
-
-def upload(client: httpx.Client, create: dict, batches: list[dict], concurrency: int = 4,
+def upload(client: Client, create: dict, batches: list[dict], concurrency: int = 4,
            progress: Callable[[str], None] = _log) -> str:
     """Create the session, send every batch (gzip'd), complete it; returns the session id."""
-    sess = _check(_request(client, "POST", "/v1/sessions", json=create), (200, 201), "create session")
-    sid = sess["id"]
-    progress(f"session {sid} ({sess.get('status')}); uploading {len(batches)} batches")
-    done = 0
+    sess = client.create_session(**create)
+    progress(f"session {sess.id} ({sess.status}); uploading {len(batches)} batches")
     step = max(1, len(batches) // 10)
-
-    def send(body: dict) -> int:
-        data = gzip.compress(json.dumps(body, separators=(",", ":")).encode())
-        resp = _request(client, "POST", f"/v1/sessions/{sid}/batches", content=data,
-                        headers={"Content-Type": "application/json", "Content-Encoding": "gzip"})
-        _check(resp, (200, 201), f"batch {body['sensor_id']}#{body['seq']}")
-        return resp.status_code
-
-    codes: dict[int, int] = {}
+    stored = duplicates = 0
     with ThreadPoolExecutor(max_workers=max(1, concurrency)) as pool:
-        for code in pool.map(send, batches):
-            codes[code] = codes.get(code, 0) + 1
-            done += 1
+        for done, res in enumerate(pool.map(lambda b: client.upload_batch(sess.id, b), batches), start=1):
+            duplicates += res.duplicate
+            stored += not res.duplicate
             if done % step == 0 or done == len(batches):
                 progress(f"  {done}/{len(batches)} batches sent")
-    progress(f"batches: {codes.get(201, 0)} stored, {codes.get(200, 0)} duplicates acknowledged")
-    _check(_request(client, "POST", f"/v1/sessions/{sid}/complete"), (200, 202), "complete")
-    progress(f"session {sid} completed; processing in the background")
-    return sid
+    progress(f"batches: {stored} stored, {duplicates} duplicates acknowledged")
+    client.complete_session(sess.id)
+    progress(f"session {sess.id} completed; processing in the background")
+    return sess.id
 
 
-def wait_for_result(client: httpx.Client, sid: str, timeout_s: float = 300.0, poll_s: float = 1.0) -> dict:
-    """Poll the session until it is done or failed, or the timeout passes."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        sess = _check(_request(client, "GET", f"/v1/sessions/{sid}"), (200,), "get session")
-        if sess["status"] in ("done", "failed"):
-            return sess
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"session {sid} still {sess['status']} after {timeout_s:.0f} s")
-        time.sleep(poll_s)
-
-
-def print_result(client: httpx.Client, sess: dict, truth: dict | None) -> None:
+def print_result(client: Client, sess: Session, truth: dict | None) -> None:
     """Print the processed session's summary and its strides against the simulator's truth."""
-    print(f"session {sess['id']}: {sess['status']}"
-          + (f" ({sess.get('error')})" if sess.get("error") else "")
-          + f", algorithm {sess.get('algorithm_version')}")
-    if sess["status"] != "done":
+    print(f"session {sess.id}: {sess.status}" + (f" ({sess.error})" if sess.error else "")
+          + f", algorithm {sess.algorithm_version}")
+    if sess.status != "done":
         return
     print("| leg | strides | true strides | peak swing median (deg) | true | ROM median (deg) | true | estimators |")
     print("|---|---|---|---|---|---|---|---|")
     for leg in ("left", "right"):
-        resp = _request(client, "GET", f"/v1/sessions/{sess['id']}/strides", params={"leg": leg})
-        strides = _check(resp, (200,), "strides").get("strides", [])
+        strides = client.get_strides(sess.id, leg=leg).strides
         tr = (truth or {}).get(leg)
         if not strides and not tr:
             continue
-        peaks = [s["peak_swing_flexion_deg"] for s in strides]
-        roms = [s["rom_deg"] for s in strides]
+        peaks = [s.peak_swing_flexion_deg for s in strides if s.peak_swing_flexion_deg is not None]
+        roms = [s.rom_deg for s in strides if s.rom_deg is not None]
         est: dict[str, int] = {}
         for s in strides:
-            est[s["estimator"]] = est.get(s["estimator"], 0) + 1
+            est[s.estimator] = est.get(s.estimator, 0) + 1
 
         def fmt(x: float | None) -> str:
             return "-" if x is None else f"{x:.1f}"
@@ -310,16 +260,15 @@ def run(args: argparse.Namespace) -> int:
         return 0
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request drowns the progress lines
     order = arrange_batches(batches, args.shuffle, args.duplicate_fraction, seed=args.seed)
-    headers = {"Authorization": f"Bearer {args.token}"}
     try:
-        with httpx.Client(base_url=args.server.rstrip("/"), headers=headers, timeout=60.0) as client:
+        with Client(args.server, args.token, timeout_s=60.0) as client:
             sid = upload(client, create, order, concurrency=args.concurrency)
             if args.wait:
-                sess = wait_for_result(client, sid, timeout_s=args.wait_timeout)
+                sess = client.wait_for_processing(sid, timeout_s=args.wait_timeout)
                 print_result(client, sess, truth)
-                return 0 if sess["status"] == "done" else 1
+                return 0 if sess.status == "done" else 1
             print(sid)
-    except (RuntimeError, TimeoutError, httpx.HTTPError) as exc:
+    except (ApiError, TimeoutError, httpx.HTTPError) as exc:
         _log(f"error: {exc}")
         return 1
     return 0

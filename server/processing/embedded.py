@@ -1,8 +1,10 @@
 """The embedded runner: a thread that processes queued sessions (the SQLite default, no extra process).
 
 It polls for status "queued" every ``poll_s`` seconds, is woken at once by :func:`server.processing.queue.enqueue`, and
-periodically re-queues sessions whose worker stopped heart-beating. At start-up in the API process it re-queues
-every "processing" session: in single-process mode nobody else can be working on them.
+periodically re-queues sessions whose worker stopped heart-beating. At start-up it never takes a live claim (a
+second ``gaitmon serve`` or a ``gaitmon worker`` on the same database may be working): it re-queues claims whose
+heartbeat is stale, and claims of a runner on this machine whose process is gone (a killed or restarted API
+process), so a restart does not wait ``GAITMON_JOB_STALL_SECONDS`` for its own orphans.
 """
 
 from __future__ import annotations
@@ -29,10 +31,33 @@ def worker_name(prefix: str) -> str:
     return f"{prefix}@{socket.gethostname()}:{os.getpid()}"
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # exists, owned by someone else
+    return True
+
+
+def claim_of_dead_local_process(token: str) -> bool:
+    """True when a claim token (``<prefix>@<host>:<pid>:<nonce>``) was made by a process of this machine that no
+    longer runs, or by an earlier process with this process's pid (a container restart reuses pid and hostname;
+    a runner that has just started holds no claim yet)."""
+    _, at, rest = token.partition("@")
+    host, _, tail = rest.rpartition(":")  # tail: the nonce
+    host, _, pid_text = host.rpartition(":")
+    if not at or host != socket.gethostname() or not pid_text.isdigit():
+        return False
+    pid = int(pid_text)
+    return pid == os.getpid() or not _pid_alive(pid)
+
+
 class EmbeddedRunner:
     """The in-process job runner used with SQLite: one thread that processes queued sessions."""
 
-    def __init__(self, sm: sessionmaker[DbSession], settings: Settings, *, recover_all_at_start: bool = True,
+    def __init__(self, sm: sessionmaker[DbSession], settings: Settings, *, recover_all_at_start: bool = False,
                  poll_s: float = POLL_S, name: str | None = None) -> None:
         self._sm = sm
         self._settings = settings
@@ -71,7 +96,7 @@ class EmbeddedRunner:
 
     def run(self) -> None:
         """The loop; runs in the thread started by :meth:`start`, or in the foreground (``gaitmon worker``)."""
-        self._recover(everything=self._recover_all_at_start)
+        self._recover(everything=self._recover_all_at_start, at_start=True)
         last_recover = time.monotonic()
         while not self._stop.is_set():
             try:
@@ -85,10 +110,11 @@ class EmbeddedRunner:
             self._wake.wait(self._poll_s)
             self._wake.clear()
 
-    def _recover(self, *, everything: bool) -> None:
+    def _recover(self, *, everything: bool, at_start: bool = False) -> None:
         try:
             ids = jobs.recover_stalled(self._sm, stall_seconds=self._settings.job_stall_seconds,
-                                          everything=everything)
+                                       everything=everything,
+                                       orphaned=claim_of_dead_local_process if at_start else None)
         except Exception:  # noqa: BLE001
             log.exception("embedded job runner: stall recovery failed")
             return
@@ -98,4 +124,4 @@ class EmbeddedRunner:
 
 def start(sm: sessionmaker[DbSession], settings: Settings) -> EmbeddedRunner:
     """Start the runner thread of the API process; call ``.stop()`` on shutdown."""
-    return EmbeddedRunner(sm, settings, recover_all_at_start=True).start()
+    return EmbeddedRunner(sm, settings).start()

@@ -27,6 +27,7 @@ from server import metadata as _metadata  # noqa: F401 - runners flush rows whos
 from server.codec import encode_trace
 from server.enums import SessionStatus, StrideActivity
 from server.numbers import json_safe
+from server.ops import metrics as ops_metrics
 from server.results.models import KneeAngleTrace, Stride
 from server.results.stride_record import STORED_FLOATS
 from server.sessions.models import Session
@@ -223,7 +224,10 @@ def process_one(sm: sessionmaker[DbSession], session_id: str, *, worker_id: str 
         log.info("session %s not claimable (not queued or taken by another worker); skipped", session_id)
         return "skipped"
     log.info("session %s claimed by %s", session_id, token)
-    return process_claimed(sm, session_id, token, heartbeat_s=heartbeat_s, processor=processor)
+    t0 = time.perf_counter()
+    outcome = process_claimed(sm, session_id, token, heartbeat_s=heartbeat_s, processor=processor)
+    ops_metrics.job_finished(outcome, time.perf_counter() - t0)
+    return outcome
 
 
 def queued_ids(sm: sessionmaker[DbSession], limit: int = 100) -> list[str]:
@@ -250,19 +254,25 @@ def run_queued(sm: sessionmaker[DbSession], *, worker_id: str = "inline", proces
             return count
 
 
-def recover_stalled(sm: sessionmaker[DbSession], *, stall_seconds: float, everything: bool = False) -> list[str]:
+def recover_stalled(sm: sessionmaker[DbSession], *, stall_seconds: float, everything: bool = False,
+                    orphaned: Callable[[str], bool] | None = None) -> list[str]:
     """Put sessions stuck in "processing" back to "queued"; returns their ids (the caller enqueues them).
 
-    Stuck means: heartbeat older than ``stall_seconds`` (its worker died), or, with ``everything``, any
-    processing session (a single-process runner at start-up knows no one else can be working). A session that
+    Stuck means: heartbeat older than ``stall_seconds`` (its worker died), a claim token that ``orphaned`` says
+    belongs to a worker known to be gone, or, with ``everything``, any processing session. A session that
     was already interrupted ``MAX_ATTEMPTS`` times is marked failed instead.
     """
     cutoff = utcnow() - timedelta(seconds=stall_seconds)
     stale = [Session.status == SessionStatus.processing]
-    if not everything:
+    if not everything and orphaned is None:
         stale.append(or_(Session.heartbeat_at.is_(None), Session.heartbeat_at < cutoff))
     with sm() as db:
-        rows = db.execute(select(Session.id, Session.attempts, Session.worker_id).where(*stale)).all()
+        rows = db.execute(select(Session.id, Session.attempts, Session.worker_id, Session.heartbeat_at)
+                          .where(*stale)).all()
+        if not everything and orphaned is not None:
+            rows = [r for r in rows if r.heartbeat_at is None or as_utc(r.heartbeat_at) < cutoff
+                    or (r.worker_id is not None and orphaned(r.worker_id))]
+        rows = [(r.id, r.attempts, r.worker_id) for r in rows]
         requeued: list[str] = []
         for sid, attempts, old_worker in rows:
             # Conditioned on the same claim so a worker that heart-beats right now keeps its session.

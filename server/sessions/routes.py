@@ -17,6 +17,7 @@ from server.auth.service import get_patient_for, get_session_for, require_role
 from server.deps import AppSettings, Caller, Db
 from server.enums import Role, SessionStatus
 from server.errors import ProblemError, conflict
+from server.ops import metrics as ops_metrics
 from server.processing.queue import enqueue
 from server.sessions.ingest import ingest_batch, received_summary, still_in_status
 from server.sessions.models import Batch, Session, SessionSensor
@@ -128,6 +129,7 @@ def upload_batch(session_id: str, response: Response, db: Db, caller: Caller, se
                  exc.status, exc.detail)
         raise
     response.status_code = 201 if outcome.created else 200
+    ops_metrics.batch_ingested(outcome.samples, stored=outcome.created)
     log.info("batch session=%s sensor=%s seq=%d samples=%d -> %s", session_id, outcome.sensor_id, outcome.seq,
              outcome.samples, "stored" if outcome.created else "duplicate")
     return BatchOut(sensor_id=outcome.sensor_id, seq=outcome.seq, samples=outcome.samples,

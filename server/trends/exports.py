@@ -5,8 +5,16 @@ FHIR coding choices (verified, not guessed):
   (system http://snomed.info/sct).
 - valueQuantity in UCUM (http://unitsofmeasure.org): ``deg``, ``s``, ``%``, ``/min``.
 - category: ``activity`` of http://terminology.hl7.org/CodeSystem/observation-category.
-- code: no LOINC code describes per-stride knee kinematics from wearables (LOINC has only clinical range-of-motion
-  assessment codes), so the metrics use the service's own CodeSystem ``LOCAL_CODE_SYSTEM``.
+- code: the metrics keep the service's own CodeSystem ``LOCAL_CODE_SYSTEM``. We found no LOINC code we could verify
+  for knee flexion angles, knee range of motion during gait, stride time or cadence measured by wearables; the
+  activity codes LOINC has (e.g. 41950-7 "Number of steps in 24 hour, Measured") describe whole-day step counts,
+  which gaitmon does not measure (it sees recorded sessions only), so using them would misstate the observation.
+- Patient: the clinic's ``external_id`` (its MRN) as ``identifier`` with type ``MR`` of HL7 v2 table 0203
+  (http://terminology.hl7.org/CodeSystem/v2-0203) and the configured system (``GAITMON_FHIR_IDENTIFIER_SYSTEM``);
+  gaitmon's own id as a secondary identifier. Observations name the patient by that identifier and by reference to
+  the Patient entry of the Bundle, so a receiving system can file them without knowing gaitmon's ids.
+- device: one Device entry (the thigh and shank IMUs with gaitmon's stride analysis, algorithm versions listed).
+- effectivePeriod: the patient's local day the daily summary covers (start inclusive, end exclusive).
 """
 
 from __future__ import annotations
@@ -16,7 +24,7 @@ import io
 import uuid
 from collections import defaultdict
 from collections.abc import Iterator
-from datetime import UTC, date, datetime, timedelta
+from datetime import date, datetime, timedelta
 from typing import Any
 
 import numpy as np
@@ -37,6 +45,8 @@ from server.trends.timeutil import local_date, local_midnight, zone
 from server.utc import as_utc, utcnow
 
 LOCAL_CODE_SYSTEM = "urn:gaitmon:codesystem:gait-metric"
+PATIENT_ID_SYSTEM = "urn:gaitmon:patient-id"  # gaitmon's own patient ids (a secondary identifier)
+IDENTIFIER_TYPE = "http://terminology.hl7.org/CodeSystem/v2-0203"
 SNOMED = "http://snomed.info/sct"
 UCUM = "http://unitsofmeasure.org"
 KNEE_SITE = {
@@ -92,9 +102,9 @@ def strides_csv(db: DbSession, patient: Patient, start: datetime | None, end: da
     q = (select(*Stride.__table__.c, Session.client_session_id).join(Session, Session.id == Stride.session_id)
          .where(Stride.patient_id == patient.id, Stride.activity == activity))
     if start is not None:
-        q = q.where(Stride.started_at >= start.astimezone(UTC))
+        q = q.where(Stride.started_at >= as_utc(start))
     if end is not None:
-        q = q.where(Stride.started_at < end.astimezone(UTC))
+        q = q.where(Stride.started_at < as_utc(end))
     q = q.order_by(Stride.started_at, Stride.leg, Stride.index).execution_options(yield_per=chunk)
     buf = io.StringIO()
     w = csv.writer(buf)
@@ -132,11 +142,58 @@ def _component(code: str, display: str, value: dict[str, Any] | int) -> dict[str
     return out
 
 
+def _entry_uuid(key: str) -> str:
+    try:
+        return str(uuid.UUID(hex=key))
+    except ValueError:
+        return str(uuid.uuid5(_NS, key))
+
+
+def patient_entry(patient: Patient, identifier_system: str) -> dict[str, Any]:
+    """The Bundle's Patient: the clinic's identifier (MRN) when known, gaitmon's id as a secondary one."""
+    identifiers: list[dict[str, Any]] = []
+    if patient.external_id:
+        identifiers.append({"use": "usual", "type": {"coding": [{"system": IDENTIFIER_TYPE, "code": "MR",
+                                                                 "display": "Medical record number"}]},
+                            "system": identifier_system, "value": patient.external_id})
+    identifiers.append({"use": "secondary", "system": PATIENT_ID_SYSTEM, "value": patient.id})
+    resource: dict[str, Any] = {"resourceType": "Patient", "id": patient.id, "identifier": identifiers}
+    if patient.display_name:
+        resource["name"] = [{"text": patient.display_name}]
+    return {"fullUrl": f"urn:uuid:{_entry_uuid(patient.id)}", "resource": resource}
+
+
+def subject_reference(patient: Patient, patient_full_url: str, identifier_system: str) -> dict[str, Any]:
+    """Observation.subject: the Bundle's Patient entry, and the business identifier a receiver files by."""
+    ref: dict[str, Any] = {"reference": patient_full_url}
+    if patient.external_id:
+        ref["identifier"] = {"system": identifier_system, "value": patient.external_id}
+    if patient.display_name:
+        ref["display"] = patient.display_name
+    return ref
+
+
+def device_entry(patient: Patient, patient_full_url: str, versions: list[str]) -> dict[str, Any]:
+    """The measuring device: per leg a thigh and a shank IMU, with gaitmon's stride analysis (its versions)."""
+    did = str(uuid.uuid5(_NS, f"{patient.id}/device"))
+    resource: dict[str, Any] = {
+        "resourceType": "Device", "id": did,
+        "deviceName": [{"name": "gaitmon wearable gait analysis", "type": "user-friendly-name"}],
+        "type": {"text": "Thigh and shank inertial measurement units with gaitmon stride analysis software"},
+        "patient": {"reference": patient_full_url},
+    }
+    if versions:
+        resource["version"] = [{"type": {"text": "algorithm"}, "value": v} for v in versions]
+    return {"fullUrl": f"urn:uuid:{did}", "resource": resource}
+
+
 def daily_observations(db: DbSession, patient: Patient, start: datetime | None, end: datetime | None,
-                       metrics: tuple[str, ...] = FHIR_METRICS, *,
-                       activity: str = StrideActivity.walking) -> list[dict[str, Any]]:
+                       metrics: tuple[str, ...] = FHIR_METRICS, *, activity: str = StrideActivity.walking,
+                       subject: dict[str, Any] | None = None,
+                       device: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """One Observation per local day, leg and metric: the day's mean as value, median/sd/p10/p90/count as
-    components. Only included (quality-passing, plausible) strides count."""
+    components. Only included (quality-passing, plausible) strides count. ``subject`` and ``device`` are the
+    references to put in each (default: ``Patient/<gaitmon id>``, no device)."""
     tz = zone(patient.timezone)
     m, s = TrendMetricValues, TrendSessionLeg
     q = (select(m.metric, m.leg, m.started_at, m.session_id, m.n_included, m.n_implausible, m.values,
@@ -144,9 +201,9 @@ def daily_observations(db: DbSession, patient: Patient, start: datetime | None, 
          .join(s, (s.session_id == m.session_id) & (s.leg == m.leg) & (s.activity == m.activity))
          .where(m.patient_id == patient.id, m.metric.in_(metrics), m.activity == activity))
     if start is not None:
-        q = q.where(m.started_at >= start.astimezone(UTC))
+        q = q.where(m.started_at >= as_utc(start))
     if end is not None:
-        q = q.where(m.started_at < end.astimezone(UTC))
+        q = q.where(m.started_at < as_utc(end))
     groups: dict[tuple[str, str, date], list[Any]] = defaultdict(list)
     for r in db.execute(q.order_by(m.started_at)):
         groups[(r.metric, r.leg, local_date(r.started_at, tz))].append(r)
@@ -181,8 +238,8 @@ def daily_observations(db: DbSession, patient: Patient, start: datetime | None, 
                     "display": "Activity"}]}],
                 "code": {"coding": [{"system": LOCAL_CODE_SYSTEM, "code": name, "display": metric.title}],
                          "text": f"{metric.title}, daily mean ({leg} leg{'' if not suffix else ', ' + activity})"},
-                "subject": {"reference": f"Patient/{patient.id}",
-                            **({"display": patient.display_name} if patient.display_name else {})},
+                "subject": subject or {"reference": f"Patient/{patient.id}"},
+                **({"device": device} if device else {}),
                 "effectivePeriod": {"start": local_midnight(day, tz).isoformat(),
                                     "end": local_midnight(day + timedelta(days=1), tz).isoformat()},
                 "issued": issued,
@@ -197,10 +254,28 @@ def daily_observations(db: DbSession, patient: Patient, start: datetime | None, 
     return out
 
 
+def _algorithm_versions(db: DbSession, patient: Patient, start: datetime | None, end: datetime | None) -> list[str]:
+    s = TrendSessionLeg
+    q = select(s.algorithm_version).where(s.patient_id == patient.id, s.algorithm_version.is_not(None)).distinct()
+    if start is not None:
+        q = q.where(s.started_at >= as_utc(start))
+    if end is not None:
+        q = q.where(s.started_at < as_utc(end))
+    return sorted(db.scalars(q).all())
+
+
 def fhir_bundle(db: DbSession, patient: Patient, start: datetime | None, end: datetime | None,
-                metrics: tuple[str, ...] = FHIR_METRICS, *, activity: str = StrideActivity.walking) -> dict[str, Any]:
-    """The daily Observations of one activity as a FHIR R4 Bundle of type collection."""
-    entries = daily_observations(db, patient, start, end, metrics, activity=activity)
+                metrics: tuple[str, ...] = FHIR_METRICS, *, identifier_system: str,
+                activity: str = StrideActivity.walking) -> dict[str, Any]:
+    """A FHIR R4 collection Bundle of one activity: the Patient, the Device, and the daily Observations referring
+    to both."""
+    pat = patient_entry(patient, identifier_system)
+    dev = device_entry(patient, pat["fullUrl"], _algorithm_versions(db, patient, start, end))
+    observations = daily_observations(
+        db, patient, start, end, metrics, activity=activity,
+        subject=subject_reference(patient, pat["fullUrl"], identifier_system),
+        device={"reference": dev["fullUrl"], "display": "gaitmon wearable gait analysis"})
     return {"resourceType": "Bundle", "id": str(uuid.uuid4()), "type": "collection",
-            "timestamp": utcnow().replace(microsecond=0).isoformat(), "entry": entries}
+            "timestamp": utcnow().replace(microsecond=0).isoformat(),
+            "entry": [pat, dev, *observations]}
 

@@ -11,7 +11,7 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, StreamingResponse
 
 from server.auth.service import get_patient_for, require_role
-from server.deps import Caller, Db
+from server.deps import AppSettings, Caller, Db
 from server.enums import Role, StrideActivity
 from server.errors import invalid
 from server.patients.models import Patient
@@ -137,7 +137,7 @@ def get_strides_csv(patient_id: str, request: Request, db: Db, caller: Caller, s
 
 @router.get("/patients/{patient_id}/fhir", response_model=FhirBundleOut,
             summary="Daily summaries as a FHIR R4 Bundle (collection) of Observations")
-def get_fhir(patient_id: str, db: Db, caller: Caller, start: FromQ = None, end: ToQ = None,
+def get_fhir(patient_id: str, db: Db, caller: Caller, settings: AppSettings, start: FromQ = None, end: ToQ = None,
              activity: ActivityQ = StrideActivity.walking,
              metric: Annotated[list[MetricName] | None, Query(description="repeat to choose several")] = None,
              ) -> JSONResponse:
@@ -148,5 +148,6 @@ def get_fhir(patient_id: str, db: Db, caller: Caller, start: FromQ = None, end: 
     chosen = tuple(m.value for m in metric) if metric else exports.FHIR_METRICS
     if any(METRICS[m].column is None for m in chosen):
         raise invalid("metric", "count metrics have no daily Observation; choose stride metrics")
-    return JSONResponse(exports.fhir_bundle(db, patient, lo, hi, chosen, activity=activity),
-                        media_type="application/fhir+json")
+    bundle = exports.fhir_bundle(db, patient, lo, hi, chosen, identifier_system=settings.fhir_identifier_system,
+                                 activity=activity)
+    return JSONResponse(bundle, media_type="application/fhir+json")

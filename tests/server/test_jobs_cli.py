@@ -39,7 +39,7 @@ def test_tokens_from_the_command_line(tmp_path: Path, monkeypatch: pytest.Monkey
     settings = Settings(data_dir=tmp_path / "data")
     monkeypatch.setattr(cli, "get_settings", lambda: settings)
     # main() points the root logger at the stderr of the moment; under pytest that is a capture file closed later.
-    monkeypatch.setattr(cli, "setup_logging", lambda level: None)
+    monkeypatch.setattr(cli, "setup_logging", lambda level, fmt="text": None)
     assert cli.main(["create-token", "--role", "clinician", "--name", "Dr Who", "--email", "who@example.org"]) == 0
     out, err = capsys.readouterr()
     token = out.strip().splitlines()[-1]

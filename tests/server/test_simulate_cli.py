@@ -11,6 +11,7 @@ import httpx
 import numpy as np
 import pytest
 
+from gaitmon.client import Client
 from pipeline.simulate import SimConfig, simulate_session
 from server.sessions.schemas import BatchIn, SessionIn
 from server.simulate_cli import arrange_batches, register, session_to_requests, upload
@@ -56,10 +57,15 @@ def test_upload_sends_gzip_retries_network_errors_and_completes(sim, monkeypatch
     stored: dict[tuple[str, int], dict] = {}
     calls = {"fail": 2, "complete": 0}
 
+    def session(status: str) -> dict:
+        return {"id": "s1", "patient_id": "p1", "client_session_id": create["client_session_id"],
+                "started_at": create["started_at"], "activity": create["activity"], "status": status,
+                "created_at": create["started_at"]}
+
     def handler(request: httpx.Request) -> httpx.Response:
         path = request.url.path
         if path == "/v1/sessions":
-            return httpx.Response(201, json={"id": "s1", "status": "receiving"})
+            return httpx.Response(201, json=session("receiving"))
         if path == "/v1/sessions/s1/batches":
             if calls["fail"] > 0:  # the first attempts die on the network
                 calls["fail"] -= 1
@@ -67,19 +73,19 @@ def test_upload_sends_gzip_retries_network_errors_and_completes(sim, monkeypatch
             assert request.headers["content-encoding"] == "gzip"
             body = json.loads(gzip.decompress(request.content))
             key = (body["sensor_id"], body["seq"])
-            if key in stored:
-                return httpx.Response(200, json={"sensor_id": key[0], "seq": key[1], "samples": len(body["gyro"])})
+            dup = key in stored
             stored[key] = body
-            return httpx.Response(201, json={"sensor_id": key[0], "seq": key[1], "samples": len(body["gyro"])})
+            return httpx.Response(200 if dup else 201, json={"sensor_id": key[0], "seq": key[1],
+                                                             "samples": len(body["gyro"]), "duplicate": dup})
         if path == "/v1/sessions/s1/complete":
             calls["complete"] += 1
-            return httpx.Response(202, json={"id": "s1", "status": "queued"})
+            return httpx.Response(202, json=session("queued"))
         return httpx.Response(404)
 
     order = arrange_batches(batches, shuffle=True, duplicate_fraction=0.3, seed=2)
     msgs: list[str] = []
-    with httpx.Client(base_url="http://test", transport=httpx.MockTransport(handler)) as client:
-        monkeypatch.setattr("server.simulate_cli.time.sleep", lambda s: None)  # no real back-off waits
+    with Client("http://test", "t", transport=httpx.MockTransport(handler)) as client:
+        monkeypatch.setattr("gaitmon.client.sync.time.sleep", lambda s: None)  # no real back-off waits
         sid = upload(client, create, order, concurrency=2, progress=msgs.append)
     assert sid == "s1"
     assert len(stored) == len(batches)

@@ -114,7 +114,7 @@ def test_fhir_bundle_validates_as_r4(api: Api) -> None:
     assert r.headers["content-type"].startswith("application/fhir+json")
     bundle = Bundle.model_validate(r.json())
     assert bundle.type == "collection"
-    obs = [e.resource for e in bundle.entry]
+    obs = [e.resource for e in bundle.entry if e.resource.get_resource_type() == "Observation"]
     assert len(obs) == 3 * 2 * 2  # days x legs x metrics
     peak_left = [o for o in obs if o.code.coding[0].code == "peak_swing_flexion_deg"
                  and o.bodySite.coding[0].code == "82169009"]
@@ -126,6 +126,40 @@ def test_fhir_bundle_validates_as_r4(api: Api) -> None:
         pytest.approx(50.0, abs=0.2)]
     right = [o for o in obs if o.bodySite.coding[0].code == "6757004"]
     assert right and all(o.bodySite.coding[0].system == "http://snomed.info/sct" for o in right)
+
+
+def test_fhir_names_the_patient_by_the_clinic_identifier(settings: Settings) -> None:
+    system = "https://hospital.example/fhir/sid/mrn"
+    with open_api(settings.model_copy(update={"fhir_identifier_system": system})) as api:
+        clin, p = _seeded(api, external_id="MRN-0042", display_name="J. Doe")
+        r = api.client.get(f"/v1/patients/{p['id']}/fhir", params={"metric": "rom_deg"}, headers=bearer(clin))
+        assert r.status_code == 200, r.text
+        clin2, other = _seeded(api)  # no external_id
+        r_other = api.client.get(f"/v1/patients/{other['id']}/fhir", headers=bearer(clin2))
+        assert r_other.status_code == 200, r_other.text
+    bundle = Bundle.model_validate(r.json())  # R4 structure and cardinalities, references included
+    by_type: dict[str, list] = {}
+    for e in bundle.entry:
+        by_type.setdefault(e.resource.get_resource_type(), []).append(e)
+    (pat_entry,), (dev_entry,) = by_type["Patient"], by_type["Device"]
+    patient = pat_entry.resource
+    mrn = [i for i in patient.identifier if i.system == system]
+    assert len(mrn) == 1 and mrn[0].value == "MRN-0042" and mrn[0].type.coding[0].code == "MR"
+    assert any(i.value == p["id"] and i.system == "urn:gaitmon:patient-id" for i in patient.identifier)
+    observations = [e.resource for e in by_type["Observation"]]
+    assert len(observations) == 3 * 2
+    for o in observations:
+        assert o.subject.identifier.system == system and o.subject.identifier.value == "MRN-0042"
+        assert o.subject.reference == pat_entry.fullUrl  # resolvable inside the Bundle
+        assert o.device.reference == dev_entry.fullUrl
+        assert o.effectivePeriod.start < o.effectivePeriod.end
+        assert o.code.coding[0].system == "urn:gaitmon:codesystem:gait-metric"
+    assert dev_entry.resource.patient.reference == pat_entry.fullUrl
+    assert dev_entry.resource.version and dev_entry.resource.version[0].value
+    # Without an external_id the patient is still named (by gaitmon's id) and the bundle stays valid.
+    other_bundle = Bundle.model_validate(r_other.json())
+    other_obs = [e.resource for e in other_bundle.entry if e.resource.get_resource_type() == "Observation"]
+    assert other_obs and all(o.subject.identifier is None and o.subject.reference for o in other_obs)
 
 
 def test_symmetry_completeness_and_attention_endpoints(api: Api) -> None:

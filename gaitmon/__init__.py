@@ -1,0 +1,1 @@
+"""gaitmon's Python client (``gaitmon.client``) for app backends and research scripts."""
