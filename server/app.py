@@ -7,6 +7,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
 from starlette.middleware.gzip import GZipMiddleware
 
 from server.api import clinicians, compare, health, patients, results, sessions
@@ -15,6 +16,7 @@ from server.config import Settings, get_settings
 from server.db import make_engine, make_sessionmaker
 from server.errors import install_error_handlers
 from server.trends import router as trends_router
+from server.ui import routes as ui_routes
 
 log = logging.getLogger("gaitmon.api")
 
@@ -68,4 +70,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # Routers of other modules are included below this line (one line each).
     app.include_router(trends_router.router)
     app.include_router(compare.router)
+    app.include_router(ui_routes.router)
+    app.mount("/ui/static", StaticFiles(directory=ui_routes.STATIC_DIR), name="ui-static")
     return app

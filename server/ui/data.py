@@ -1,0 +1,246 @@
+"""Everything the clinician pages read, through the service layer the API uses (one import point for the pages).
+
+Functions that only wrap a service are thin on purpose. The few queries written here exist only inside API route
+functions today (patient list with search, session list, strides of a session, the knee-angle trace rows, the
+latest per-leg values and the gait-cycle normalisation); they are marked "query lives here" and belong in the
+patients/sessions/results services.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from datetime import UTC, date, datetime, timedelta
+from typing import Any
+
+import numpy as np
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session as DbSession
+from starlette.requests import Request
+
+from server.api.compare import CompareOut, compare_session
+from server.api.results import minmax_indices
+from server.auth import Principal, current_principal, get_patient_for, get_session_for
+from server.errors import ProblemError
+from server.jobs.traces import decode_trace
+from server.models import KneeAngleTrace, Patient, Session, Stride
+from server.trends import exports, service
+from server.trends.attention import AttentionParams, attention_list
+from server.trends.metrics import METRICS
+from server.trends.models import TrendMetricValues
+from server.trends.timeutil import Bucket, as_utc, zone
+
+# The metrics of the patient page, in the order a physiotherapist reads them.
+TREND_METRICS = ("peak_swing_flexion_deg", "rom_deg", "min_flexion_deg", "strides_per_day")
+OVERVIEW_METRICS = ("peak_swing_flexion_deg", "rom_deg")
+CYCLE_POINTS = 101  # 0, 1, ..., 100 % of the gait cycle
+
+
+def principal_for_token(db: DbSession, token: str) -> Principal | None:
+    """The principal of a bearer token exactly as the API resolves it (hash lookup, revocation), or None."""
+    request = Request({"type": "http", "headers": [(b"authorization", f"Bearer {token}".encode())]})
+    try:
+        return current_principal(request, db)
+    except ProblemError:
+        return None
+
+
+def patient_for(db: DbSession, principal: Principal, patient_id: str) -> Patient:
+    """The API's access rule: 404 (ProblemError) when the patient does not exist or is someone else's."""
+    return get_patient_for(db, principal, patient_id)
+
+
+def session_for(db: DbSession, principal: Principal, session_id: str) -> Session:
+    """The API's access rule for sessions: 404 (ProblemError) unless the caller may see its patient."""
+    return get_session_for(db, principal, session_id)
+
+
+@dataclass(frozen=True)
+class PatientPage:
+    items: list[Patient]
+    total: int
+    offset: int
+    limit: int
+
+
+def list_patients(db: DbSession, principal: Principal, *, search: str = "", offset: int = 0,
+                  limit: int = 25) -> PatientPage:
+    """The principal's patients (admin: all), oldest first, optionally those whose external id contains
+    ``search`` (case-insensitive). Query lives here: the API's list route has it inline and no search."""
+    stmt = select(Patient)
+    if principal.role == "clinician":
+        stmt = stmt.where(Patient.clinician_id == principal.clinician_id)
+    if search:
+        escaped = search.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
+        stmt = stmt.where(func.lower(Patient.external_id).like(f"%{escaped.lower()}%", escape="\\"))
+    total = db.scalar(select(func.count()).select_from(stmt.subquery())) or 0
+    rows = db.scalars(stmt.order_by(Patient.created_at, Patient.id).offset(offset).limit(limit)).all()
+    return PatientPage(list(rows), int(total), offset, limit)
+
+
+def latest_values(db: DbSession, patient: Patient) -> dict[str, dict[str, dict[str, Any]]]:
+    """{leg: {metric: {mean, at}}} of the most recent session with included strides, per leg and metric.
+    Query lives here (no service has "latest value" yet); it walks the trend summary index backwards."""
+    out: dict[str, dict[str, dict[str, Any]]] = {}
+    m = TrendMetricValues
+    for leg in ("left", "right"):
+        for name in OVERVIEW_METRICS:
+            row = db.execute(select(m.mean, m.started_at).where(
+                m.patient_id == patient.id, m.metric == name, m.leg == leg, m.n_included > 0)
+                .order_by(m.started_at.desc()).limit(1)).first()
+            if row is not None and row.mean is not None:
+                out.setdefault(leg, {})[name] = {"mean": float(row.mean), "at": as_utc(row.started_at)}
+    return out
+
+
+def completeness(db: DbSession, patient: Patient, days: int = 30) -> dict[str, Any]:
+    """Days with data, last session and per-day strides (the API's completeness view)."""
+    return service.patient_completeness(db, patient, days=days)
+
+
+def attention(db: DbSession, principal: Principal, limit: int = 200) -> dict[str, Any]:
+    """The API's attention list for this principal (admin: every patient)."""
+    return attention_list(db, clinician_id=None if principal.is_admin else principal.clinician_id,
+                          params=AttentionParams(), limit=limit)
+
+
+def trends(db: DbSession, patient: Patient, metric: str, leg: str, bucket: Bucket) -> dict[str, Any]:
+    """One metric of one leg over the patient's whole history (the API's trends view)."""
+    return service.patient_trends(db, patient, metric_name=metric, leg=leg, bucket=bucket, start=None, end=None)
+
+
+def symmetry(db: DbSession, patient: Patient, metric: str, bucket: Bucket) -> dict[str, Any]:
+    return service.patient_symmetry(db, patient, metric_name=metric, bucket=bucket, start=None, end=None)
+
+
+def legs_with_data(db: DbSession, patient: Patient) -> list[str]:
+    return service.legs_with_data(db, patient.id)
+
+
+def list_sessions(db: DbSession, patient: Patient, *, offset: int = 0, limit: int = 20) -> tuple[list[Session], int]:
+    """The patient's sessions, newest first, and their total. Query lives here (inline in the API route)."""
+    total = db.scalar(select(func.count()).select_from(Session).where(Session.patient_id == patient.id)) or 0
+    rows = db.scalars(select(Session).where(Session.patient_id == patient.id)
+                      .order_by(Session.started_at.desc(), Session.id.desc()).offset(offset).limit(limit)).all()
+    return list(rows), int(total)
+
+
+def first_done_session(db: DbSession, patient: Patient) -> Session | None:
+    """The patient's earliest processed session (the reference of the gait-cycle plot). Query lives here."""
+    return db.scalar(select(Session).where(Session.patient_id == patient.id, Session.status == "done")
+                     .order_by(Session.started_at, Session.id).limit(1))
+
+
+def strides(db: DbSession, session: Session) -> list[Stride]:
+    """Every stored stride of the session by leg and index. Query lives here (inline in the API route)."""
+    return list(db.scalars(select(Stride).where(Stride.session_id == session.id)
+                           .order_by(Stride.leg, Stride.index)).all())
+
+
+def exclusions(stride: Stride) -> list[str]:
+    """Why a stride does not count in the trends (empty: it counts), by the trends' own rule."""
+    return exports._exclusions({"quality": stride.quality,
+                                **{m.column: getattr(stride, m.column) for m in METRICS.values() if m.column}})
+
+
+@dataclass(frozen=True)
+class Trace:
+    leg: str
+    t_s: np.ndarray
+    angle_deg: np.ndarray
+    n_total: int
+    t_first_s: float
+    t_last_s: float
+
+
+def _traces(db: DbSession, session: Session) -> dict[str, KneeAngleTrace]:
+    rows = db.scalars(select(KneeAngleTrace).where(KneeAngleTrace.session_id == session.id)).all()
+    return {r.leg: r for r in rows}
+
+
+def knee_angle(db: DbSession, session: Session, *, start_s: float | None = None, end_s: float | None = None,
+               max_points: int = 1600) -> list[Trace]:
+    """The continuous knee angle of each leg in [start_s, end_s], min/max down-sampled as the API does."""
+    out = []
+    for leg, row in sorted(_traces(db, session).items()):
+        t, angle, _ = decode_trace(row.t0_s, row.fs_hz, row.n, row.angle_deg, row.estimator_codes,
+                                   row.estimator_names)
+        if not len(t):
+            continue
+        keep = np.ones(len(t), dtype=bool)
+        if start_s is not None:
+            keep &= t >= start_s
+        if end_s is not None:
+            keep &= t <= end_s
+        tw, aw = t[keep], angle[keep]
+        idx = minmax_indices(aw, max_points)
+        out.append(Trace(leg, tw[idx], aw[idx], int(len(tw)), float(t[0]), float(t[-1])))
+    return out
+
+
+@dataclass(frozen=True)
+class Cycle:
+    """Knee angle over the gait cycle (0-100 %, heel strike to heel strike) of the included strides of one leg."""
+
+    leg: str
+    n_strides: int
+    mean_deg: list[float | None]
+    sd_deg: list[float | None]
+
+
+def gait_cycles(db: DbSession, session: Session) -> dict[str, Cycle]:
+    """Per leg: each included stride's stored angle trace resampled to 0..100 % between its heel strikes, then
+    mean and SD across strides at every percent. Strides that do not count in the trends (low quality,
+    implausible values) or cross a gap in the trace are left out. Computation lives here (a results service)."""
+    traces = _traces(db, session)
+    by_leg: dict[str, list[Stride]] = {}
+    for s in strides(db, session):
+        if not exclusions(s):
+            by_leg.setdefault(s.leg, []).append(s)
+    pct = np.linspace(0.0, 1.0, CYCLE_POINTS)
+    out: dict[str, Cycle] = {}
+    for leg, rows in sorted(by_leg.items()):
+        tr = traces.get(leg)
+        if tr is None:
+            continue
+        t, angle, _ = decode_trace(tr.t0_s, tr.fs_hz, tr.n, tr.angle_deg, tr.estimator_codes, tr.estimator_names)
+        curves = []
+        for s in rows:
+            i0 = int(np.searchsorted(t, s.t_start_s - 0.5 / tr.fs_hz))
+            i1 = int(np.searchsorted(t, s.t_end_s + 0.5 / tr.fs_hz))
+            seg_t, seg_a = t[i0:i1], angle[i0:i1]
+            if seg_t.size < 10 or not np.all(np.isfinite(seg_a)):
+                continue
+            curves.append(np.interp(s.t_start_s + pct * (s.t_end_s - s.t_start_s), seg_t, seg_a))
+        if not curves:
+            continue
+        arr = np.vstack(curves)
+        mean = arr.mean(axis=0)
+        sd = arr.std(axis=0, ddof=1) if len(curves) > 1 else np.full(CYCLE_POINTS, np.nan)
+        out[leg] = Cycle(leg, len(curves), [_num(v) for v in mean], [_num(v) for v in sd])
+    return out
+
+
+def _num(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def compare(db: DbSession, principal: Principal, session: Session) -> CompareOut:
+    """Every estimator on this session (the API's compare: re-runs the pipeline, cached in memory)."""
+    return compare_session(session.id, db, principal, None)
+
+
+def strides_csv(db: DbSession, patient: Patient) -> Any:
+    """The API's CSV export of every stride, as an iterator of text chunks."""
+    return exports.strides_csv(db, patient, None, None)
+
+
+def fhir_bundle(db: DbSession, patient: Patient) -> dict[str, Any]:
+    """The API's FHIR R4 Bundle of daily Observations."""
+    return exports.fhir_bundle(db, patient, None, None)
+
+
+def local_day_range(patient: Patient, days: int) -> tuple[date, date]:
+    """The last ``days`` local days of the patient, today included."""
+    today = datetime.now(UTC).astimezone(zone(patient.timezone)).date()
+    return today - timedelta(days=days - 1), today
