@@ -26,7 +26,7 @@ from server.jobs.traces import decode_trace
 from server.models import KneeAngleTrace, Patient, Session, Stride
 from server.trends import exports, service
 from server.trends.attention import AttentionParams, attention_list
-from server.trends.metrics import METRICS
+from server.trends.metrics import METRICS, MIN_QUALITY
 from server.trends.models import TrendMetricValues
 from server.trends.timeutil import Bucket, as_utc, zone
 
@@ -131,16 +131,37 @@ def first_done_session(db: DbSession, patient: Patient) -> Session | None:
                      .order_by(Session.started_at, Session.id).limit(1))
 
 
-def strides(db: DbSession, session: Session) -> list[Stride]:
-    """Every stored stride of the session by leg and index. Query lives here (inline in the API route)."""
-    return list(db.scalars(select(Stride).where(Stride.session_id == session.id)
+def strides(db: DbSession, session: Session) -> list[Any]:
+    """Every stored stride of the session by leg and index, as rows with the Stride columns as attributes.
+    Query lives here (inline in the API route); core rows because a long session has thousands of strides."""
+    return list(db.execute(select(*Stride.__table__.c).where(Stride.session_id == session.id)
                            .order_by(Stride.leg, Stride.index)).all())
 
 
-def exclusions(stride: Stride) -> list[str]:
-    """Why a stride does not count in the trends (empty: it counts), by the trends' own rule."""
-    return exports._exclusions({"quality": stride.quality,
-                                **{m.column: getattr(stride, m.column) for m in METRICS.values() if m.column}})
+def exclusions(rows: list[Any]) -> list[list[str]]:
+    """Per stride, why it does not count in the trends (empty: it counts), in the codes of
+    :func:`server.trends.exports._exclusions` (``quality<0.5``, ``implausible:<metric>``).
+
+    The same rule as that function and as :func:`server.trends.summaries.summarise_leg`, evaluated on whole
+    columns with the same :class:`Metric` methods (per-stride calls cost ~60 us each, too slow for a long session);
+    tests/ui/test_data.py checks it against ``exports._exclusions`` stride by stride."""
+    if not rows:
+        return []
+    quality = np.array([np.nan if r.quality is None else r.quality for r in rows], dtype=np.float64)
+    out: list[list[str]] = [[] for _ in rows]
+    low = ~(quality >= MIN_QUALITY)
+    for i in np.flatnonzero(low):
+        out[i].append(f"quality<{MIN_QUALITY:g}")
+    for name, metric in METRICS.items():
+        if metric.column is None:
+            continue
+        raw = np.array([np.nan if getattr(r, metric.column) is None else getattr(r, metric.column) for r in rows],
+                       dtype=np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bad = ~metric.plausible(metric.values(raw)) & ~low
+        for i in np.flatnonzero(bad):
+            out[i].append(f"implausible:{name}")
+    return out
 
 
 @dataclass(frozen=True)
@@ -188,24 +209,32 @@ class Cycle:
     sd_deg: list[float | None]
 
 
-def gait_cycles(db: DbSession, session: Session) -> dict[str, Cycle]:
+def gait_cycles(db: DbSession, session: Session, rows: list[Any] | None = None,
+                excluded: list[list[str]] | None = None) -> dict[str, Cycle]:
     """Per leg: each included stride's stored angle trace resampled to 0..100 % between its heel strikes, then
     mean and SD across strides at every percent. Strides that do not count in the trends (low quality,
-    implausible values) or cross a gap in the trace are left out. Computation lives here (a results service)."""
+    implausible values) or cross a gap in the trace are left out. ``rows``/``excluded``: the session's
+    :func:`strides` and :func:`exclusions` when the caller has them. Computation lives here (a results service)."""
     traces = _traces(db, session)
-    by_leg: dict[str, list[Stride]] = {}
-    for s in strides(db, session):
-        if not exclusions(s):
+    if not traces:
+        return {}
+    if rows is None:
+        rows = strides(db, session)
+    if excluded is None:
+        excluded = exclusions(rows)
+    by_leg: dict[str, list[Any]] = {}
+    for s, why in zip(rows, excluded, strict=True):
+        if not why:
             by_leg.setdefault(s.leg, []).append(s)
     pct = np.linspace(0.0, 1.0, CYCLE_POINTS)
     out: dict[str, Cycle] = {}
-    for leg, rows in sorted(by_leg.items()):
+    for leg, leg_rows in sorted(by_leg.items()):
         tr = traces.get(leg)
         if tr is None:
             continue
         t, angle, _ = decode_trace(tr.t0_s, tr.fs_hz, tr.n, tr.angle_deg, tr.estimator_codes, tr.estimator_names)
         curves = []
-        for s in rows:
+        for s in leg_rows:
             i0 = int(np.searchsorted(t, s.t_start_s - 0.5 / tr.fs_hz))
             i1 = int(np.searchsorted(t, s.t_end_s + 0.5 / tr.fs_hz))
             seg_t, seg_a = t[i0:i1], angle[i0:i1]

@@ -72,14 +72,15 @@ class HBand:
 
 @dataclass
 class Frame:
-    """Pixel geometry of the plot area inside the SVG."""
+    """Pixel geometry: title rows on top, the plot area, the x axis, then the legend rows (see :func:`chart`)."""
 
-    width: int = 720
-    height: int = 300
-    left: int = 62
-    right: int = 16
-    top: int = 58
-    bottom: int = 48
+    width: int = 600
+    plot_height: int = 220
+    left: int = 64
+    right: int = 14
+    top: int = 30
+    axis: int = 44  # below the plot: tick labels and the axis label
+    legend_rows: int = 0
     extra: list[str] = field(default_factory=list)
 
     @property
@@ -88,7 +89,11 @@ class Frame:
 
     @property
     def plot_h(self) -> float:
-        return self.height - self.top - self.bottom
+        return self.plot_height
+
+    @property
+    def height(self) -> int:
+        return self.top + self.plot_height + self.axis + 20 * self.legend_rows + 6
 
 
 def nice_step(span: float, n: int) -> float:
@@ -182,6 +187,11 @@ def chart(*, title: str, desc: str, x: Axis, y: Axis, series: Sequence[Series] =
           hbands: Sequence[HBand] = (), frame: Frame | None = None, subtitle: str = "") -> str:
     """One line chart as an SVG string: title, legend, grid, axis ticks and labels, bands, lines."""
     fr = frame or Frame()
+    fr.top = 50 if subtitle else 32
+    items = ([(s.name, s.color, s.dash, "line") for s in series] + [(b.name, b.color, None, "box") for b in bands]
+             + [(h.name, h.color, None, "box") for h in hbands])
+    rows = _legend_rows(fr, items)
+    fr.legend_rows = len(rows)
     uid = f"c{next(_ids)}"
     out: list[str] = [
         f'<svg xmlns="http://www.w3.org/2000/svg" class="chart" viewBox="0 0 {fr.width} {fr.height}" role="img" '
@@ -201,7 +211,7 @@ def chart(*, title: str, desc: str, x: Axis, y: Axis, series: Sequence[Series] =
         px = _sx(fr, x, v)
         out.append(f'<line x1="{px:.1f}" x2="{px:.1f}" y1="{y1:.1f}" y2="{y1 + 5:.1f}" class="ax"/>'
                    f'<text x="{px:.1f}" y="{y1 + 18:.1f}" class="tk" text-anchor="middle">{escape(label)}</text>')
-    out.append(f'<text x="{(x0 + x1) / 2:.1f}" y="{fr.height - 6}" class="al" text-anchor="middle">'
+    out.append(f'<text x="{(x0 + x1) / 2:.1f}" y="{y1 + fr.axis - 8}" class="al" text-anchor="middle">'
                f'{escape(x.label)}</text>')
     out.append(f'<text transform="translate(14 {(y0 + y1) / 2:.1f}) rotate(-90)" class="al" '
                f'text-anchor="middle">{escape(y.label)}</text>')
@@ -234,29 +244,42 @@ def chart(*, title: str, desc: str, x: Axis, y: Axis, series: Sequence[Series] =
                                f'fill="{s.color}"/>')
     out.append("</g>")
     out.extend(fr.extra)
-    out.append(_legend(fr, [(s.name, s.color, s.dash, "line") for s in series]
-                       + [(b.name, b.color, None, "box") for b in bands]
-                       + [(h.name, h.color, None, "box") for h in hbands]))
+    out.append(_legend(fr, rows, y1 + fr.axis + 14))
     out.append(f'<rect x="{x0}" y="{y0}" width="{fr.plot_w:.1f}" height="{fr.plot_h:.1f}" class="fr"/></svg>')
     return "".join(out)
 
 
-def _legend(fr: Frame, items: list[tuple[str, str, str | None, str]]) -> str:
-    """Legend in one row above the plot; long names wrap onto a second row."""
+LegendItem = tuple[str, str, str | None, str]
+_CHAR_W = 7.0  # average width of a 13 px legend character
+
+
+def _legend_rows(fr: Frame, items: list[LegendItem]) -> list[list[tuple[float, LegendItem]]]:
+    """Legend entries laid out left to right, wrapping onto as many rows as needed below the plot."""
+    rows: list[list[tuple[float, LegendItem]]] = []
+    px = float(fr.left)
+    for it in items:
+        w = 28 + _CHAR_W * len(it[0])
+        if not rows or (px + w > fr.width - fr.right and px > fr.left):
+            rows.append([])
+            px = float(fr.left)
+        rows[-1].append((px, it))
+        px += w + 16
+    return rows
+
+
+def _legend(fr: Frame, rows: list[list[tuple[float, LegendItem]]], y0: float) -> str:
     out = []
-    px, py = fr.left, fr.top - 10
-    for name, color, dash, kind in items:
-        w = 30 + 6.4 * len(name)
-        if px + w > fr.width - fr.right and px > fr.left:
-            px, py = fr.left, py + 14
-        if kind == "line":
-            d = f' stroke-dasharray="{dash}"' if dash else ""
-            out.append(f'<line x1="{px:.1f}" x2="{px + 20:.1f}" y1="{py - 4}" y2="{py - 4}" stroke="{color}" '
-                       f'stroke-width="2.5"{d}/>')
-        else:
-            out.append(f'<rect x="{px:.1f}" y="{py - 9}" width="20" height="10" fill="{color}" fill-opacity="0.3"/>')
-        out.append(f'<text x="{px + 25:.1f}" y="{py}" class="lg">{escape(name)}</text>')
-        px += w + 12
+    for r, row in enumerate(rows):
+        py = y0 + 20 * r
+        for px, (name, color, dash, kind) in row:
+            if kind == "line":
+                d = f' stroke-dasharray="{dash}"' if dash else ""
+                out.append(f'<line x1="{px:.1f}" x2="{px + 22:.1f}" y1="{py - 4:.1f}" y2="{py - 4:.1f}" '
+                           f'stroke="{color}" stroke-width="2.8"{d}/>')
+            else:
+                out.append(f'<rect x="{px:.1f}" y="{py - 10:.1f}" width="22" height="11" fill="{color}" '
+                           f'fill-opacity="0.3"/>')
+            out.append(f'<text x="{px + 27:.1f}" y="{py:.1f}" class="lg">{escape(name)}</text>')
     return "".join(out)
 
 
@@ -272,7 +295,7 @@ def calendar_svg(days: Sequence[tuple[date, int, int]], *, title: str) -> str:
     start = first - timedelta(days=first.weekday())
     cell, gap, left, top = 14, 3, 34, 40
     n_weeks = (days[-1][0] - start).days // 7 + 1
-    width = left + n_weeks * (cell + gap) + 10
+    width = max(left + n_weeks * (cell + gap) + 10, left + 560)
     height = top + 7 * (cell + gap) + 30
     peak = max((n for _, n, _ in days), default=0) or 1
     uid = f"c{next(_ids)}"

@@ -92,17 +92,17 @@ def trend_chart(patient: Patient, metric: str, per_leg: dict[str, dict[str, Any]
             p90 = [b["p90"] for b in tr["buckets"]]
             ys += p10 + p90
             if leg == ref:
-                bands.append(Band(f"{leg} leg: 10th-90th percentile of strides", xs, p10, p90, color, 0.12))
+                bands.append(Band(f"{leg.capitalize()} leg: middle 80 % of strides", xs, p10, p90, color, 0.12))
         series.append(Series(f"{leg_name(patient, leg)}: {'daily' if bucket == 'day' else 'weekly'} mean", xs,
                              means, color, dash, 2.4 if leg == ref else 1.8, markers=len(xs) <= 60))
     ch = (per_leg.get(ref) or {}).get("change") or {}
     if ch.get("baseline") is not None and ch.get("mdc") is not None:
         lo, hi = ch["baseline"] - ch["mdc"], ch["baseline"] + ch["mdc"]
-        hbands.append(HBand(f"{ref} leg baseline \u00b1 minimal detectable change ({ch['mdc']:.3g}"
+        hbands.append(HBand(f"{ref.capitalize()} leg baseline \u00b1 minimal detectable change ({ch['mdc']:.3g}"
                             f"{words.unit(metric).strip() if metric != 'strides_per_day' else ''})", lo, hi))
         ys += [lo, hi]
     unit_label = {"deg": "degrees (\u00b0)", "strides/day": "strides per day"}.get(m.unit, m.unit)
-    y = plots.numeric_axis(f"{unit_label}", ys, include=[0] if metric == "strides_per_day" else ())
+    y = plots.numeric_axis(unit_label, ys, lo=0.0 if metric == "strides_per_day" else None)
     title = words.METRIC_SHORT.get(metric, m.title)
     desc = "; ".join(_trend_sentence(patient, metric, leg, per_leg[leg]) for leg in per_leg if per_leg[leg])
     return plots.chart(title=title, desc=desc or "no data", x=x, y=y, series=series, bands=bands, hbands=hbands,
@@ -255,7 +255,7 @@ def trace_chart(traces: list[data.Trace], patient: Patient, start: float, end: f
     y = plots.numeric_axis("knee flexion (\u00b0)", ys)
     return plots.chart(title="Knee angle, continuous",
                        desc=f"Knee flexion from {start:.0f} s to {end:.0f} s; gaps in the data break the line",
-                       x=x, y=y, series=series, frame=plots.Frame(width=960, height=300))
+                       x=x, y=y, series=series, frame=plots.Frame(width=960, plot_height=250))
 
 
 def zoom_links(t_first: float, t_last: float, start: float, end: float) -> list[dict[str, Any]]:
@@ -296,7 +296,9 @@ def session_page(db: DbSession, patient: Patient, session: Session, *, start: fl
         return ctx
     first = data.first_done_session(db, patient)
     is_first = first is None or first.id == session.id
-    this_cycles = data.gait_cycles(db, session)
+    rows = data.strides(db, session)
+    excluded = data.exclusions(rows)
+    this_cycles = data.gait_cycles(db, session, rows, excluded)
     first_cycles = data.gait_cycles(db, first) if first is not None and not is_first else {}
     first_when = words.local_date(first.started_at, tz) if first is not None else ""
     for leg in sorted(set(this_cycles) | set(first_cycles)):
@@ -304,34 +306,33 @@ def session_page(db: DbSession, patient: Patient, session: Session, *, start: fl
                                                             first_cycles.get(leg), first_when, is_first),
                               "n": this_cycles[leg].n_strides if leg in this_cycles else 0})
     ctx["is_first"] = is_first
-    whole = data.knee_angle(db, session, max_points=10)
-    if whole:
-        t_first = min(t.t_first_s for t in whole)
-        t_last = max(t.t_last_s for t in whole)
+    traces = data.knee_angle(db, session, start_s=start, end_s=end)
+    if traces and max(t.n_total for t in traces) < 2:  # a window outside the recording: show all of it
+        start = end = None
+        traces = data.knee_angle(db, session)
+    if traces:
+        t_first = min(t.t_first_s for t in traces)
+        t_last = max(t.t_last_s for t in traces)
         a = t_first if start is None else max(t_first, start)
         b = t_last if end is None else min(t_last, end)
-        if b - a < 0.5:
+        if b <= a:
             a, b = t_first, t_last
-        traces = data.knee_angle(db, session, start_s=a, end_s=b)
+            traces = data.knee_angle(db, session)
         ctx["trace"] = {"svg": trace_chart(traces, patient, a, b), "links": zoom_links(t_first, t_last, a, b),
                         "start": round(a, 2), "end": round(b, 2), "t_first": round(t_first, 2),
                         "t_last": round(t_last, 2)}
-    rows = data.strides(db, session)
     ctx["n_strides"] = len(rows)
-    ctx["n_included"] = 0
-    shown = rows if all_strides else rows[:STRIDES_SHOWN]
-    for s in rows:
-        excl = data.exclusions(s)
-        ctx["n_included"] += not excl
-        if len(ctx["strides"]) < len(shown):
-            ctx["strides"].append({
-                "leg": s.leg, "index": s.index, "t": s.t_start_s, "clock": words.local_time(s.started_at, tz,
-                                                                                            with_date=False),
-                "duration": s.duration_s, "peak": s.peak_swing_flexion_deg, "min": s.min_flexion_deg,
-                "rom": s.rom_deg, "stance": s.stance_pct, "estimator": s.estimator, "quality": s.quality,
-                "reasons": [words.reason(r) for r in (s.quality_reasons or [])],
-                "excluded": [words.exclusion(e) for e in excl],
-                "zoom": {"start": round(max(0.0, s.t_start_s - 1.0), 2), "end": round(s.t_end_s + 1.0, 2)}})
+    ctx["n_included"] = sum(1 for why in excluded if not why)
+    shown = len(rows) if all_strides else STRIDES_SHOWN
+    for s, excl in list(zip(rows, excluded, strict=True))[:shown]:
+        ctx["strides"].append({
+            "leg": s.leg, "index": s.index, "t": s.t_start_s,
+            "clock": words.local_time(s.started_at, tz, with_date=False),
+            "duration": s.duration_s, "peak": s.peak_swing_flexion_deg, "min": s.min_flexion_deg,
+            "rom": s.rom_deg, "stance": s.stance_pct, "estimator": s.estimator, "quality": s.quality,
+            "reasons": [words.reason(r) for r in (s.quality_reasons or [])],
+            "excluded": [words.exclusion(e) for e in excl],
+            "zoom": {"start": round(max(0.0, s.t_start_s - 1.0), 2), "end": round(s.t_end_s + 1.0, 2)}})
     ctx["all_strides"] = all_strides or len(rows) <= STRIDES_SHOWN
     return ctx
 

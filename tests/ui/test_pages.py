@@ -11,7 +11,7 @@ import pytest
 
 from tests.ui.conftest import REPO, SCREENSHOTS, Seeded, copy_screenshot
 
-pytestmark = pytest.mark.browser
+pytestmark = [pytest.mark.browser, pytest.mark.xdist_group("ui-browser")]
 
 
 @contextmanager
