@@ -78,18 +78,23 @@ def list_patients(db: DbSession, principal: Principal, *, search: str = "", offs
     return PatientPage(list(rows), int(total), offset, limit)
 
 
-def latest_values(db: DbSession, patient: Patient) -> dict[str, dict[str, dict[str, Any]]]:
-    """{leg: {metric: {mean, at}}} of the most recent session with included strides, per leg and metric.
-    Query lives here (no service has "latest value" yet); it walks the trend summary index backwards."""
-    out: dict[str, dict[str, dict[str, Any]]] = {}
+def latest_values(db: DbSession, patient_ids: list[str]) -> dict[str, dict[str, dict[str, dict[str, Any]]]]:
+    """{patient: {leg: {metric: {mean, at}}}}: the mean of the most recent session with included strides, per
+    patient, leg and metric, in one query for a page of patients. Query lives here (no service has "latest value"
+    yet); it reads the trend summaries along their (patient, metric, leg, time) index."""
+    if not patient_ids:
+        return {}
     m = TrendMetricValues
-    for leg in ("left", "right"):
-        for name in OVERVIEW_METRICS:
-            row = db.execute(select(m.mean, m.started_at).where(
-                m.patient_id == patient.id, m.metric == name, m.leg == leg, m.n_included > 0)
-                .order_by(m.started_at.desc()).limit(1)).first()
-            if row is not None and row.mean is not None:
-                out.setdefault(leg, {})[name] = {"mean": float(row.mean), "at": as_utc(row.started_at)}
+    last = (select(m.patient_id, m.metric, m.leg, func.max(m.started_at).label("t"))
+            .where(m.patient_id.in_(patient_ids), m.metric.in_(OVERVIEW_METRICS), m.n_included > 0)
+            .group_by(m.patient_id, m.metric, m.leg).subquery())
+    rows = db.execute(select(m.patient_id, m.leg, m.metric, m.mean, m.started_at).join(
+        last, (last.c.patient_id == m.patient_id) & (last.c.metric == m.metric) & (last.c.leg == m.leg)
+        & (last.c.t == m.started_at)).where(m.n_included > 0)).all()
+    out: dict[str, dict[str, dict[str, dict[str, Any]]]] = {}
+    for pid, leg, metric, mean, at in rows:
+        if mean is not None:
+            out.setdefault(pid, {}).setdefault(leg, {})[metric] = {"mean": float(mean), "at": as_utc(at)}
     return out
 
 

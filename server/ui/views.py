@@ -35,10 +35,11 @@ def leg_name(patient: Patient, leg: str) -> str:
 def patients_page(db: DbSession, principal: Principal, *, search: str, page: int, per_page: int = 25) -> dict:
     listing = data.list_patients(db, principal, search=search, offset=(page - 1) * per_page, limit=per_page)
     rows = []
+    latest_all = data.latest_values(db, [p.id for p in listing.items])
     for p in listing.items:
         tz = zone(p.timezone)
         comp = data.completeness(db, p, days=30)
-        latest = data.latest_values(db, p)
+        latest = latest_all.get(p.id, {})
         legs = []
         for leg in ("left", "right"):
             if leg in latest:
@@ -125,7 +126,7 @@ def _trend_sentence(patient: Patient, metric: str, leg: str, tr: dict[str, Any])
 
 def _slope_text(metric: str, t: dict[str, Any]) -> str:
     u = words.unit(metric)
-    nd = 0 if metric == "strides_per_day" else 2
+    nd = 0 if metric == "strides_per_day" else 1
     s = f"{t['slope_per_week']:+.{nd}f}{u} per week"
     if t["ci95"][0] is not None:
         s += f" (95 % CI {t['ci95'][0]:+.{nd}f} to {t['ci95'][1]:+.{nd}f})"
@@ -147,8 +148,9 @@ def _leg_summary(patient: Patient, metric: str, tr: dict[str, Any]) -> dict[str,
             "reasons": "; ".join(ch["reasons"] or [])}
 
 
-def symmetry_chart(patient: Patient, sym: dict[str, dict[str, Any]], first: date, last: date) -> str:
-    x = plots.date_axis(f"Local week ({patient.timezone})", first, last)
+def symmetry_chart(patient: Patient, sym: dict[str, dict[str, Any]], first: date, last: date, bucket: str) -> str:
+    period = "day" if bucket == "day" else "week"
+    x = plots.date_axis(f"Local {period} ({patient.timezone})", first, last)
     series, ys = [], [0.0]
     for metric, color, dash in (("peak_swing_flexion_deg", AFFECTED, None), ("rom_deg", OTHER, "6 4")):
         rows = sym[metric]["buckets"]
@@ -160,8 +162,8 @@ def symmetry_chart(patient: Patient, sym: dict[str, dict[str, Any]], first: date
     other = sym["peak_swing_flexion_deg"]["other_leg"]
     y = plots.numeric_axis("symmetry index (%)", ys)
     hb = [HBand("within \u00b110 % (near symmetric)", -10.0, 10.0)]
-    return plots.chart(title=f"Symmetry: {ref} leg against {other} leg, per week",
-                       desc=f"Symmetry index per week; 0 % is symmetric, negative means the {ref} leg reaches less",
+    return plots.chart(title=f"Symmetry: {ref} leg against {other} leg, per {period}",
+                       desc=f"Symmetry index per {period}; 0 % is symmetric, negative means the {ref} leg reaches less",
                        x=x, y=y, series=series, hbands=hb,
                        subtitle=f"0 % = both legs equal; below 0 = the {ref} leg reaches less than the {other}.")
 
@@ -187,11 +189,12 @@ def patient_page(db: DbSession, patient: Patient, *, bucket: str | None, session
                            "legs": [_leg_summary(patient, metric, per_leg[leg])
                                     for leg in (ref, "left" if ref == "right" else "right") if leg in per_leg]})
         if len(legs) == 2:
-            sym = {m: data.symmetry(db, patient, m, "week") for m in ("peak_swing_flexion_deg", "rom_deg")}
+            # The page's period: per day needs no pooled value arrays, which keeps a year of history fast.
+            sym = {m: data.symmetry(db, patient, m, bucket) for m in ("peak_swing_flexion_deg", "rom_deg")}
             last_si = next((b for b in reversed(sym["peak_swing_flexion_deg"]["buckets"])
                             if b["symmetry_index_pct"] is not None), None)
-            summaries.append({"svg": symmetry_chart(patient, sym, first_day - timedelta(days=first_day.weekday()),
-                                                    today),
+            sym_first = first_day - timedelta(days=first_day.weekday()) if bucket == "week" else first_day
+            summaries.append({"svg": symmetry_chart(patient, sym, sym_first, today, bucket),
                               "latest": last_si})
     days = [(date.fromisoformat(d["date"]), d["n_strides"], d["n_sessions"]) for d in comp["per_day"]]
     calendar = plots.calendar_svg(days, title=f"Days with data, last {CALENDAR_DAYS // 7} weeks "

@@ -114,8 +114,9 @@ def flag(f: dict[str, Any], tz: ZoneInfo) -> str:
     if kind == "stalled":
         delta = f.get("delta")
         change = f"change {delta:+.1f}\u00b0".replace("-", "\u2212") if delta is not None else "no comparable data"
-        return (f"{name} of the {f['leg']} leg has not improved meaningfully over {f['weeks']} weeks "
-                f"({change}; meaningful means more than {f['mdc']:g}\u00b0).")
+        return (f"{name} of the {f['leg']} leg has not improved measurably over {f['weeks']} weeks "
+                f"({change}; an improvement counts beyond {f['mdc']:g}\u00b0 with clearly separated two-week "
+                f"windows).")
     if kind == "sensor_trouble":
         parts = []
         if f.get("fallback_rate") is not None and f["fallback_rate"] > 0:
