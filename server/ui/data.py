@@ -212,6 +212,7 @@ class Cycle:
     n_strides: int
     mean_deg: list[float | None]
     sd_deg: list[float | None]
+    toe_off_pct: float | None  # mean stance phase of these strides: where swing starts
 
 
 def gait_cycles(db: DbSession, session: Session, rows: list[Any] | None = None,
@@ -238,7 +239,7 @@ def gait_cycles(db: DbSession, session: Session, rows: list[Any] | None = None,
         if tr is None:
             continue
         t, angle, _ = decode_trace(tr.t0_s, tr.fs_hz, tr.n, tr.angle_deg, tr.estimator_codes, tr.estimator_names)
-        curves = []
+        curves, stance = [], []
         for s in leg_rows:
             i0 = int(np.searchsorted(t, s.t_start_s - 0.5 / tr.fs_hz))
             i1 = int(np.searchsorted(t, s.t_end_s + 0.5 / tr.fs_hz))
@@ -246,12 +247,15 @@ def gait_cycles(db: DbSession, session: Session, rows: list[Any] | None = None,
             if seg_t.size < 10 or not np.all(np.isfinite(seg_a)):
                 continue
             curves.append(np.interp(s.t_start_s + pct * (s.t_end_s - s.t_start_s), seg_t, seg_a))
+            stance.append(s.stance_pct)
         if not curves:
             continue
         arr = np.vstack(curves)
         mean = arr.mean(axis=0)
         sd = arr.std(axis=0, ddof=1) if len(curves) > 1 else np.full(CYCLE_POINTS, np.nan)
-        out[leg] = Cycle(leg, len(curves), [_num(v) for v in mean], [_num(v) for v in sd])
+        toe_off = float(np.nanmean(np.asarray(stance, dtype=np.float64))) if stance else None
+        out[leg] = Cycle(leg, len(curves), [_num(v) for v in mean], [_num(v) for v in sd],
+                         toe_off if toe_off is not None and math.isfinite(toe_off) else None)
     return out
 
 

@@ -184,8 +184,10 @@ def _clip(v: float, lo: float, hi: float) -> float:
 
 
 def chart(*, title: str, desc: str, x: Axis, y: Axis, series: Sequence[Series] = (), bands: Sequence[Band] = (),
-          hbands: Sequence[HBand] = (), frame: Frame | None = None, subtitle: str = "") -> str:
-    """One line chart as an SVG string: title, legend, grid, axis ticks and labels, bands, lines."""
+          hbands: Sequence[HBand] = (), frame: Frame | None = None, subtitle: str = "",
+          vlines: Sequence[tuple[float, str, str]] = ()) -> str:
+    """One line chart as an SVG string: title, legend, grid, axis ticks and labels, bands, lines, and labelled
+    vertical markers ``vlines`` = (x, label, colour)."""
     fr = frame or Frame()
     fr.top = 50 if subtitle else 32
     items = ([(s.name, s.color, s.dash, "line") for s in series] + [(b.name, b.color, None, "box") for b in bands]
@@ -242,6 +244,12 @@ def chart(*, title: str, desc: str, x: Axis, y: Axis, series: Sequence[Series] =
                 if v is not None and math.isfinite(v):
                     out.append(f'<circle cx="{_sx(fr, x, s.x[i]):.1f}" cy="{_sy(fr, y, v):.1f}" r="2.6" '
                                f'fill="{s.color}"/>')
+    for vx, label, color in vlines:
+        if x.lo <= vx <= x.hi:
+            px = _sx(fr, x, vx)
+            out.append(f'<line x1="{px:.1f}" x2="{px:.1f}" y1="{y0}" y2="{y1:.1f}" stroke="{color}" '
+                       f'stroke-width="1.5" stroke-dasharray="2 3"/><text x="{px + 4:.1f}" y="{y0 + 14}" '
+                       f'class="lg" fill="{color}">{escape(label)}</text>')
     out.append("</g>")
     out.extend(fr.extra)
     out.append(_legend(fr, rows, y1 + fr.axis + 14))

@@ -242,10 +242,12 @@ def cycle_chart(patient: Patient, leg: str, this: data.Cycle | None, first: data
     x = Axis("gait cycle (% from heel strike to next heel strike)", 0, 100,
              [(float(v), f"{v}") for v in range(0, 101, 10)])
     y = plots.numeric_axis("knee flexion (\u00b0)", ys, include=[0])
+    marks = [(this.toe_off_pct, f"toe-off {this.toe_off_pct:.0f} %", "#333333")] \
+        if this is not None and this.toe_off_pct is not None else []
     return plots.chart(title=f"Knee angle over the gait cycle: {leg_name(patient, leg)}",
                        desc=f"Mean and standard deviation of knee flexion over the gait cycle, {leg} leg",
-                       x=x, y=y, series=series, bands=bands,
-                       subtitle="Stance first (about 0\u201360 %), then swing with the flexion peak.")
+                       x=x, y=y, series=series, bands=bands, vlines=marks,
+                       subtitle="Stance from heel strike to toe-off, then swing with the flexion peak.")
 
 
 def trace_chart(traces: list[data.Trace], patient: Patient, start: float, end: float) -> str:
