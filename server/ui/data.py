@@ -9,6 +9,8 @@ patients/sessions/results services.
 from __future__ import annotations
 
 import math
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from datetime import UTC, date, datetime, timedelta
 from typing import Any
@@ -27,7 +29,7 @@ from server.models import KneeAngleTrace, Patient, Session, Stride
 from server.trends import exports, service
 from server.trends.attention import AttentionParams, attention_list
 from server.trends.metrics import METRICS, MIN_QUALITY
-from server.trends.models import TrendMetricValues
+from server.trends.models import TrendMetricValues, TrendSessionLeg
 from server.trends.timeutil import Bucket, as_utc, zone
 
 # The metrics of the patient page, in the order a physiotherapist reads them.
@@ -109,13 +111,50 @@ def attention(db: DbSession, principal: Principal, limit: int = 200) -> dict[str
                           params=AttentionParams(), limit=limit)
 
 
+_cache: OrderedDict[tuple, dict[str, Any]] = OrderedDict()
+_cache_lock = threading.Lock()
+CACHE_SIZE = 128  # trend/symmetry answers (~0.1-0.3 MB each for a year of daily buckets)
+
+
+def _summaries_version(db: DbSession, patient: Patient) -> tuple:
+    """What the trend answers of a patient depend on: the summary rows (every processing run rewrites its legs
+    with a new ``refreshed_at``; a deleted session removes them), the time zone and the affected leg."""
+    n, last = db.execute(select(func.count(), func.max(TrendSessionLeg.refreshed_at))
+                         .where(TrendSessionLeg.patient_id == patient.id)).one()
+    return patient.id, patient.timezone, patient.affected_leg, n, str(last)
+
+
+def _cached(key: tuple, compute: Any) -> dict[str, Any]:
+    with _cache_lock:
+        if key in _cache:
+            _cache.move_to_end(key)
+            return _cache[key]
+    value = compute()
+    with _cache_lock:
+        _cache[key] = value
+        while len(_cache) > CACHE_SIZE:
+            _cache.popitem(last=False)
+    return value
+
+
+def clear_cache() -> None:
+    with _cache_lock:
+        _cache.clear()
+
+
 def trends(db: DbSession, patient: Patient, metric: str, leg: str, bucket: Bucket) -> dict[str, Any]:
-    """One metric of one leg over the patient's whole history (the API's trends view)."""
-    return service.patient_trends(db, patient, metric_name=metric, leg=leg, bucket=bucket, start=None, end=None)
+    """One metric of one leg over the patient's whole history (the API's trends view), kept in memory until the
+    patient's trend summaries change (a processed, reprocessed or deleted session)."""
+    key = ("trends", *_summaries_version(db, patient), metric, leg, bucket)
+    return _cached(key, lambda: service.patient_trends(db, patient, metric_name=metric, leg=leg, bucket=bucket,
+                                                       start=None, end=None))
 
 
 def symmetry(db: DbSession, patient: Patient, metric: str, bucket: Bucket) -> dict[str, Any]:
-    return service.patient_symmetry(db, patient, metric_name=metric, bucket=bucket, start=None, end=None)
+    """Affected against other leg per bucket (the API's symmetry view), cached like :func:`trends`."""
+    key = ("symmetry", *_summaries_version(db, patient), metric, bucket)
+    return _cached(key, lambda: service.patient_symmetry(db, patient, metric_name=metric, bucket=bucket,
+                                                         start=None, end=None))
 
 
 def legs_with_data(db: DbSession, patient: Patient) -> list[str]:

@@ -148,21 +148,19 @@ def _leg_summary(patient: Patient, metric: str, tr: dict[str, Any]) -> dict[str,
             "reasons": "; ".join(ch["reasons"] or [])}
 
 
-def symmetry_chart(patient: Patient, sym: dict[str, dict[str, Any]], first: date, last: date, bucket: str) -> str:
+def symmetry_chart(patient: Patient, sym: dict[str, Any], first: date, last: date, bucket: str) -> str:
+    """The symmetry index of peak swing flexion per bucket, with the near-symmetric band."""
     period = "day" if bucket == "day" else "week"
     x = plots.date_axis(f"Local {period} ({patient.timezone})", first, last)
-    series, ys = [], [0.0]
-    for metric, color, dash in (("peak_swing_flexion_deg", AFFECTED, None), ("rom_deg", OTHER, "6 4")):
-        rows = sym[metric]["buckets"]
-        xs = [float((date.fromisoformat(b["start"][:10]) - first).days) for b in rows]
-        si = [b["symmetry_index_pct"] for b in rows]
-        ys += si
-        series.append(Series(words.METRIC_SHORT[metric], xs, si, color, dash, 2.0, markers=len(xs) <= 60))
-    ref = sym["peak_swing_flexion_deg"]["reference_leg"]
-    other = sym["peak_swing_flexion_deg"]["other_leg"]
-    y = plots.numeric_axis("symmetry index (%)", ys)
+    rows = sym["buckets"]
+    xs = [float((date.fromisoformat(b["start"][:10]) - first).days) for b in rows]
+    si = [b["symmetry_index_pct"] for b in rows]
+    ref, other = sym["reference_leg"], sym["other_leg"]
+    series = [Series(f"{words.METRIC_SHORT['peak_swing_flexion_deg']}: symmetry index", xs, si, AFFECTED, None, 2.0,
+                     markers=len(xs) <= 60)]
+    y = plots.numeric_axis("symmetry index (%)", [0.0, 10.0, -10.0, *si])
     hb = [HBand("within \u00b110 % (near symmetric)", -10.0, 10.0)]
-    return plots.chart(title=f"Symmetry: {ref} leg against {other} leg, per {period}",
+    return plots.chart(title=f"Symmetry of peak flexion: {ref} leg against {other} leg, per {period}",
                        desc=f"Symmetry index per {period}; 0 % is symmetric, negative means the {ref} leg reaches less",
                        x=x, y=y, series=series, hbands=hb,
                        subtitle=f"0 % = both legs equal; below 0 = the {ref} leg reaches less than the {other}.")
@@ -190,8 +188,10 @@ def patient_page(db: DbSession, patient: Patient, *, bucket: str | None, session
                                     for leg in (ref, "left" if ref == "right" else "right") if leg in per_leg]})
         if len(legs) == 2:
             # The page's period: per day needs no pooled value arrays, which keeps a year of history fast.
-            sym = {m: data.symmetry(db, patient, m, bucket) for m in ("peak_swing_flexion_deg", "rom_deg")}
-            last_si = next((b for b in reversed(sym["peak_swing_flexion_deg"]["buckets"])
+            # Peak flexion only: range of motion shows both legs in its own chart, and each symmetry answer
+            # recomputes both legs' buckets.
+            sym = data.symmetry(db, patient, "peak_swing_flexion_deg", bucket)
+            last_si = next((b for b in reversed(sym["buckets"])
                             if b["symmetry_index_pct"] is not None), None)
             sym_first = first_day - timedelta(days=first_day.weekday()) if bucket == "week" else first_day
             summaries.append({"svg": symmetry_chart(patient, sym, sym_first, today, bucket),

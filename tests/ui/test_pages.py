@@ -134,6 +134,12 @@ def test_patient_page_tablet_width(browser: Any, seeded: Seeded) -> None:
         page.goto(f"/ui/patients/{seeded.patient_a}")
         overflow = page.evaluate("document.documentElement.scrollWidth - document.documentElement.clientWidth")
         assert overflow <= 0, f"page is {overflow} px wider than a 768 px tablet"
+        # keyboard: the first Tab lands on "Skip to content", a visible focus ring marks it
+        page.keyboard.press("Tab")
+        assert page.evaluate("document.activeElement.textContent") == "Skip to content"
+        assert page.evaluate("getComputedStyle(document.activeElement).outlineStyle") == "solid"
+        page.keyboard.press("Enter")
+        assert page.evaluate("document.activeElement.id") == "main"
         shot(page, "patient-tablet.png")
 
 

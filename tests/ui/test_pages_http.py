@@ -111,3 +111,20 @@ def test_device_token_revocation_and_csrf(api: Api) -> None:
     token_id = c.get("/v1/me", headers={"Authorization": f"Bearer {clin_a}"}).json()["token_id"]
     assert c.delete(f"/v1/tokens/{token_id}", headers={"Authorization": f"Bearer {api.admin}"}).status_code == 204
     assert c.get("/ui/patients", follow_redirects=False).status_code == 303
+
+
+def test_cached_trends_follow_new_sessions(api: Api) -> None:
+    from server.models import Patient
+    from server.ui import data
+
+    _, _, pa, _ = seeded(api)
+    with api.client.app.state.sessionmaker() as db:  # type: ignore[attr-defined]
+        patient = db.get(Patient, pa["id"])
+        before = data.trends(db, patient, "peak_swing_flexion_deg", "left", "day")
+        assert data.trends(db, patient, "peak_swing_flexion_deg", "left", "day") is before  # served from memory
+        add_session(db, pa["id"], NOW - timedelta(hours=1), {"left": {"n": 30, "peak_swing_flexion_deg": 80.0}})
+        db.commit()
+        after = data.trends(db, patient, "peak_swing_flexion_deg", "left", "day")
+        assert after["buckets"][-1]["mean"] != before["buckets"][-1]["mean"] or \
+            len(after["buckets"]) == len(before["buckets"]) + 1
+        assert after["trend"]["n"] == before["trend"]["n"] + 1
