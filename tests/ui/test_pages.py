@@ -123,7 +123,10 @@ def test_patient_page_plots(browser: Any, seeded: Seeded) -> None:
         assert "Europe/Berlin" in text
         assert page.locator("section", has_text="Sessions (4)").locator("tbody tr").count() == 4
         shot(page, "patient.png")
-        copy_screenshot("patient.png", REPO / "docs" / "ui-patient.png")
+        page.locator("figure").first.screenshot(path=str(SCREENSHOTS / "patient-trend.png"))
+        page.screenshot(path=str(SCREENSHOTS / "patient-top.png"), full_page=True,
+                        clip={"x": 0, "y": 0, "width": 1280, "height": 1480})
+        copy_screenshot("patient-top.png", REPO / "docs" / "ui-patient.png")
         page.click("text=Per week")
         page.wait_for_load_state()
         assert "bucket=week" in page.url and len(chart_stats(page)) == len(charts)
@@ -162,6 +165,7 @@ def test_session_page_and_compare(browser: Any, seeded: Seeded) -> None:
         n_rows = page.locator("table.strides tbody tr").count()
         assert n_rows >= 60
         shot(page, "session.png")
+        page.locator("figure").first.screenshot(path=str(SCREENSHOTS / "session-cycle.png"))
         page.click("text=Zoom in \u00d72")
         page.wait_for_load_state()
         assert "start=" in page.url
