@@ -160,7 +160,7 @@ def symmetry_chart(patient: Patient, sym: dict[str, Any], first: date, last: dat
                      markers=len(xs) <= 60)]
     y = plots.numeric_axis("symmetry index (%)", [0.0, 10.0, -10.0, *si])
     hb = [HBand("within \u00b110 % (near symmetric)", -10.0, 10.0)]
-    return plots.chart(title=f"Symmetry of peak flexion: {ref} leg against {other} leg, per {period}",
+    return plots.chart(title=f"Symmetry of peak flexion ({ref} vs {other} leg), per {period}",
                        desc=f"Symmetry index per {period}; 0 % is symmetric, negative means the {ref} leg reaches less",
                        x=x, y=y, series=series, hbands=hb,
                        subtitle=f"0 % = both legs equal; below 0 = the {ref} leg reaches less than the {other}.")
