@@ -128,3 +128,28 @@ def test_cached_trends_follow_new_sessions(api: Api) -> None:
         assert after["buckets"][-1]["mean"] != before["buckets"][-1]["mean"] or \
             len(after["buckets"]) == len(before["buckets"]) + 1
         assert after["trend"]["n"] == before["trend"]["n"] + 1
+
+
+def test_crafted_cookies_of_device_tokens_and_expired_sessions_get_no_page(api: Api) -> None:
+    import time
+
+    from server.ui import signin
+
+    clin_a, _, pa, _ = seeded(api)
+    device = api.device(clin_a, pa["id"])
+    c = api.client
+
+    def cookie(token: str, issued: int) -> str:
+        nonce = "n0nce"
+        return f"{token}.{nonce}.{issued}.{signin._mac(token, f'session|{nonce}|{issued}')}"
+
+    c.cookies.clear()
+    # whoever holds a device token can compute a well-formed cookie for it: still no pages
+    c.cookies.set(signin.COOKIE, cookie(device, int(time.time())), path="/ui")
+    r = c.get("/ui/patients", follow_redirects=False)
+    assert r.status_code == 403 and "device token" in r.text
+    assert c.get(f"/ui/patients/{pa['id']}", follow_redirects=False).status_code == 403
+    c.cookies.set(signin.COOKIE, cookie(clin_a, int(time.time()) - signin.MAX_AGE_S - 60), path="/ui")
+    assert c.get("/ui/patients", follow_redirects=False).headers["location"] == "/ui/login"
+    c.cookies.set(signin.COOKIE, cookie(clin_a, int(time.time())), path="/ui")
+    assert c.get("/ui/patients", follow_redirects=False).status_code == 200
