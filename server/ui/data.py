@@ -12,7 +12,7 @@ import math
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
-from datetime import UTC, date, datetime, timedelta
+from datetime import UTC, date, datetime
 from typing import Any
 
 import numpy as np
@@ -169,6 +169,19 @@ def list_sessions(db: DbSession, patient: Patient, *, offset: int = 0, limit: in
     return list(rows), int(total)
 
 
+def session_peaks(db: DbSession, session_ids: list[str]) -> dict[str, dict[str, tuple[int, float | None]]]:
+    """{session: {leg: (trustworthy strides, median peak swing flexion of them)}} from the trend summaries (so a
+    stride that does not count in the trends does not count here either). Query lives here."""
+    m = TrendMetricValues
+    out: dict[str, dict[str, tuple[int, float | None]]] = {}
+    if not session_ids:
+        return out
+    for sid, leg, n, median in db.execute(select(m.session_id, m.leg, m.n_included, m.median).where(
+            m.session_id.in_(session_ids), m.metric == "peak_swing_flexion_deg")):
+        out.setdefault(sid, {})[leg] = (int(n), None if median is None else float(median))
+    return out
+
+
 def first_done_session(db: DbSession, patient: Patient) -> Session | None:
     """The patient's earliest processed session (the reference of the gait-cycle plot). Query lives here."""
     return db.scalar(select(Session).where(Session.patient_id == patient.id, Session.status == "done")
@@ -317,7 +330,6 @@ def fhir_bundle(db: DbSession, patient: Patient) -> dict[str, Any]:
     return exports.fhir_bundle(db, patient, None, None)
 
 
-def local_day_range(patient: Patient, days: int) -> tuple[date, date]:
-    """The last ``days`` local days of the patient, today included."""
-    today = datetime.now(UTC).astimezone(zone(patient.timezone)).date()
-    return today - timedelta(days=days - 1), today
+def local_today(patient: Patient) -> date:
+    """Today in the patient's time zone."""
+    return datetime.now(UTC).astimezone(zone(patient.timezone)).date()

@@ -175,7 +175,7 @@ def patient_page(db: DbSession, patient: Patient, *, bucket: str | None, session
                                               limit=SESSIONS_PER_PAGE)
     first_session = data.first_done_session(db, patient)
     first_day = (as_utc(first_session.started_at).astimezone(tz).date() if first_session else None)
-    today = data.local_day_range(patient, 1)[1]
+    today = data.local_today(patient)
     span = (today - first_day).days if first_day else 0
     bucket = bucket if bucket in ("day", "week") else ("day" if span <= 90 else "week")
     charts, summaries = [], []
@@ -200,21 +200,19 @@ def patient_page(db: DbSession, patient: Patient, *, bucket: str | None, session
     calendar = plots.calendar_svg(days, title=f"Days with data, last {CALENDAR_DAYS // 7} weeks "
                                               f"(local days, {tz.key})")
     rows = []
+    peaks = data.session_peaks(db, [s.id for s in sessions])
     for s in sessions:
-        legs_sum = (s.summary or {}).get("legs", {})
         rows.append({"id": s.id, "when": words.local_time(s.started_at, tz), "activity": s.activity,
                      "status": words.STATUS.get(s.status, s.status), "failed": s.status == "failed",
-                     "legs": [{"leg": leg, "n": v.get("n_strides"),
-                               "peak": words.value(v.get("peak_swing_flexion_deg_median"), "peak_swing_flexion_deg")}
-                              for leg, v in sorted(legs_sum.items())]})
+                     "legs": [{"leg": leg, "n": n, "peak": words.value(median, "peak_swing_flexion_deg")}
+                              for leg, (n, median) in sorted(peaks.get(s.id, {}).items())]})
     comp30 = data.completeness(db, patient, days=30)
     return {"patient": patient, "tz": tz.key, "legs": legs, "ref": ref, "bucket": bucket, "charts": charts,
             "symmetry": summaries, "calendar": calendar, "sessions": rows, "n_sessions": n_sessions,
             "session_page": session_page, "n_session_pages": max(1, math.ceil(n_sessions / SESSIONS_PER_PAGE)),
             "days_with_data_30": comp30["days_with_data"], "strides_30": comp30["strides_total"],
             "walking_min_30": comp30["walking_min_total"],
-            "last_session": words.local_time(datetime_or_none(comp["last_session_at"]), tz),
-            "leg_label": lambda leg: leg_name(patient, leg)}
+            "last_session": words.local_time(datetime_or_none(comp["last_session_at"]), tz)}
 
 
 def datetime_or_none(s: str | None) -> datetime | None:
