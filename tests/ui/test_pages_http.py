@@ -153,3 +153,19 @@ def test_crafted_cookies_of_device_tokens_and_expired_sessions_get_no_page(api: 
     assert c.get("/ui/patients", follow_redirects=False).headers["location"] == "/ui/login"
     c.cookies.set(signin.COOKIE, cookie(clin_a, int(time.time())), path="/ui")
     assert c.get("/ui/patients", follow_redirects=False).status_code == 200
+
+
+def test_pages_of_a_new_patient_and_an_unfinished_session(api: Api) -> None:
+    _, clin = api.clinician()
+    p = api.patient(clin, external_id="NEW-1")
+    sess = api.session(clin, p["id"])  # receiving, nothing uploaded
+    sign_in(api, clin)
+    page = api.client.get(f"/ui/patients/{p['id']}")
+    assert page.status_code == 200 and "No processed session with strides yet" in page.text
+    assert "Receiving data from the phone" in page.text
+    s = api.client.get(f"/ui/sessions/{sess['id']}")
+    assert s.status_code == 200 and "Results\nappear here once the session is processed" in s.text
+    r = api.client.get(f"/ui/sessions/{sess['id']}/compare")
+    assert r.status_code == 409 and "still receiving" in r.text
+    listing = api.client.get("/ui/patients").text
+    assert "NEW-1" in listing and "No session since enrolment" not in listing  # enrolled just now
