@@ -110,12 +110,12 @@ def flag(f: dict[str, Any], tz: ZoneInfo) -> str:
         b, la = f.get("baseline") or {}, f.get("latest") or {}
         return (f"{name} of the {f['leg']} leg fell by {abs(f['delta']):.1f}\u00b0 over the last two weeks "
                 f"(from {b.get('mean', 0):.1f}\u00b0 to {la.get('mean', 0):.1f}\u00b0); more than the "
-                f"{f['mdc']:g}\u00b0 measurement error.")
+                f"{f.get('mdc') or 0:g}\u00b0 measurement error.")
     if kind == "stalled":
         delta = f.get("delta")
         change = f"change {delta:+.1f}\u00b0".replace("-", "\u2212") if delta is not None else "no comparable data"
         return (f"{name} of the {f['leg']} leg has not improved measurably over {f['weeks']} weeks "
-                f"({change}; an improvement counts beyond {f['mdc']:g}\u00b0 with clearly separated two-week "
+                f"({change}; an improvement counts beyond {f.get('mdc') or 0:g}\u00b0 with clearly separated two-week "
                 f"windows).")
     if kind == "sensor_trouble":
         parts = []
