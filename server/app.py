@@ -7,6 +7,8 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from fastapi.responses import RedirectResponse
+from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from starlette.middleware.gzip import GZipMiddleware
 
@@ -22,6 +24,7 @@ from server.patients import routes as patient_routes
 from server.results import routes as result_routes
 from server.sessions import routes as session_routes
 from server.trends import routes as trend_routes
+from server.ui import routes as ui_routes
 
 log = logging.getLogger("gaitmon.api")
 
@@ -77,4 +80,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(result_routes.router)
     # Routers of other modules are included below this line (one line each).
     app.include_router(trend_routes.router)
+    app.include_router(ui_routes.router)
+    app.mount("/ui/static", StaticFiles(directory=ui_routes.STATIC_DIR), name="ui-static")
+    app.add_api_route("/", lambda: RedirectResponse("/ui/"), include_in_schema=False)
     return app

@@ -1,0 +1,1 @@
+"""The clinician web pages under /ui/ (server-rendered HTML and SVG)."""

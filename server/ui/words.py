@@ -1,0 +1,136 @@
+"""Codes of the API in the words a physiotherapist reads on the pages (statuses, quality reasons, flags)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+from zoneinfo import ZoneInfo
+
+from server.trends.metrics import METRICS
+from server.utc import as_utc
+
+STATUS = {
+    "receiving": "Receiving data from the phone",
+    "queued": "Waiting to be processed",
+    "processing": "Being processed",
+    "done": "Processed",
+    "failed": "Processing failed",
+}
+
+# Per-stride quality reasons of pipeline.fusion (each lowers the stride's 0..1 quality score).
+REASONS = {
+    "no_absolute_reference": "no still moment to anchor the angle (thigh/shank never quiet)",
+    "few_quiet_samples": "few still moments to anchor the angle",
+    "no_go_estimate": "gyroscope-only estimate incomplete",
+    "no_zero_crossing": "no zero-velocity point to reset drift",
+    "drift": "angle drift too large",
+    "saturation": "a sensor reading hit its full-scale limit",
+    "bridged_gap": "a short data gap was bridged",
+    "go_cf_mismatch": "the two estimators disagree",
+    "cf_fallback": "complementary filter used instead of the gyroscope-only estimator",
+}
+
+ESTIMATORS = {
+    "auto": "automatic choice (what the stored results use)",
+    "go": "gyroscope-only with zero-angle updates (Allseits 2018)",
+    "cf": "complementary filter (Seel 2014 / Rhudy 2024)",
+    "kf": "linear Kalman filter (Rhudy 2024)",
+    "ekf": "extended Kalman filter (Rhudy 2024)",
+}
+
+METRIC_SHORT = {
+    "peak_swing_flexion_deg": "Peak knee flexion in swing",
+    "rom_deg": "Knee range of motion per stride",
+    "min_flexion_deg": "Minimum knee flexion in stance (extension deficit)",
+    "strides_per_day": "Trustworthy strides per day",
+}
+
+UNIT = {"deg": "\u00b0", "strides/day": " strides/day", "s": " s", "%": " %", "steps/min": " steps/min"}
+
+DIRECTION = {
+    "improved": "improved beyond measurement error",
+    "declined": "got worse beyond measurement error",
+    "changed": "changed beyond measurement error",
+    "unchanged": "no change beyond measurement error",
+    None: "not enough data to judge",
+}
+
+
+def unit(metric: str) -> str:
+    """The metric's unit as printed after a value."""
+    return UNIT.get(METRICS[metric].unit, " " + METRICS[metric].unit)
+
+
+def value(x: float | None, metric: str, nd: int = 1) -> str:
+    """A metric value with its unit, or an em dash."""
+    if x is None:
+        return "\u2014"
+    return f"{x:.{nd}f}{unit(metric)}".replace("-", "\u2212")
+
+
+def reason(code: str) -> str:
+    """A quality reason code in words."""
+    return REASONS.get(code, code.replace("_", " "))
+
+
+def exclusion(code: str) -> str:
+    """An exclusion of :func:`server.trends.exports._exclusions` in words."""
+    if code.startswith("quality<"):
+        return f"quality below {code.split('<', 1)[1]}"
+    if code.startswith("implausible:"):
+        name = code.split(":", 1)[1]
+        m = METRICS.get(name)
+        return f"implausible {m.title.lower() if m else name}"
+    return code
+
+
+def local_time(dt: datetime | None, tz: ZoneInfo, *, with_date: bool = True) -> str:
+    """A stored (UTC) time in the patient's zone, e.g. 'Tue 1 Dec 2026, 09:30'."""
+    if dt is None:
+        return "\u2014"
+    t = as_utc(dt).astimezone(tz)
+    return f"{t:%a} {t.day} {t:%b %Y}, {t:%H:%M}" if with_date else f"{t:%H:%M}"
+
+
+def local_date(dt: datetime | str | None, tz: ZoneInfo) -> str:
+    """A date in the patient's time zone, or a dash."""
+    if dt is None:
+        return "\u2014"
+    t = as_utc(datetime.fromisoformat(dt) if isinstance(dt, str) else dt).astimezone(tz)
+    return f"{t:%a} {t.day} {t:%b %Y}"
+
+
+def flag(f: dict[str, Any], tz: ZoneInfo) -> str:
+    """One attention flag (server.trends.attention) as a sentence."""
+    kind = f["kind"]
+    if kind == "silent":
+        days = f.get("days_without_data") or 0
+        if f.get("last_session_at"):
+            return f"No session for {days:.0f} days (last on {local_date(f['last_session_at'], tz)})."
+        return f"No session since enrolment {days:.0f} days ago."
+    name = METRIC_SHORT.get(f.get("metric", ""), f.get("metric", ""))
+    if kind == "declining":
+        b, la = f.get("baseline") or {}, f.get("latest") or {}
+        return (f"{name} of the {f['leg']} leg fell by {abs(f['delta']):.1f}\u00b0 over the last two weeks "
+                f"(from {b.get('mean', 0):.1f}\u00b0 to {la.get('mean', 0):.1f}\u00b0); more than the "
+                f"{f.get('mdc') or 0:g}\u00b0 measurement error.")
+    if kind == "stalled":
+        delta = f.get("delta")
+        change = f"change {delta:+.1f}\u00b0".replace("-", "\u2212") if delta is not None else "no comparable data"
+        return (f"{name} of the {f['leg']} leg has not improved measurably over {f['weeks']} weeks "
+                f"({change}; an improvement counts beyond {f.get('mdc') or 0:g}\u00b0 with clearly separated two-week "
+                f"windows).")
+    if kind == "sensor_trouble":
+        parts = []
+        if f.get("fallback_rate") is not None and f["fallback_rate"] > 0:
+            parts.append(f"{100 * f['fallback_rate']:.0f} % of strides needed the fallback estimator")
+        if f.get("gaps_per_walking_hour"):
+            parts.append(f"{f['gaps_per_walking_hour']:.1f} data gaps per walking hour")
+        if f.get("failed_sessions"):
+            parts.append(f"{f['failed_sessions']} session(s) failed to process")
+        return "Sensor trouble in the last two weeks: " + ("; ".join(parts) or f.get("reason", "")) + \
+            ". Check sensor placement and charging."
+    return str(f.get("reason", kind))
+
+
+SEVERITY = {3: "Act now", 2: "Check", 1: "Review"}
