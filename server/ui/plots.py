@@ -183,9 +183,9 @@ def _clip(v: float, lo: float, hi: float) -> float:
     return min(max(v, lo), hi)
 
 
-def chart(*, title: str, desc: str, x: Axis, y: Axis, series: Sequence[Series] = (), bands: Sequence[Band] = (),
+def chart(*, title: str, desc: str, x: Axis, y: Axis, series: Sequence[Series] = (), bands: Sequence[Band] = (),  # noqa: C901 - one optional layer per argument
           hbands: Sequence[HBand] = (), frame: Frame | None = None, subtitle: str = "",
-          vlines: Sequence[tuple[float, str, str]] = ()) -> str:  # noqa: C901 - one optional layer per argument, drawn in order
+          vlines: Sequence[tuple[float, str, str]] = ()) -> str:
     """One line chart as an SVG string: title, legend, grid, axis ticks and labels, bands, lines, and labelled
     vertical markers ``vlines`` = (x, label, colour)."""
     fr = frame or Frame()
