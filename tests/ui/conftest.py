@@ -21,7 +21,8 @@ import httpx
 import pytest
 
 from pipeline.simulate import SimConfig, simulate_session
-from server.simulate_cli import session_to_requests, upload, wait_for_result
+from gaitmon.client import Client
+from server.simulate_cli import session_to_requests, upload
 from tests.integration.conftest import REPO, free_port, gaitmon_command, server_env
 
 CHROMIUM = "/usr/bin/chromium"
@@ -62,7 +63,7 @@ def _post(c: httpx.Client, url: str, token: str, body: dict) -> dict:
 def _upload_sim(base_url: str, token: str, patient_id: str, started: datetime, pattern: str, seed: int) -> str:
     sim = simulate_session(SimConfig(pattern=pattern, seed=seed, n_strides=40))
     create, batches = session_to_requests(sim, batch_size=500, patient_id=patient_id, started_at=started)
-    with httpx.Client(base_url=base_url, timeout=60, headers={"Authorization": f"Bearer {token}"}) as c:
+    with Client(base_url, token, timeout_s=60) as c:
         return upload(c, create, batches, concurrency=2, progress=lambda _m: None)
 
 
@@ -104,9 +105,9 @@ def seeded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seeded]:
                     for d, pattern, seed in SESSIONS]
             sid_b = _upload_sim(base, tok_b, pb, at_nine - timedelta(days=2), "normal", 21)
             sid_a2 = _upload_sim(base, tok_a, pa2, at_nine - timedelta(days=9), "slow", 22)
-            with httpx.Client(base_url=base, timeout=30, headers={"Authorization": f"Bearer {admin}"}) as c:
+            with Client(base, admin) as c:
                 for sid in [*sids, sid_b, sid_a2]:
-                    assert wait_for_result(c, sid, timeout_s=180, poll_s=0.3)["status"] == "done"
+                    assert c.wait_for_processing(sid, timeout_s=180).status == "done"
             yield Seeded(base, admin, tok_a, tok_b, device, pa, pa2, pb, sids, log_path)
         finally:
             proc.terminate()
