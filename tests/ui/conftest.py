@@ -20,8 +20,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from pipeline.simulate import SimConfig, simulate_session
 from gaitmon.client import Client
+from pipeline.simulate import SimConfig, simulate_session
 from server.simulate_cli import session_to_requests, upload
 from tests.integration.conftest import REPO, free_port, gaitmon_command, server_env
 
