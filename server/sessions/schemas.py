@@ -6,9 +6,13 @@ from typing import Annotated, Any
 
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, model_validator
 
-from pipeline.prepare import GAP_FACTOR
+from pipeline.params import WALKING
 from server.enums import AccUnit, Activity, GyroUnit, Leg, Segment, SessionStatus
 from server.schema_types import FiniteFloat, OrmOut, StrictIn, UtcDatetime, Xyz
+
+# The pipeline's gap rule (a step longer than this many nominal periods is a gap), so received.gaps matches
+# summary.gaps.
+GAP_FACTOR = WALKING.prepare.gap_factor
 
 
 class SensorIn(StrictIn):
