@@ -13,6 +13,7 @@ from server import health
 from server import metadata as _metadata  # noqa: F401 - registers every table before the first query
 from server.auth import routes as auth_routes
 from server.body_limit import BodyLimitMiddleware
+from server.calibrations import routes as calibration_routes
 from server.config import Settings, get_settings
 from server.db import make_engine, make_sessionmaker
 from server.errors import install_error_handlers
@@ -73,4 +74,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(result_routes.router)
     # Routers of other modules are included below this line (one line each).
     app.include_router(trend_routes.router)
+    app.include_router(calibration_routes.router)
     return app
