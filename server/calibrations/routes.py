@@ -23,6 +23,7 @@ from server.calibrations.schemas import (
     CalibrationPage,
 )
 from server.calibrations.service import affected_sessions
+from server.db import storable_key
 from server.deps import Caller, Db
 from server.enums import Leg, Role
 from server.errors import not_found
@@ -106,7 +107,7 @@ def delete_calibration(patient_id: str, calibration_id: str, db: Db, caller: Cal
 
 
 def _calibration_of(db: Db, patient_id: str, calibration_id: str) -> KneeCalibration:
-    cal = db.get(KneeCalibration, calibration_id)
+    cal = db.get(KneeCalibration, calibration_id) if storable_key(calibration_id) else None
     if cal is None or cal.patient_id != patient_id:
         raise not_found("Calibration")
     return cal
