@@ -16,6 +16,7 @@ from server import health
 from server import metadata as _metadata  # noqa: F401 - registers every table before the first query
 from server.auth import routes as auth_routes
 from server.body_limit import BodyLimitMiddleware
+from server.calibrations import routes as calibration_routes
 from server.config import Settings, get_settings
 from server.db import make_engine, make_sessionmaker
 from server.errors import install_error_handlers
@@ -83,4 +84,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(ui_routes.router)
     app.mount("/ui/static", StaticFiles(directory=ui_routes.STATIC_DIR), name="ui-static")
     app.add_api_route("/", lambda: RedirectResponse("/ui/"), include_in_schema=False)
+    app.include_router(calibration_routes.router)
     return app

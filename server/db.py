@@ -14,6 +14,12 @@ def new_id() -> str:
     return uuid.uuid4().hex
 
 
+def storable_key(key: str) -> bool:
+    """Whether a key from a URL can be looked up at all: PostgreSQL text refuses NUL, so such a key is simply not
+    found (404) instead of failing the query."""
+    return "\x00" not in key
+
+
 class Base(DeclarativeBase):
     """Declarative base of every table (every change needs an Alembic migration in ``migrations/versions``)."""
 

@@ -69,3 +69,10 @@ class AccUnit(StrEnum):
 
     m_s2 = "m/s2"
     g = "g"
+
+
+class CalibrationMethod(StrEnum):
+    """How a standing knee flexion calibration was measured."""
+
+    goniometer = "goniometer"
+    guided_trial = "guided_trial"

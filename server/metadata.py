@@ -5,6 +5,7 @@ from __future__ import annotations
 from sqlalchemy import MetaData
 
 from server.auth import models as _auth_models  # noqa: F401 - each import registers its tables
+from server.calibrations import models as _calibration_models  # noqa: F401
 from server.db import Base
 from server.patients import models as _patient_models  # noqa: F401
 from server.results import models as _result_models  # noqa: F401

@@ -14,6 +14,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session as DbSession
 
 from server.auth.models import Clinician, Token
+from server.db import storable_key
 from server.enums import Role
 from server.errors import forbidden, not_found
 from server.patients.models import Patient
@@ -85,7 +86,7 @@ def can_access_patient(principal: Principal, patient: Patient) -> bool:
 
 def get_patient_for(db: DbSession, principal: Principal, patient_id: str) -> Patient:
     """The patient if the caller may see it, else 404 (also when it exists but is someone else's)."""
-    patient = db.get(Patient, patient_id)
+    patient = db.get(Patient, patient_id) if storable_key(patient_id) else None
     if patient is None or not can_access_patient(principal, patient):
         raise not_found("Patient")
     return patient
@@ -93,6 +94,8 @@ def get_patient_for(db: DbSession, principal: Principal, patient_id: str) -> Pat
 
 def get_session_for(db: DbSession, principal: Principal, session_id: str, *, for_update: bool = False) -> Session:
     """The session if the caller may see its patient, else 404. ``for_update`` locks the row (PostgreSQL)."""
+    if not storable_key(session_id):
+        raise not_found("Session")
     stmt = select(Session).where(Session.id == session_id)
     if for_update:
         stmt = stmt.with_for_update()

@@ -24,6 +24,7 @@ from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
 
 from server import metadata as _metadata  # noqa: F401 - runners flush rows whose foreign keys span domains
+from server.calibrations import service as calibrations
 from server.codec import encode_trace
 from server.enums import SessionStatus, StrideActivity
 from server.numbers import json_safe
@@ -146,13 +147,14 @@ def _store_results(db: DbSession, sess_row: tuple[str, datetime], session_id: st
     return stored, skipped
 
 
-def _default_processor(streams, activity: str):  # noqa: ANN001, ANN202
+def _default_processor(streams, activity: str, calibration=None):  # noqa: ANN001, ANN202
     from pipeline.session import process_session
 
-    return process_session(streams, activity=activity)
+    return process_session(streams, activity=activity, calibration=calibration)
 
 
-# Tests substitute a processor to exercise failure paths; production always uses the pipeline.
+# Tests substitute a processor to exercise failure paths; production always uses the pipeline. Called as
+# ``processor(streams, activity=..., calibration=...)`` (calibration: leg -> pipeline.types.KneeCalibration).
 Processor = Callable[..., object]
 
 
@@ -171,9 +173,11 @@ def process_claimed(sm: sessionmaker[DbSession], session_id: str, token: str, *,
                     return "lost"  # deleted meanwhile
                 sess_row = (sess.patient_id, sess.started_at)
                 activity = sess.activity
+                # The calibration valid at the session's start, read now: a reprocess applies the current one.
+                calibration = calibrations.applicable(db, sess.patient_id, sess.started_at)
                 streams = load_streams(db, session_id)
             n_samples = sum(len(s.t_s) for s in streams)
-            result = processor(streams, activity=activity)
+            result = processor(streams, activity=activity, calibration=calibrations.for_pipeline(calibration))
             with sm() as db:
                 # The conditional update comes first: it locks the row, so a recovery cannot interleave.
                 changed = _update(db, session_id, Session.worker_id == token,
@@ -187,6 +191,7 @@ def process_claimed(sm: sessionmaker[DbSession], session_id: str, token: str, *,
                 _clear_results(db, session_id)
                 n_strides, n_skipped = _store_results(db, sess_row, session_id, result)
                 summary = result.summary()
+                summary[calibrations.SUMMARY_KEY] = calibrations.used_block(calibration, (s.leg for s in streams))
                 if n_skipped:
                     summary.setdefault("warnings", []).append(
                         f"{n_skipped} stride(s) without finite metrics were not stored")

@@ -7,8 +7,9 @@ each and the RMS difference between every pair of continuous angle estimates. No
 
 The raw data are read in one short transaction that is closed before the pipeline runs (seconds for a long
 session, in a worker thread), so a comparison never holds a database connection while it computes. The last few
-answers are kept in memory, keyed by the session's uploaded content, the algorithm version and the normalised
-estimator set (``go,kf`` and ``kf,go,go`` are one comparison).
+answers are kept in memory, keyed by the session's uploaded content, the algorithm version, the normalised
+estimator set (``go,kf`` and ``kf,go,go`` are one comparison) and the knee calibrations valid at the session's
+start (the ones its processing uses, :mod:`server.calibrations.service`).
 """
 
 from __future__ import annotations
@@ -28,8 +29,9 @@ from sqlalchemy.orm import sessionmaker
 from pipeline import ALGORITHM_VERSION
 from pipeline.estimators import available
 from pipeline.session import process_session
-from pipeline.types import RawSensorStream, SessionResult
+from pipeline.types import KneeCalibration, RawSensorStream, SessionResult
 from server.auth.service import Principal, get_session_for
+from server.calibrations import service as calibrations
 from server.enums import SessionStatus
 from server.errors import ProblemError, invalid
 from server.numbers import finite_round
@@ -79,6 +81,7 @@ class CompareInput:
     estimators: tuple[str, ...]
     key: Hashable
     streams: list[RawSensorStream] | None  # None when the answer is cached
+    calibration: dict[str, KneeCalibration]  # per leg, the one the session's processing would use
 
 
 _cache: OrderedDict[tuple, CompareOut] = OrderedDict()  # (session, content, version, estimators) -> answer
@@ -140,11 +143,14 @@ def load_input(factory: sessionmaker[DbSession], principal: Principal, session_i
         if not n_batches:
             raise ProblemError(409, "The session has no uploaded data", title="Comparison not available",
                                slug="compare-not-ready")
-        key = (session.id, n_batches, last_batch, session.activity, ALGORITHM_VERSION, estimator_set(estimators))
+        calibration = calibrations.for_pipeline(calibrations.applicable(db, session.patient_id, session.started_at))
+        levels = tuple(sorted((leg, c.calibration_id, c.standing_knee_deg) for leg, c in calibration.items()))
+        key = (session.id, n_batches, last_batch, session.activity, ALGORITHM_VERSION, estimator_set(estimators),
+               levels)
         with _cache_lock:
             cached = key in _cache
         streams = None if cached and not with_streams else load_streams(db, session.id)
-        return CompareInput(session.id, session.activity, estimators, key, streams)
+        return CompareInput(session.id, session.activity, estimators, key, streams, calibration)
 
 
 def run_compare(inp: CompareInput) -> CompareOut:
@@ -161,7 +167,8 @@ def run_compare(inp: CompareInput) -> CompareOut:
     failed: dict[str, str] = {}
     for name in inp.estimators:
         try:
-            results[name] = process_session(inp.streams, activity=inp.activity, estimator=name)
+            results[name] = process_session(inp.streams, activity=inp.activity, estimator=name,
+                                            calibration=inp.calibration)
         except Exception as exc:  # noqa: BLE001 - one estimator failing must not hide the others
             log.warning("compare %s: estimator %s failed: %s", inp.session_id, name, exc)
             failed[name] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__

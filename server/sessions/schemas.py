@@ -7,6 +7,7 @@ from typing import Annotated, Any
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, model_validator
 
 from pipeline.params import WALKING
+from server.calibrations.schemas import CalibrationUsed
 from server.enums import AccUnit, Activity, GyroUnit, Leg, Segment, SessionStatus
 from server.schema_types import FiniteFloat, OrmOut, StrictIn, UtcDatetime, Xyz
 
@@ -93,6 +94,10 @@ class SessionSummaryOut(BaseModel):
     activity: str | None = None
     warnings: list[str] = Field(default_factory=list)
     legs: dict[str, LegSummaryOut] = Field(default_factory=dict)
+    calibration: dict[Leg, CalibrationUsed | None] | None = Field(
+        None, description="Per leg of the session, the knee calibration it was processed with (the one valid at "
+                          "the session's start), or null when the absolute level rests on the assumed standing "
+                          "flexion; the leg's diagnostics say the same (level_source, calibration_id)")
 
 
 class SessionOut(OrmOut):

@@ -70,7 +70,7 @@ def data_processor(stride_s: float = 1.0, version: str = "test-1",
                    nan_peaks: bool = False) -> Callable[..., SessionResult]:
     """Strides of ``stride_s`` over the shank data; the angle is |shank gyro x| (data-derived, not canned)."""
 
-    def run(streams, activity: str) -> SessionResult:  # noqa: ANN001
+    def run(streams, activity: str, calibration=None) -> SessionResult:  # noqa: ANN001
         shank = next(s for s in streams if s.segment == "shank")
         angle = np.abs(shank.gyr[:, 0]) / 10.0
         est = np.where(np.arange(len(angle)) % 2 == 0, "go", "cf")
@@ -93,7 +93,7 @@ def data_processor(stride_s: float = 1.0, version: str = "test-1",
     return run
 
 
-def failing_processor(streams, activity: str) -> SessionResult:  # noqa: ANN001
+def failing_processor(streams, activity: str, calibration=None) -> SessionResult:  # noqa: ANN001
     raise ValueError("no shank sensor data for leg left:\n  check the sensor placement")
 
 
