@@ -201,6 +201,12 @@ class PostureParams:
     """Samples within this time [s] of a bout's first/last mid-swing are walking, not standing."""
     standing_knee_deg: float = 4.0
     """Knee flexion [deg] assumed for relaxed quiet standing (healthy adults ~2-6 deg)."""
+    standing_knee_measured: bool = False
+    """True when ``standing_knee_deg`` is the patient's measured value (a calibration), not the assumption: every
+    stride of an unmeasured level says so (quality reason ``assumed_level``)."""
+    plausible_knee_deg: tuple[float, float] = (-15.0, 160.0)
+    """A knee angle outside this band [deg] cannot be true and is masked: hyperextension stops at ~5-10 deg
+    (-15 deg is severe genu recurvatum); passive flexion ends at ~150-160 deg (heel against the buttock)."""
 
 
 @dataclass(frozen=True)
@@ -209,6 +215,11 @@ class FusionParams:
 
     calm_dps: float = 90.0
     """Both segments slower than this [deg/s]: the accelerometer angle is usable (small lever-arm terms)."""
+    midstance_window: tuple[float, float] = (0.10, 0.30)
+    """Share of the stride (heel strike to heel strike) whose stance samples give the per-stride offset: mid-stance
+    of Perry & Burnfield's gait phases (contralateral toe-off ~10 % to heel rise ~30 %): single support on a flat
+    foot, so the heel-strike shock and its ringing (loading response, 0-10 %) and the push-off are outside, the
+    shank is near vertical and both segments rotate slowly (small lever-arm terms of Seel Eq. 6)."""
     min_quiet_samples: int = 5
     """A stride with fewer calm stance samples uses its whole stance for the offset (and gets a note)."""
     offset_smooth: int = 11
@@ -220,7 +231,7 @@ class FusionParams:
     penalties: tuple[tuple[str, float], ...] = (
         ("no_absolute_reference", 0.2), ("no_zero_crossing", 0.3), ("drift", 0.3), ("saturation", 0.5),
         ("go_cf_mismatch", 0.3), ("cf_fallback", 0.2), ("no_go_estimate", 0.3), ("few_quiet_samples", 0.1),
-        ("bridged_gap", 0.1))
+        ("bridged_gap", 0.1), ("assumed_level", 0.0))
     """Quality lost per reason (quality = 1 - sum, floored at 0): saturation and a broken GO weigh most."""
     default_penalty: float = 0.1
     """Quality lost for a reason not listed."""

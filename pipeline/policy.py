@@ -23,7 +23,7 @@ and weighs it by the acceleration magnitudes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -62,6 +62,7 @@ class PolicyResult:
     cf_shift_deg: float | None = None
     offset_median_deg: float | None = None
     tuning: TuningDiagnostics | None = None
+    masked_implausible_samples: int = 0  # samples outside ``PostureParams.plausible_knee_deg``, set to NaN
 
 
 def _reference(ref: float | None) -> AbsoluteReference:
@@ -73,8 +74,29 @@ def _tuning(diag: EstimatorDiagnostics) -> TuningDiagnostics | None:
 
 
 def auto(leg: LegInput) -> PolicyResult:
-    """The ``auto`` policy of the leg's activity."""
-    return running_auto(leg) if leg.activity == "running" else walking_auto(leg)
+    """The ``auto`` policy of the leg's activity, implausible angles masked (:func:`mask_implausible`)."""
+    return mask_implausible(leg, running_auto(leg) if leg.activity == "running" else walking_auto(leg))
+
+
+def mask_implausible(leg: LegInput, result: PolicyResult) -> PolicyResult:
+    """The result with every angle outside ``PostureParams.plausible_knee_deg`` set to NaN (no estimator label) and
+    counted: an angle a knee cannot reach means a wrong level, sign or segment, so neither the sample nor the stride
+    around it (:mod:`pipeline.session` reports only strides with a finite angle throughout) can be vouched for."""
+    lo, hi = leg.params.posture.plausible_knee_deg
+    angle = result.angle_deg
+    with np.errstate(invalid="ignore"):
+        bad = (angle < lo) | (angle > hi)
+    n_bad = int(bad.sum())
+    if not n_bad:
+        return result
+    angle = np.where(bad, np.nan, angle)
+    labels = np.where(bad, "", result.estimator).astype(str)
+    return replace(result, angle_deg=angle, estimator=labels, masked_implausible_samples=n_bad)
+
+
+def _level_reasons(leg: LegInput) -> tuple[str, ...]:
+    """``assumed_level`` unless the standing flexion the level rests on was measured (a calibration)."""
+    return () if leg.params.posture.standing_knee_measured else ("assumed_level",)
 
 
 def single_estimator(leg: LegInput, name: str) -> PolicyResult:
@@ -82,11 +104,12 @@ def single_estimator(leg: LegInput, name: str) -> PolicyResult:
     angle, diag = get_estimator(name)(leg)
     angle = np.asarray(angle, dtype=float)
     labels = np.where(np.isfinite(angle), name, "").astype(str)
-    choice = StrideChoice(estimator=name, quality=1.0, reasons=(), fallback=False)
+    choice = StrideChoice(estimator=name, quality=1.0, reasons=_level_reasons(leg), fallback=False)
     ref = diag.standing_ref_deg
-    return PolicyResult(angle_deg=angle, estimator=labels, choices=tuple(choice for _ in leg.events.strides),
-                        absolute_reference=_reference(ref), standing_ref_deg=None if ref is None else round(ref, 2),
-                        tuning=_tuning(diag))
+    return mask_implausible(leg, PolicyResult(
+        angle_deg=angle, estimator=labels, choices=tuple(choice for _ in leg.events.strides),
+        absolute_reference=_reference(ref), standing_ref_deg=None if ref is None else round(ref, 2),
+        tuning=_tuning(diag)))
 
 
 def running_auto(leg: LegInput) -> PolicyResult:
@@ -97,8 +120,8 @@ def running_auto(leg: LegInput) -> PolicyResult:
     angle, diag = get_estimator(name)(leg)
     labels = np.where(np.isfinite(angle), name, "").astype(str)
     ref = diag.standing_ref_deg
-    reasons: tuple[str, ...] = () if ref is not None else ("no_absolute_reference",)
-    choice = StrideChoice(estimator=name, quality=rp.no_reference_quality if reasons else 1.0, reasons=reasons,
+    reasons: tuple[str, ...] = (() if ref is not None else ("no_absolute_reference",)) + _level_reasons(leg)
+    choice = StrideChoice(estimator=name, quality=rp.no_reference_quality if ref is None else 1.0, reasons=reasons,
                           fallback=False)
     return PolicyResult(angle_deg=angle, estimator=labels, choices=tuple(choice for _ in leg.events.strides),
                         absolute_reference=_reference(ref), standing_ref_deg=None if ref is None else round(ref, 2),
@@ -128,10 +151,11 @@ def _segment_sums(x: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.nd
 
 def stance_offsets(leg: LegInput, go_rel: np.ndarray, strides: list[tuple[int, int, int]]
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of (accelerometer angle - GO) [deg] over the calm stance samples of each stride, and the calm-sample
-    count. Calm: both segments' angular speed below ``FusionParams.calm_dps`` (lever-arm terms of Eq. 6 small); a
-    stride with fewer than ``min_quiet_samples`` calm samples uses its whole stance. The running median over strides
-    (:func:`fuse`) removes outliers."""
+    """Mean of (accelerometer angle - GO) [deg] over the calm mid-stance samples of each stride, and the calm-sample
+    count. Mid-stance: ``FusionParams.midstance_window`` of the stride, never past toe-off (no heel-strike shock, no
+    push-off). Calm: both segments' angular speed below ``FusionParams.calm_dps`` (lever-arm terms of Eq. 6 small);
+    a stride with fewer than ``min_quiet_samples`` calm samples uses all of its mid-stance. The running median over
+    strides (:func:`fuse`) removes outliers."""
     if not strides:
         return np.zeros(0), np.zeros(0, dtype=int)
     p = leg.params.fusion
@@ -142,7 +166,10 @@ def stance_offsets(leg: LegInput, go_rel: np.ndarray, strides: list[tuple[int, i
     d0 = np.where(ok, diff, 0.0)
     quiet = ok & (speed < p.calm_dps)
     arr = np.asarray(strides)
-    lo, hi = arr[:, 0], arr[:, 1] + 1
+    length = arr[:, 2] - arr[:, 0]
+    w0, w1 = p.midstance_window
+    lo = arr[:, 0] + np.round(w0 * length).astype(int)
+    hi = np.maximum(np.minimum(arr[:, 0] + np.round(w1 * length).astype(int), arr[:, 1]) + 1, lo + 1)
     n_quiet = _segment_sums(quiet, lo, hi)
     n_ok = _segment_sums(ok, lo, hi)
     s_quiet = _segment_sums(np.where(quiet, d0, 0.0), lo, hi)
@@ -195,9 +222,10 @@ def _stride_flags(leg: LegInput, go_diag: GoDiagnostics, go_abs: np.ndarray, cf_
                         bridged=bridged, mismatch=np.sqrt(var_e) > p.mismatch_deg)
 
 
-def _choose(flags: _StrideFlags, k: int, absolute_ok: bool, quiet_count: int, p: FusionParams) -> StrideChoice:
+def _choose(flags: _StrideFlags, k: int, absolute_ok: bool, quiet_count: int, p: FusionParams,
+            level_reasons: tuple[str, ...] = ()) -> StrideChoice:
     """GO or the CF fallback for stride ``k``, its quality and reasons."""
-    reasons: list[str] = []
+    reasons: list[str] = list(level_reasons)
     if not absolute_ok:
         reasons.append("no_absolute_reference")
     elif quiet_count < p.min_quiet_samples:
@@ -252,7 +280,8 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     arr = np.asarray(strides)
     lo, hi = arr[:, 0], arr[:, 2] + 1
     flags = _stride_flags(leg, go_diag, go_abs, cf_used, lo, hi)
-    choices = tuple(_choose(flags, k, absolute_ok, int(quiet_counts[k]), p) for k in range(len(strides)))
+    level = _level_reasons(leg)
+    choices = tuple(_choose(flags, k, absolute_ok, int(quiet_counts[k]), p, level) for k in range(len(strides)))
     use = np.array([c.estimator == "go" for c in choices])
     cover = np.zeros(n + 1, dtype=int)
     np.add.at(cover, lo[use], 1)
