@@ -48,8 +48,9 @@ class AxesParams:
     """Seeded restarts of the axis fit besides the principal-axis start (Eq. 2 has local minima)."""
     n_centre_starts: int = 4
     """Seeded starts of the centre fit besides the near-zero one (Eq. 5 has mirrored minima)."""
-    max_lever_m: float = 0.4
-    """A sensor further than this [m] from the knee is not body-worn: no lever-arm correction then."""
+    max_lever_m: float = 0.6
+    """A sensor further than this [m] from the knee is not on the thigh or shank: no lever-arm correction then (the
+    longest adult thighs and shanks are ~0.5-0.55 m; a thigh sensor may sit anywhere up to the hip)."""
     centre_reg: float = 0.05
     """Pull of the centres towards 0 [m/s^2 per m, per sample]: negligible against real misfit, fixes the flat
     valley of Eq. 5 along the axis."""
@@ -177,23 +178,16 @@ class FilterInputParams:
 
 @dataclass(frozen=True)
 class PostureParams:
-    """Quiet standing and the absolute zero (:mod:`pipeline.posture`).
-
-    Two callers define "quiet standing" with different durations: the filters' quiet mask (``quiet_min_s``, KF/EKF
-    R weighting and zero) and the ``auto`` policy's standing reference (``standing_ref_min_s``); their upright tests
-    differ too (3-D angle to the gait gravity direction vs in-plane angle to the stance direction). Each keeps its
-    value so outputs stay identical; unifying them is a science change (it moves absolute levels)."""
+    """Quiet postures, standing and the absolute zero (:mod:`pipeline.posture`): one definition for every consumer
+    (walking policy, CF, KF, EKF)."""
 
     still_dps: float = 15.0
     """Both segments slower than this [deg/s]: still (sway is a few deg/s, slow walking hundreds)."""
     force_tol: float = 0.1
     """Specific force within this share of g: no segment acceleration."""
-    quiet_min_s: float = 0.5
-    """Shortest quiet run [s] for the filters' quiet mask."""
-    standing_ref_min_s: float = 1.0
-    """Shortest quiet upright run [s] (and least total) for the ``auto`` policy's standing reference."""
-    standing_zero_min_s: float = 1.0
-    """Least total quiet upright standing [s] for the filters' accelerometer zero."""
+    quiet_min_s: float = 1.0
+    """Shortest quiet run [s] (and least total standing for a zero): a second of stillness outlasts the settling
+    after a movement stops and averages the accelerometer noise below a degree."""
     upright_deg: float = 45.0
     """Upright: gravity within this angle [deg] of its direction during gait. Sitting puts the thigh ~90 deg off;
     running leaves the shank ~30 deg off on average."""
@@ -281,8 +275,10 @@ class RunningParams:
     """Cycle length [s] for the impact mask when no plausible interval is known (a typical running stride)."""
     auto_estimator: str = "ekf"
     """The running ``auto`` estimator: best on the simulator without reference tuning (bench/accuracy.py)."""
-    no_reference_quality: float = 0.8
-    """Stride quality without a quiet-standing zero (the level is then the joint-plane frames' own)."""
+    no_reference_quality: float = 0.4
+    """Stride quality without a quiet-standing zero: the level is then GO's (zero at the minimum before swing),
+    which a running knee never reaches (it stays 10-25 deg flexed), so peak and minimum flexion may be off by that
+    much; below 0.5 such strides stay out of trends (their ROM and timing are still right)."""
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,13 @@ deg). Rhudy et al. found KF and CF slightly better than their EKF (Table 2, Vico
 reference tuning the EKF came out best on the simulator (bench/accuracy.py, running, TUNE seeds 0-9 at 100 and
 200 Hz: RMSE EKF 2.17, KF 2.57, CF 3.35 deg; per-stride peak LoA EKF -6.9..5.0, KF -5.5..7.5): its update
 ``P |a| |b| / (P |a|^2 + r) sin(alpha_acc - x)`` bounds the pull of a large accelerometer-angle error (the sine)
-and weighs it by the acceleration magnitudes.
+and weighs it by the acceleration magnitudes. Without quiet standing in the session the EKF's level would be the
+joint-plane frames' (10-30 deg off, and different at every mounting); its curve then takes GO's level per stride
+(:func:`go_levelled`, reason ``go_level``), which does not depend on the mounting, with a quality below the trend
+threshold: a running knee never straightens, so GO's zero leaves the absolute level unknown by 10-25 deg.
+
+**Both**: an angle outside ``PostureParams.plausible_knee_deg`` is masked (:func:`mask_implausible`), and every
+stride whose standing flexion was assumed rather than measured says so (``assumed_level``).
 """
 
 from __future__ import annotations
@@ -113,19 +119,50 @@ def single_estimator(leg: LegInput, name: str) -> PolicyResult:
 
 
 def running_auto(leg: LegInput) -> PolicyResult:
-    """The running policy: ``RunningParams.auto_estimator`` (the EKF) on every stride; without a standing zero the
-    strides say so and lose quality."""
+    """The running policy: ``RunningParams.auto_estimator`` (the EKF) on every stride. Without a standing zero its
+    level would be the joint-plane frames' own (sensor->knee directions tilted 10-30 deg by the sensors' offsets
+    from the segment axes), so the EKF curve is moved to GO's level instead (:func:`go_levelled`): no absolute
+    reference either, but one that does not depend on where the sensors sit; the strides say so (``go_level``) and
+    lose quality."""
     rp = leg.params.running
     name = rp.auto_estimator
     angle, diag = get_estimator(name)(leg)
-    labels = np.where(np.isfinite(angle), name, "").astype(str)
     ref = diag.standing_ref_deg
-    reasons: tuple[str, ...] = (() if ref is not None else ("no_absolute_reference",)) + _level_reasons(leg)
+    levelled = go_levelled(leg, angle) if ref is None else None
+    if levelled is not None:
+        angle = levelled
+    labels = np.where(np.isfinite(angle), name, "").astype(str)
+    reasons: tuple[str, ...] = (() if ref is not None else ("no_absolute_reference",))
+    reasons += (("go_level",) if levelled is not None else ()) + _level_reasons(leg)
     choice = StrideChoice(estimator=name, quality=rp.no_reference_quality if ref is None else 1.0, reasons=reasons,
                           fallback=False)
     return PolicyResult(angle_deg=angle, estimator=labels, choices=tuple(choice for _ in leg.events.strides),
                         absolute_reference=_reference(ref), standing_ref_deg=None if ref is None else round(ref, 2),
                         tuning=_tuning(diag))
+
+
+def go_levelled(leg: LegInput, angle: np.ndarray) -> np.ndarray | None:
+    """``angle`` (N,) [deg] shifted per stride to the level of GO (Allseits et al. 2018: zero at the knee-angle
+    minimum before swing), by the mean of (GO - angle) over each stride, smoothed over neighbouring strides
+    (``FusionParams.offset_smooth``) and interpolated between stride centres; held outside the strides. None
+    without a stride with both estimates."""
+    strides = leg.events.strides
+    if not strides:
+        return None
+    go_rel, _ = go_relative(leg)
+    arr = np.asarray(strides)
+    lo, hi = arr[:, 0], arr[:, 2] + 1
+    d = go_rel - angle
+    ok = np.isfinite(d)
+    n_ok = _segment_sums(ok, lo, hi)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        offs = _segment_sums(np.where(ok, d, 0.0), lo, hi) / n_ok
+    finite = n_ok > 0
+    if not finite.any():
+        return None
+    level = float(np.median(offs[finite]))
+    smooth = _running_median(np.where(finite, offs, level), leg.params.fusion.offset_smooth)
+    return angle + np.interp(np.arange(angle.shape[0]), 0.5 * (lo + hi - 1), smooth)
 
 
 def walking_auto(leg: LegInput) -> PolicyResult:
