@@ -179,6 +179,28 @@ def orient_axes(j1: np.ndarray, j2: np.ndarray, g1: np.ndarray, g2: np.ndarray,
     return j1, j2
 
 
+def orient_thigh_on_gait(j1: np.ndarray, j2: np.ndarray, g1: np.ndarray, g2: np.ndarray,
+                         strides: list[tuple[int, int, int]]) -> np.ndarray:
+    """The sign of ``j1`` from gait samples only (inside the detected strides ``(hs, to, hs_next)``): the module
+    rule (``g1.j1`` correlated with ``g2.j2``) holds for walking, where thigh and shank swing forward together, but
+    not for squats, jumps or sit-to-stand, where the two segments rotate in opposite senses (the knee flexes while
+    the thigh tilts forward and the shank backward) with rates as large as gait's. ``j1`` unchanged without
+    strides."""
+    if not strides:
+        return j1
+    arr = np.asarray(strides)
+    delta = np.zeros(g1.shape[0] + 1, dtype=int)
+    np.add.at(delta, arr[:, 0], 1)
+    np.add.at(delta, arr[:, 2] + 1, -1)
+    mask = np.cumsum(delta)[:-1] > 0
+    w1, w2 = g1[mask] @ j1, g2[mask] @ j2
+    ok = np.isfinite(w1) & np.isfinite(w2)
+    w1, w2 = w1[ok], w2[ok]
+    if w1.size and float(np.dot(w1 - w1.mean(), w2 - w2.mean())) < 0:
+        return -j1
+    return j1
+
+
 def hinge_rates(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-sample ``||g1 x j1||`` and ``||g2 x j2||`` (Seel Eq. 2): the angular speed perpendicular to the axis."""
     return row_norm(cross_rows(g1, j1)), row_norm(cross_rows(g2, j2))

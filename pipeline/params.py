@@ -48,8 +48,9 @@ class AxesParams:
     """Seeded restarts of the axis fit besides the principal-axis start (Eq. 2 has local minima)."""
     n_centre_starts: int = 4
     """Seeded starts of the centre fit besides the near-zero one (Eq. 5 has mirrored minima)."""
-    max_lever_m: float = 0.4
-    """A sensor further than this [m] from the knee is not body-worn: no lever-arm correction then."""
+    max_lever_m: float = 0.6
+    """A sensor further than this [m] from the knee is not on the thigh or shank: no lever-arm correction then (the
+    longest adult thighs and shanks are ~0.5-0.55 m; a thigh sensor may sit anywhere up to the hip)."""
     centre_reg: float = 0.05
     """Pull of the centres towards 0 [m/s^2 per m, per sample]: negligible against real misfit, fixes the flat
     valley of Eq. 5 along the axis."""
@@ -177,23 +178,16 @@ class FilterInputParams:
 
 @dataclass(frozen=True)
 class PostureParams:
-    """Quiet standing and the absolute zero (:mod:`pipeline.posture`).
-
-    Two callers define "quiet standing" with different durations: the filters' quiet mask (``quiet_min_s``, KF/EKF
-    R weighting and zero) and the ``auto`` policy's standing reference (``standing_ref_min_s``); their upright tests
-    differ too (3-D angle to the gait gravity direction vs in-plane angle to the stance direction). Each keeps its
-    value so outputs stay identical; unifying them is a science change (it moves absolute levels)."""
+    """Quiet postures, standing and the absolute zero (:mod:`pipeline.posture`): one definition for every consumer
+    (walking policy, CF, KF, EKF)."""
 
     still_dps: float = 15.0
     """Both segments slower than this [deg/s]: still (sway is a few deg/s, slow walking hundreds)."""
     force_tol: float = 0.1
     """Specific force within this share of g: no segment acceleration."""
-    quiet_min_s: float = 0.5
-    """Shortest quiet run [s] for the filters' quiet mask."""
-    standing_ref_min_s: float = 1.0
-    """Shortest quiet upright run [s] (and least total) for the ``auto`` policy's standing reference."""
-    standing_zero_min_s: float = 1.0
-    """Least total quiet upright standing [s] for the filters' accelerometer zero."""
+    quiet_min_s: float = 1.0
+    """Shortest quiet run [s] (and least total standing for a zero): a second of stillness outlasts the settling
+    after a movement stops and averages the accelerometer noise below a degree."""
     upright_deg: float = 45.0
     """Upright: gravity within this angle [deg] of its direction during gait. Sitting puts the thigh ~90 deg off;
     running leaves the shank ~30 deg off on average."""
@@ -201,6 +195,12 @@ class PostureParams:
     """Samples within this time [s] of a bout's first/last mid-swing are walking, not standing."""
     standing_knee_deg: float = 4.0
     """Knee flexion [deg] assumed for relaxed quiet standing (healthy adults ~2-6 deg)."""
+    standing_knee_measured: bool = False
+    """True when ``standing_knee_deg`` is the patient's measured value (a calibration), not the assumption: every
+    stride of an unmeasured level says so (quality reason ``assumed_level``)."""
+    plausible_knee_deg: tuple[float, float] = (-15.0, 160.0)
+    """A knee angle outside this band [deg] cannot be true and is masked: hyperextension stops at ~5-10 deg
+    (-15 deg is severe genu recurvatum); passive flexion ends at ~150-160 deg (heel against the buttock)."""
 
 
 @dataclass(frozen=True)
@@ -209,6 +209,11 @@ class FusionParams:
 
     calm_dps: float = 90.0
     """Both segments slower than this [deg/s]: the accelerometer angle is usable (small lever-arm terms)."""
+    midstance_window: tuple[float, float] = (0.10, 0.30)
+    """Share of the stride (heel strike to heel strike) whose stance samples give the per-stride offset: mid-stance
+    of Perry & Burnfield's gait phases (contralateral toe-off ~10 % to heel rise ~30 %): single support on a flat
+    foot, so the heel-strike shock and its ringing (loading response, 0-10 %) and the push-off are outside, the
+    shank is near vertical and both segments rotate slowly (small lever-arm terms of Seel Eq. 6)."""
     min_quiet_samples: int = 5
     """A stride with fewer calm stance samples uses its whole stance for the offset (and gets a note)."""
     offset_smooth: int = 11
@@ -220,7 +225,7 @@ class FusionParams:
     penalties: tuple[tuple[str, float], ...] = (
         ("no_absolute_reference", 0.2), ("no_zero_crossing", 0.3), ("drift", 0.3), ("saturation", 0.5),
         ("go_cf_mismatch", 0.3), ("cf_fallback", 0.2), ("no_go_estimate", 0.3), ("few_quiet_samples", 0.1),
-        ("bridged_gap", 0.1))
+        ("bridged_gap", 0.1), ("assumed_level", 0.0))
     """Quality lost per reason (quality = 1 - sum, floored at 0): saturation and a broken GO weigh most."""
     default_penalty: float = 0.1
     """Quality lost for a reason not listed."""
@@ -270,8 +275,10 @@ class RunningParams:
     """Cycle length [s] for the impact mask when no plausible interval is known (a typical running stride)."""
     auto_estimator: str = "ekf"
     """The running ``auto`` estimator: best on the simulator without reference tuning (bench/accuracy.py)."""
-    no_reference_quality: float = 0.8
-    """Stride quality without a quiet-standing zero (the level is then the joint-plane frames' own)."""
+    no_reference_quality: float = 0.4
+    """Stride quality without a quiet-standing zero: the level is then GO's (zero at the minimum before swing),
+    which a running knee never reaches (it stays 10-25 deg flexed), so peak and minimum flexion may be off by that
+    much; below 0.5 such strides stay out of trends (their ROM and timing are still right)."""
 
 
 @dataclass(frozen=True)

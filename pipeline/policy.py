@@ -18,12 +18,18 @@ deg). Rhudy et al. found KF and CF slightly better than their EKF (Table 2, Vico
 reference tuning the EKF came out best on the simulator (bench/accuracy.py, running, TUNE seeds 0-9 at 100 and
 200 Hz: RMSE EKF 2.17, KF 2.57, CF 3.35 deg; per-stride peak LoA EKF -6.9..5.0, KF -5.5..7.5): its update
 ``P |a| |b| / (P |a|^2 + r) sin(alpha_acc - x)`` bounds the pull of a large accelerometer-angle error (the sine)
-and weighs it by the acceleration magnitudes.
+and weighs it by the acceleration magnitudes. Without quiet standing in the session the EKF's level would be the
+joint-plane frames' (10-30 deg off, and different at every mounting); its curve then takes GO's level per stride
+(:func:`go_levelled`, reason ``go_level``), which does not depend on the mounting, with a quality below the trend
+threshold: a running knee never straightens, so GO's zero leaves the absolute level unknown by 10-25 deg.
+
+**Both**: an angle outside ``PostureParams.plausible_knee_deg`` is masked (:func:`mask_implausible`), and every
+stride whose standing flexion was assumed rather than measured says so (``assumed_level``).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -62,6 +68,7 @@ class PolicyResult:
     cf_shift_deg: float | None = None
     offset_median_deg: float | None = None
     tuning: TuningDiagnostics | None = None
+    masked_implausible_samples: int = 0  # samples outside ``PostureParams.plausible_knee_deg``, set to NaN
 
 
 def _reference(ref: float | None) -> AbsoluteReference:
@@ -73,8 +80,29 @@ def _tuning(diag: EstimatorDiagnostics) -> TuningDiagnostics | None:
 
 
 def auto(leg: LegInput) -> PolicyResult:
-    """The ``auto`` policy of the leg's activity."""
-    return running_auto(leg) if leg.activity == "running" else walking_auto(leg)
+    """The ``auto`` policy of the leg's activity, implausible angles masked (:func:`mask_implausible`)."""
+    return mask_implausible(leg, running_auto(leg) if leg.activity == "running" else walking_auto(leg))
+
+
+def mask_implausible(leg: LegInput, result: PolicyResult) -> PolicyResult:
+    """The result with every angle outside ``PostureParams.plausible_knee_deg`` set to NaN (no estimator label) and
+    counted: an angle a knee cannot reach means a wrong level, sign or segment, so neither the sample nor the stride
+    around it (:mod:`pipeline.session` reports only strides with a finite angle throughout) can be vouched for."""
+    lo, hi = leg.params.posture.plausible_knee_deg
+    angle = result.angle_deg
+    with np.errstate(invalid="ignore"):
+        bad = (angle < lo) | (angle > hi)
+    n_bad = int(bad.sum())
+    if not n_bad:
+        return result
+    angle = np.where(bad, np.nan, angle)
+    labels = np.where(bad, "", result.estimator).astype(str)
+    return replace(result, angle_deg=angle, estimator=labels, masked_implausible_samples=n_bad)
+
+
+def _level_reasons(leg: LegInput) -> tuple[str, ...]:
+    """``assumed_level`` unless the standing flexion the level rests on was measured (a calibration)."""
+    return () if leg.params.posture.standing_knee_measured else ("assumed_level",)
 
 
 def single_estimator(leg: LegInput, name: str) -> PolicyResult:
@@ -82,27 +110,59 @@ def single_estimator(leg: LegInput, name: str) -> PolicyResult:
     angle, diag = get_estimator(name)(leg)
     angle = np.asarray(angle, dtype=float)
     labels = np.where(np.isfinite(angle), name, "").astype(str)
-    choice = StrideChoice(estimator=name, quality=1.0, reasons=(), fallback=False)
+    choice = StrideChoice(estimator=name, quality=1.0, reasons=_level_reasons(leg), fallback=False)
     ref = diag.standing_ref_deg
-    return PolicyResult(angle_deg=angle, estimator=labels, choices=tuple(choice for _ in leg.events.strides),
-                        absolute_reference=_reference(ref), standing_ref_deg=None if ref is None else round(ref, 2),
-                        tuning=_tuning(diag))
+    return mask_implausible(leg, PolicyResult(
+        angle_deg=angle, estimator=labels, choices=tuple(choice for _ in leg.events.strides),
+        absolute_reference=_reference(ref), standing_ref_deg=None if ref is None else round(ref, 2),
+        tuning=_tuning(diag)))
 
 
 def running_auto(leg: LegInput) -> PolicyResult:
-    """The running policy: ``RunningParams.auto_estimator`` (the EKF) on every stride; without a standing zero the
-    strides say so and lose quality."""
+    """The running policy: ``RunningParams.auto_estimator`` (the EKF) on every stride. Without a standing zero its
+    level would be the joint-plane frames' own (sensor->knee directions tilted 10-30 deg by the sensors' offsets
+    from the segment axes), so the EKF curve is moved to GO's level instead (:func:`go_levelled`): no absolute
+    reference either, but one that does not depend on where the sensors sit; the strides say so (``go_level``) and
+    lose quality."""
     rp = leg.params.running
     name = rp.auto_estimator
     angle, diag = get_estimator(name)(leg)
-    labels = np.where(np.isfinite(angle), name, "").astype(str)
     ref = diag.standing_ref_deg
-    reasons: tuple[str, ...] = () if ref is not None else ("no_absolute_reference",)
-    choice = StrideChoice(estimator=name, quality=rp.no_reference_quality if reasons else 1.0, reasons=reasons,
+    levelled = go_levelled(leg, angle) if ref is None else None
+    if levelled is not None:
+        angle = levelled
+    labels = np.where(np.isfinite(angle), name, "").astype(str)
+    reasons: tuple[str, ...] = (() if ref is not None else ("no_absolute_reference",))
+    reasons += (("go_level",) if levelled is not None else ()) + _level_reasons(leg)
+    choice = StrideChoice(estimator=name, quality=rp.no_reference_quality if ref is None else 1.0, reasons=reasons,
                           fallback=False)
     return PolicyResult(angle_deg=angle, estimator=labels, choices=tuple(choice for _ in leg.events.strides),
                         absolute_reference=_reference(ref), standing_ref_deg=None if ref is None else round(ref, 2),
                         tuning=_tuning(diag))
+
+
+def go_levelled(leg: LegInput, angle: np.ndarray) -> np.ndarray | None:
+    """``angle`` (N,) [deg] shifted per stride to the level of GO (Allseits et al. 2018: zero at the knee-angle
+    minimum before swing), by the mean of (GO - angle) over each stride, smoothed over neighbouring strides
+    (``FusionParams.offset_smooth``) and interpolated between stride centres; held outside the strides. None
+    without a stride with both estimates."""
+    strides = leg.events.strides
+    if not strides:
+        return None
+    go_rel, _ = go_relative(leg)
+    arr = np.asarray(strides)
+    lo, hi = arr[:, 0], arr[:, 2] + 1
+    d = go_rel - angle
+    ok = np.isfinite(d)
+    n_ok = _segment_sums(ok, lo, hi)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        offs = _segment_sums(np.where(ok, d, 0.0), lo, hi) / n_ok
+    finite = n_ok > 0
+    if not finite.any():
+        return None
+    level = float(np.median(offs[finite]))
+    smooth = _running_median(np.where(finite, offs, level), leg.params.fusion.offset_smooth)
+    return angle + np.interp(np.arange(angle.shape[0]), 0.5 * (lo + hi - 1), smooth)
 
 
 def walking_auto(leg: LegInput) -> PolicyResult:
@@ -128,10 +188,11 @@ def _segment_sums(x: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.nd
 
 def stance_offsets(leg: LegInput, go_rel: np.ndarray, strides: list[tuple[int, int, int]]
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of (accelerometer angle - GO) [deg] over the calm stance samples of each stride, and the calm-sample
-    count. Calm: both segments' angular speed below ``FusionParams.calm_dps`` (lever-arm terms of Eq. 6 small); a
-    stride with fewer than ``min_quiet_samples`` calm samples uses its whole stance. The running median over strides
-    (:func:`fuse`) removes outliers."""
+    """Mean of (accelerometer angle - GO) [deg] over the calm mid-stance samples of each stride, and the calm-sample
+    count. Mid-stance: ``FusionParams.midstance_window`` of the stride, never past toe-off (no heel-strike shock, no
+    push-off). Calm: both segments' angular speed below ``FusionParams.calm_dps`` (lever-arm terms of Eq. 6 small);
+    a stride with fewer than ``min_quiet_samples`` calm samples uses all of its mid-stance. The running median over
+    strides (:func:`fuse`) removes outliers."""
     if not strides:
         return np.zeros(0), np.zeros(0, dtype=int)
     p = leg.params.fusion
@@ -142,7 +203,10 @@ def stance_offsets(leg: LegInput, go_rel: np.ndarray, strides: list[tuple[int, i
     d0 = np.where(ok, diff, 0.0)
     quiet = ok & (speed < p.calm_dps)
     arr = np.asarray(strides)
-    lo, hi = arr[:, 0], arr[:, 1] + 1
+    length = arr[:, 2] - arr[:, 0]
+    w0, w1 = p.midstance_window
+    lo = arr[:, 0] + np.round(w0 * length).astype(int)
+    hi = np.maximum(np.minimum(arr[:, 0] + np.round(w1 * length).astype(int), arr[:, 1]) + 1, lo + 1)
     n_quiet = _segment_sums(quiet, lo, hi)
     n_ok = _segment_sums(ok, lo, hi)
     s_quiet = _segment_sums(np.where(quiet, d0, 0.0), lo, hi)
@@ -195,9 +259,10 @@ def _stride_flags(leg: LegInput, go_diag: GoDiagnostics, go_abs: np.ndarray, cf_
                         bridged=bridged, mismatch=np.sqrt(var_e) > p.mismatch_deg)
 
 
-def _choose(flags: _StrideFlags, k: int, absolute_ok: bool, quiet_count: int, p: FusionParams) -> StrideChoice:
+def _choose(flags: _StrideFlags, k: int, absolute_ok: bool, quiet_count: int, p: FusionParams,
+            level_reasons: tuple[str, ...] = ()) -> StrideChoice:
     """GO or the CF fallback for stride ``k``, its quality and reasons."""
-    reasons: list[str] = []
+    reasons: list[str] = list(level_reasons)
     if not absolute_ok:
         reasons.append("no_absolute_reference")
     elif quiet_count < p.min_quiet_samples:
@@ -252,7 +317,8 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     arr = np.asarray(strides)
     lo, hi = arr[:, 0], arr[:, 2] + 1
     flags = _stride_flags(leg, go_diag, go_abs, cf_used, lo, hi)
-    choices = tuple(_choose(flags, k, absolute_ok, int(quiet_counts[k]), p) for k in range(len(strides)))
+    level = _level_reasons(leg)
+    choices = tuple(_choose(flags, k, absolute_ok, int(quiet_counts[k]), p, level) for k in range(len(strides)))
     use = np.array([c.estimator == "go" for c in choices])
     cover = np.zeros(n + 1, dtype=int)
     np.add.at(cover, lo[use], 1)

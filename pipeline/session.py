@@ -103,7 +103,7 @@ def _calibrated(params: PipelineParams, calibration: KneeCalibration | None) -> 
     if calibration is None:
         return params
     return dataclasses.replace(params, posture=dataclasses.replace(
-        params.posture, standing_knee_deg=float(calibration.standing_knee_deg)))
+        params.posture, standing_knee_deg=float(calibration.standing_knee_deg), standing_knee_measured=True))
 
 
 def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str = "walking",
@@ -155,4 +155,5 @@ def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, stride
         tau_s=None if result.tuning is None else result.tuning.tau_s, running=running,
         standing_knee_deg=data.params.posture.standing_knee_deg,
         level_source="calibration" if calibration is not None else "assumed",
+        masked_implausible_samples=result.masked_implausible_samples,
         calibration_id=None if calibration is None else calibration.calibration_id)

@@ -142,6 +142,12 @@ class SimConfig:
     turn_strides: float = 2.5  # duration of a walking turn in strides (smaller = sharper)
     turn_angle_deg: float = 180.0
     label_swap: Literal["none", "legs", "thighs", "segments", "left_segments"] = "none"  # wrongly labelled sensors
+    # quiet standing [s] before the first bout and after the last (None: 2-3 s before, ~3 s after); with one long
+    # bout (large bout_strides) and a value below a second, the session contains no quiet standing at all
+    standing_s: float | None = None
+    # "ringing": the shank shock rings 3 x longer at a lower frequency and rocks the sensor about a random axis
+    # (the gyro sees it too), as a loosely strapped sensor would; "default": the model above
+    impact_model: Literal["default", "ringing"] = "default"
 
 
 @dataclass(frozen=True)
@@ -298,13 +304,16 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
     total_strides = cfg.n_strides if cfg.n_strides is not None else (None if cfg.duration_s else 40)
     events: list[tuple[str, float, float, dict]] = []  # (kind, t0, t1, params)
     t = 2.0 + rng.uniform(0, 1)  # quiet standing first: apps start recording before the patient walks
+    tail_s = 3.0
+    if cfg.standing_s is not None:
+        t = tail_s = cfg.standing_s
     done = 0
     k = 0
     while True:
         if total_strides is not None:
             n = min(cfg.bout_strides, total_strides - done)
         else:
-            n = int(min(cfg.bout_strides, max(3, ((cfg.duration_s or 0) - t - 3) / stride_s)))
+            n = int(min(cfg.bout_strides, max(3, ((cfg.duration_s or 0) - t - tail_s) / stride_s)))
         if n < 3:
             break
         dur = n * stride_s
@@ -336,7 +345,7 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
             events.append((kind, t + 1.0, t + 1.0 + _move_duration_s(kind), {"lead": k % 2}))
         t += brk
         k += 1
-    t_end = max(t + 2.5, cfg.duration_s or 0.0)
+    t_end = max(t + 2.5, cfg.duration_s or 0.0) if cfg.standing_s is None else t + cfg.standing_s
     grid = np.arange(0.0, t_end + 1e-9, 1.0 / _GRID_HZ)
     env = np.zeros_like(grid)
     sit = np.zeros_like(grid)
@@ -736,8 +745,10 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
     streams: list[RawSensorStream] = []
     info: dict = {"sensors": {}, "thigh_length_m": thigh_len, "non_gait_s": list(tl.moves.non_gait_s)}
     impact_level = cfg.impact_level
+    imp_freq, imp_tau = (_IMPACT_FREQ_HZ, _IMPACT_TAU_S) if cfg.impact_model == "default" else \
+        (0.6 * _IMPACT_FREQ_HZ, 3.0 * _IMPACT_TAU_S)
     if cfg.impact_g is not None:  # the damped sine's peak, not its amplitude, is the shock in g
-        impact_level = cfg.impact_g / (spec.impact_g * _damped_sine_peak(_IMPACT_FREQ_HZ, _IMPACT_TAU_S))
+        impact_level = cfg.impact_g / (spec.impact_g * _damped_sine_peak(imp_freq, imp_tau))
     rng_burst = np.random.default_rng([cfg.seed, 3])
     left_mounts: dict[str, np.ndarray] = {}
     # Mountings draw from their own stream so "aligned" and "random" share identical kinematics and noise.
@@ -787,10 +798,12 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
                 rot_amp, rot_f, rot_tau = np.radians(0.5 * spec.impact_g) * impact_level, 12.0, 0.03
                 if cfg.impact_g is not None:  # skin and strap limit the sensor's rocking whatever the shock
                     rot_amp = min(rot_amp, np.radians(_IMPACT_ROT_MAX_DEG))
+                if cfg.impact_model == "ringing":  # a loose strap: larger, longer rocking
+                    rot_amp, rot_tau = 2.0 * rot_amp, 3.0 * rot_tau
                 tr_amp, imp_g = 0.0, spec.impact_g * impact_level
             axis = rng.standard_normal(3)
             axis /= np.linalg.norm(axis)
-            if seg == "shank":
+            if seg == "shank" and cfg.impact_model == "default":
                 axis = r_mount.T @ np.array([0.0, 1.0, 0.0])
             if rot_amp > 0 and len(hs):
                 ang = _transient(t_true, hs, rot_amp, rot_f, rot_tau)
@@ -805,7 +818,7 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
                 # Heel-strike shock travels up the segment (mostly along its long axis, some anterior).
                 d_seg = np.array([rng.uniform(0.1, 0.4), 0.0, 1.0])
                 d_sensor = r_mount.T @ (d_seg / np.linalg.norm(d_seg))
-                acc += _transient(t_true, hs, imp_g * GRAVITY_MS2, _IMPACT_FREQ_HZ, _IMPACT_TAU_S)[:, None] * d_sensor
+                acc += _transient(t_true, hs, imp_g * GRAVITY_MS2, imp_freq, imp_tau)[:, None] * d_sensor
 
             gbias = np.radians(cfg.gyro_bias_dps) * rng.standard_normal(3)
             gwalk = np.stack([_smooth_noise(rng, t_true, np.radians(cfg.gyro_bias_walk_dps), 20.0)

@@ -130,6 +130,8 @@ class LegDiagnostics:
     standing_knee_deg: float | None = None
     level_source: str = "assumed"
     calibration_id: str | None = None
+    # knee angles outside the plausibility band (pipeline.params.PostureParams.plausible_knee_deg), masked to NaN
+    masked_implausible_samples: int = 0
 
 
 @dataclass

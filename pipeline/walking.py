@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from pipeline.axes import (
@@ -11,6 +13,7 @@ from pipeline.axes import (
     angular_acceleration,
     fit_joint_axes,
     fit_joint_centres,
+    orient_thigh_on_gait,
     select_fit_samples,
 )
 from pipeline.leg_input import LegInput
@@ -43,6 +46,13 @@ def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: Joi
     rate[~valid] = np.nan
     shank_sag[~valid] = np.nan
     events = detect_gait_events(shank_sag, fs, valid, shank_acc_mps2=prep.acc_shank_mps2, params=params.phases)
+    # the thigh axis's sign again, from gait alone: non-gait movements between bouts can outweigh gait in the
+    # whole-session rule (pipeline.axes.orient_thigh_on_gait); the shank's sign already found the strides
+    j1 = orient_thigh_on_gait(axes.j1, axes.j2, g1, g2, events.strides)
+    if j1 is not axes.j1:
+        axes = dataclasses.replace(axes, j1=j1)
+        rate = np.rad2deg(prep.gyr_thigh_rps @ axes.j1 - prep.gyr_shank_rps @ axes.j2)
+        rate[~valid] = np.nan
     a1, a2 = (np.nan_to_num(a) for a in lowpass_runs_many((prep.acc_thigh_mps2, prep.acc_shank_mps2), valid,
                                                             cutoff, fs))
     gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)

@@ -32,14 +32,19 @@ class CfDiagnostics(EstimatorDiagnostics):
 def complementary_filter(rate_dps: np.ndarray, acc_angle_deg: np.ndarray, fs_hz: float,
                          valid: np.ndarray, tau_s: float = WALKING.cf.tau_s) -> np.ndarray:
     """Eq. 17, ``a[n] = lam*acc[n] + (1-lam)*(a[n-1] + rate[n]*dt)``, as a first-order IIR (``lfilter``) run
-    separately on each valid run and started at the run's first second of accelerometer angle (median).
+    separately on each valid run. Each run starts at the angle that best explains its first second of accelerometer
+    angle given the gyroscope's motion (median of accelerometer angle minus the rate's integral): during gait the
+    knee moves 60 deg within that second, so the accelerometer angle's own median is no start value, while the
+    integral's drift over one second is well below a degree (gyro bias ~1 deg/s).
     Arrays (N,): rate [deg/s], accelerometer angle [deg], valid; returns the angle (N,) [deg], NaN elsewhere."""
     dt = 1.0 / fs_hz
     lam = min(dt / tau_s, 1.0)
     out = np.full(rate_dps.shape[0], np.nan)
     for a, b in true_runs(valid & np.isfinite(rate_dps) & np.isfinite(acc_angle_deg)):
         u = lam * acc_angle_deg[a:b] + (1.0 - lam) * rate_dps[a:b] * dt
-        y0 = float(np.median(acc_angle_deg[a:min(b, a + int(fs_hz))]))
+        m = min(b, a + max(int(fs_hz), 1))
+        moved = np.cumsum(rate_dps[a:m]) * dt  # the gyroscope's angle change from the start, as Eq. 17 adds it
+        y0 = float(np.median(acc_angle_deg[a:m] - moved))
         y, _ = lfilter([1.0], [1.0, -(1.0 - lam)], u, zi=np.array([(1.0 - lam) * y0]))
         out[a:b] = y
     return out

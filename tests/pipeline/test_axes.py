@@ -13,6 +13,7 @@ from pipeline.axes import (
     estimate_sync_lag_s,
     fit_joint_axes,
     orient_axes,
+    orient_thigh_on_gait,
     select_fit_samples,
 )
 from pipeline.params import AxesParams
@@ -58,6 +59,29 @@ def test_sign_convention_is_independent_of_the_initial_signs() -> None:
             w2 = g2 @ j2
             assert np.percentile(w2, 99.5) > -np.percentile(w2, 0.5)
             assert np.corrcoef(g1 @ j1, w2)[0, 1] > 0
+
+
+def test_thigh_sign_on_gait_ignores_counter_rotating_movements() -> None:
+    """Inside strides thigh and shank swing together; a squat outside them (opposite senses, larger rates) must not
+    decide the sign of j1."""
+    g1, g2, j1_true, j2_true, _ = _hinge_gyros(5)
+    n = g1.shape[0]
+    squat = np.zeros(n, dtype=bool)
+    squat[: n // 2] = True
+    w = 5.0 * np.sin(np.arange(n) / 10.0)
+    g1 = g1.copy()
+    g2 = g2.copy()
+    g1[squat] = np.outer(w[squat], j1_true)
+    g2[squat] = np.outer(-w[squat], j2_true)
+    strides = [(n // 2 + 10, n // 2 + 50, n - 10)]
+    _, j2 = orient_axes(j1_true, j2_true, g1[~squat], g2[~squat])
+    for s1 in (1, -1):
+        j1 = orient_thigh_on_gait(s1 * j1_true, j2, g1, g2, strides)
+        gait = ~squat
+        assert np.corrcoef(g1[gait] @ j1, g2[gait] @ j2)[0, 1] > 0
+    # the whole-session rule is fooled by the squat
+    j1_all, _ = orient_axes(j1_true, j2, g1, g2)
+    assert np.corrcoef(g1[~squat] @ j1_all, g2[~squat] @ j2)[0, 1] < 0
 
 
 def test_fit_sample_set_is_bounded_and_spread() -> None:

@@ -236,3 +236,32 @@ def test_calibration_moves_the_level_by_the_measured_standing_flexion() -> None:
     pairs = zip(calibrated.strides, plain.strides, strict=True)
     shift = [c.peak_swing_flexion_deg - p.peak_swing_flexion_deg for c, p in pairs]
     assert np.allclose(shift, 7.0, atol=0.05)
+    # an assumed level is named on every stride; a measured one is not
+    assert all("assumed_level" in s.quality_reasons for s in plain.strides)
+    assert not any("assumed_level" in s.quality_reasons for s in calibrated.strides)
+
+
+def test_jumps_between_bouts_do_not_flip_the_thigh_axis() -> None:
+    """Squat jumps rotate thigh and shank in opposite senses: the thigh axis sign comes from gait alone, so GO keeps
+    its zero crossings and no stride falls back."""
+    sim = simulate_session(SimConfig(pattern="normal", seed=100, duration_s=90.0, bout_strides=12,
+                                     activities=("jump",)))
+    res = process_session(sim.streams)
+    for leg in res.legs.values():
+        assert len(leg.strides) > 20
+        assert leg.diagnostics.n_fallback <= 2
+        assert np.nanmin(leg.angle_deg) > -15.0
+
+
+def test_implausible_angles_are_masked_and_counted() -> None:
+    """A band narrower than the gait's range masks the swing peaks: they become NaN, are counted, and no stride
+    containing one is reported."""
+    sim = _sim("normal", 5, legs=("left",))
+    band = dataclasses.replace(WALKING.posture, plausible_knee_deg=(-15.0, 50.0))
+    narrow = dataclasses.replace(WALKING, posture=band)
+    leg = process_session(sim.streams, params=narrow).legs["left"]
+    assert leg.diagnostics.masked_implausible_samples > 0
+    assert np.nanmax(leg.angle_deg) <= 50.0
+    assert not leg.strides
+    full = process_session(sim.streams).legs["left"]
+    assert full.diagnostics.masked_implausible_samples == 0 and full.strides
