@@ -16,6 +16,8 @@ from server.body_limit import BodyLimitMiddleware
 from server.config import Settings, get_settings
 from server.db import make_engine, make_sessionmaker
 from server.errors import install_error_handlers
+from server.openapi import install as install_openapi
+from server.openapi import operation_id
 from server.patients import routes as patient_routes
 from server.results import routes as result_routes
 from server.sessions import routes as session_routes
@@ -58,7 +60,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             engine.dispose()
 
     app = FastAPI(title="gaitmon", version="1.0.0", description=DESCRIPTION, openapi_tags=TAGS,
-                  lifespan=lifespan)
+                  generate_unique_id_function=operation_id, lifespan=lifespan)
     app.state.settings = settings
     app.state.engine = engine
     app.state.sessionmaker = make_sessionmaker(engine)
@@ -73,4 +75,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(result_routes.router)
     # Routers of other modules are included below this line (one line each).
     app.include_router(trend_routes.router)
+    install_openapi(app)
     return app
