@@ -10,7 +10,8 @@ cannot infer:
   where a parameter or the body is validated, 400/413/415 where a request body passes the body-limit middleware.
   Errors that follow from what a route does (403 for a role, 409 for a state, a 422 with a meaning of its own, 503)
   are declared at the route with ``responses={code: {"description": ...}}`` and get the same schema here.
-- Every request body has a description; a body a route parses itself (``openapi_extra``) becomes a named component.
+- Every request body has a description; a body a route parses itself (``openapi_extra``) becomes a named component;
+  the models' examples keep their nulls.
 
 Operation ids are the route functions' names in camelCase (:func:`operation_id`) unless a route names its own.
 """
@@ -24,6 +25,7 @@ from typing import Any
 
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
+from pydantic import BaseModel
 
 from server.errors import PROBLEM_JSON, Problem
 
@@ -159,6 +161,31 @@ def _drop_unused_validation_schemas(spec: dict[str, Any]) -> None:
             schemas.pop(name, None)
 
 
+def _declared_examples() -> dict[str, list[Any]]:
+    """The ``examples`` of every model of the service, by class name (a name two models share is left out)."""
+    found: dict[str, list[Any]] = {}
+    ambiguous: set[str] = set()
+    stack = list(BaseModel.__subclasses__())
+    while stack:
+        model = stack.pop()
+        stack.extend(model.__subclasses__())
+        extra = model.model_config.get("json_schema_extra")
+        if not model.__module__.startswith("server.") or not isinstance(extra, dict) or "examples" not in extra:
+            continue
+        if model.__name__ in found and found[model.__name__] is not extra["examples"]:
+            ambiguous.add(model.__name__)
+        found[model.__name__] = extra["examples"]
+    return {name: examples for name, examples in found.items() if name not in ambiguous}
+
+
+def _restore_examples(schemas: dict[str, Any]) -> None:
+    # FastAPI encodes the document with exclude_none, which drops every null out of the examples too: an example
+    # of a required nullable field would lose the field and no longer be valid for its own schema.
+    for name, examples in _declared_examples().items():
+        if name in schemas:
+            schemas[name]["examples"] = examples
+
+
 def _check_operation_ids(spec: dict[str, Any]) -> None:
     ids = [op.get("operationId", "") for _, _, op in operations(spec)]
     duplicates = sorted({i for i in ids if ids.count(i) > 1})
@@ -180,6 +207,7 @@ def contract(spec: dict[str, Any]) -> dict[str, Any]:
         _describe_body(op, schemas)
         _document_errors(op)
     _drop_unused_validation_schemas(spec)
+    _restore_examples(schemas)
     components["schemas"] = dict(sorted(schemas.items()))
     _check_operation_ids(spec)
     return spec
