@@ -316,11 +316,11 @@ def test_malformed_json_names_the_body(api: Api) -> None:
 
 @pytest.mark.parametrize(("jump_periods", "gaps"), [(1.6, 0), (1.9, 1)])
 def test_time_jumps_count_as_gaps_by_the_pipelines_rule(api: Api, jump_periods: float, gaps: int) -> None:
-    """received.gaps uses the pipeline's gap threshold (GAP_FACTOR sample periods), so it agrees with the
+    """received.gaps uses the pipeline's gap threshold (PrepareParams.gap_factor sample periods), so it agrees with the
     processing summary's gaps: a step of 1.6 periods is no gap to either, 1.9 periods is one to both."""
-    from pipeline.prepare import GAP_FACTOR
+    from pipeline.params import WALKING
 
-    assert 1.6 < GAP_FACTOR < 1.9
+    assert 1.6 < WALKING.prepare.gap_factor < 1.9
     _, dev, sess = api.setup_device_session()
     t = np.arange(20) * 10.0
     t[10:] += (jump_periods - 1.0) * 10.0
