@@ -102,12 +102,12 @@ def _document_errors(op: dict[str, Any]) -> None:
             responses[str(status)].setdefault("headers", headers)
     for code, response in list(responses.items()):
         if code[:1] in ("4", "5"):
-            responses[code] = _problem_response(response.get("description") or description_of(int(code)),
+            responses[code] = _problem_response(response.get("description") or _description_of(int(code)),
                                                 response.get("headers") or {})
     op["responses"] = dict(sorted(responses.items()))
 
 
-def description_of(status: int) -> str:
+def _description_of(status: int) -> str:
     """The shape rule's description of a status, else its HTTP reason phrase."""
     if status in SHAPE_ERRORS:
         return SHAPE_ERRORS[status][1]

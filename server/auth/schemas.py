@@ -14,11 +14,8 @@ class MeOut(BaseModel):
     """Who the bearer token belongs to."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [
-        {"token_id": "9e8d7c6b5a4f4e3d2c1b0a9f8e7d6c5b",
-         "role": "clinician",
-         "name": "Dr Ada Weber",
-         "clinician_id": "5b2e9f1c3a4d4e6f8a7b9c0d1e2f3a4b",
-         "patient_id": None}]})
+        {"token_id": "9e8d7c6b5a4f4e3d2c1b0a9f8e7d6c5b", "role": "clinician", "name": "Dr Ada Weber",
+         "clinician_id": "5b2e9f1c3a4d4e6f8a7b9c0d1e2f3a4b", "patient_id": None}]})
 
     token_id: str
     role: Role
@@ -50,12 +47,8 @@ class ClinicianCreated(ClinicianOut):
     """A new clinician with the bearer token issued for them."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [
-        {"id": "5b2e9f1c3a4d4e6f8a7b9c0d1e2f3a4b",
-         "name": "Dr Ada Weber",
-         "email": "ada.weber@clinic.example",
-         "created_at": "2026-11-20T08:00:00Z",
-         "token": "gm_4q...",
-         "token_id": "9e8d7c6b5a4f4e3d2c1b0a9f8e7d6c5b"}]})
+        {"id": "5b2e9f1c3a4d4e6f8a7b9c0d1e2f3a4b", "name": "Dr Ada Weber", "email": "ada.weber@clinic.example",
+         "created_at": "2026-11-20T08:00:00Z", "token": "gm_4q...", "token_id": "9e8d7c6b5a4f4e3d2c1b0a9f8e7d6c5b"}]})
 
     token: str = Field(description="Bearer token of the clinician; shown once.")
     token_id: str
@@ -85,10 +78,8 @@ class DeviceTokenCreated(BaseModel):
     """A new device token, shown once."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [
-        {"token": "gm_Zx...",
-         "token_id": "9e8d7c6b5a4f4e3d2c1b0a9f8e7d6c5b",
-         "patient_id": "8c1d0c6f2b7e4a5f9d3e2a1b0c9d8e7f",
-         "name": "Pixel 8 of patient 42"}]})
+        {"token": "gm_Zx...", "token_id": "9e8d7c6b5a4f4e3d2c1b0a9f8e7d6c5b",
+         "patient_id": "8c1d0c6f2b7e4a5f9d3e2a1b0c9d8e7f", "name": "Pixel 8 of patient 42"}]})
 
     token: str = Field(description="Bearer token for the patient's app; shown once.")
     token_id: str

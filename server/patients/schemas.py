@@ -61,12 +61,8 @@ class PatientOut(OrmOut):
     """A patient."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [
-        {"id": "8c1d0c6f2b7e4a5f9d3e2a1b0c9d8e7f",
-         "clinician_id": "5b2e9f1c3a4d4e6f8a7b9c0d1e2f3a4b",
-         "external_id": "MRN-0042",
-         "display_name": "Patient 42",
-         "affected_leg": "left",
-         "timezone": "Europe/Berlin",
+        {"id": "8c1d0c6f2b7e4a5f9d3e2a1b0c9d8e7f", "clinician_id": "5b2e9f1c3a4d4e6f8a7b9c0d1e2f3a4b",
+         "external_id": "MRN-0042", "display_name": "Patient 42", "affected_leg": "left", "timezone": "Europe/Berlin",
          "created_at": "2026-11-20T08:05:00Z"}]})
 
     id: str

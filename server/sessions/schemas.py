@@ -15,11 +15,7 @@ class SensorIn(StrictIn):
     """One sensor of a new session."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [
-        {"sensor_id": "L-thigh",
-         "leg": "left",
-         "segment": "thigh",
-         "sample_rate_hz": 100.0,
-         "gyro_unit": "deg/s",
+        {"sensor_id": "L-thigh", "leg": "left", "segment": "thigh", "sample_rate_hz": 100.0, "gyro_unit": "deg/s",
          "acc_unit": "m/s2"}]})
 
     sensor_id: Annotated[str, Field(min_length=1, max_length=64)]

@@ -19,6 +19,7 @@ from server.openapi import OPERATION_ID_RULE
 from server.patients.schemas import PatientIn, PatientOut, PatientPatch
 from server.results.schemas import KneeAngleOut
 from server.sessions.schemas import BatchIn, BatchOut, SensorIn, SessionIn, SessionOut
+from server.trends.schemas import TrendsOut
 
 
 class _AnyText(str):
@@ -142,7 +143,7 @@ def test_csv_and_fhir_media_types_as_served(spec: dict[str, Any]) -> None:
 
 REQUEST_MODELS = [ClinicianIn, PatientIn, PatientPatch, DeviceTokenIn, SessionIn, SensorIn, BatchIn]
 RESPONSE_MODELS = [Problem, MeOut, ClinicianCreated, DeviceTokenCreated, PatientOut, SessionOut, BatchOut,
-                   KneeAngleOut]
+                   KneeAngleOut, TrendsOut]
 
 
 def test_every_request_body_has_a_description_and_examples(spec: dict[str, Any]) -> None:
