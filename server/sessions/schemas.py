@@ -68,8 +68,8 @@ class ReceivedOut(BaseModel):
 
     batches: int
     samples: int
-    gaps: int = Field(description=f"Detected gaps: missing seq numbers or time jumps > {WALKING.prepare.gap_factor:g} sample "
-                                  "periods (the pipeline's gap rule)")
+    gaps: int = Field(description="Detected gaps: missing seq numbers or time jumps > "
+                                  f"{WALKING.prepare.gap_factor:g} sample periods (the pipeline's gap rule)")
     gap_s: float = Field(description="Total time missing inside gaps, seconds")
     first_t_s: float | None
     last_t_s: float | None
