@@ -20,6 +20,8 @@ from server.calibrations import routes as calibration_routes
 from server.config import Settings, get_settings
 from server.db import make_engine, make_sessionmaker
 from server.errors import install_error_handlers
+from server.openapi import install as install_openapi
+from server.openapi import operation_id
 from server.ops import install as install_ops
 from server.patients import routes as patient_routes
 from server.results import routes as result_routes
@@ -65,7 +67,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     # /docs and /redoc with Swagger UI and ReDoc from the fastapi-offline package: no CDN, works offline.
     app = FastAPIOffline(title="gaitmon", version="1.0.0", description=DESCRIPTION, openapi_tags=TAGS,
-                         lifespan=lifespan, swagger_ui_parameters={"validatorUrl": None})
+                         generate_unique_id_function=operation_id, lifespan=lifespan,
+                         swagger_ui_parameters={"validatorUrl": None})
     app.state.settings = settings
     app.state.engine = engine
     app.state.sessionmaker = make_sessionmaker(engine)
@@ -85,4 +88,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.mount("/ui/static", StaticFiles(directory=ui_routes.STATIC_DIR), name="ui-static")
     app.add_api_route("/", lambda: RedirectResponse("/ui/"), include_in_schema=False)
     app.include_router(calibration_routes.router)
+    install_openapi(app)
     return app

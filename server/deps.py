@@ -5,7 +5,8 @@ from __future__ import annotations
 from collections.abc import Iterator
 from typing import Annotated
 
-from fastapi import Depends, Request
+from fastapi import Depends, Request, Security
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy import select
 from sqlalchemy.orm import Session as DbSession
 
@@ -30,15 +31,21 @@ def _unauthorized(detail: str) -> ProblemError:
     return ProblemError(401, detail, slug="unauthorized", headers={"WWW-Authenticate": 'Bearer realm="gaitmon"'})
 
 
-def current_principal(request: Request, db: DbSession = Depends(get_db)) -> Principal:
+# Declares the scheme in the OpenAPI document (Swagger's "Authorize"); the 401 problems below stay ours.
+bearer_scheme = HTTPBearer(scheme_name="bearerAuth", auto_error=False,
+                           description="A token from `gaitmon create-token`, POST /v1/clinicians or "
+                                       "POST /v1/patients/{patient_id}/device-tokens")
+
+
+def current_principal(request: Request, db: DbSession = Depends(get_db),
+                      credentials: HTTPAuthorizationCredentials | None = Security(bearer_scheme)) -> Principal:
     """The caller of a /v1 endpoint, or 401."""
-    header = request.headers.get("authorization", "")
-    scheme, _, value = header.partition(" ")
-    if not header:
-        raise _unauthorized("Missing Authorization header (expected 'Bearer <token>')")
-    if scheme.lower() != "bearer" or not value.strip():
+    value = credentials.credentials.strip() if credentials is not None else ""
+    if not value:
+        if not request.headers.get("authorization", ""):
+            raise _unauthorized("Missing Authorization header (expected 'Bearer <token>')")
         raise _unauthorized("Authorization header must be 'Bearer <token>'")
-    token = db.scalar(select(Token).where(Token.token_hash == hash_token(value.strip())))
+    token = db.scalar(select(Token).where(Token.token_hash == hash_token(value)))
     if token is None or token.revoked_at is not None:
         raise _unauthorized("Invalid or revoked token")
     principal = Principal(token_id=token.id, role=token.role, name=token.name, clinician_id=token.clinician_id,

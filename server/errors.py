@@ -9,6 +9,7 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 log = logging.getLogger("gaitmon.api")
@@ -16,6 +17,33 @@ log = logging.getLogger("gaitmon.api")
 PROBLEM_JSON = "application/problem+json"
 # Validation errors past this many are summarised: a batch of 20 000 NaN rows must not echo 20 000 entries.
 MAX_FIELD_ERRORS = 50
+
+
+class ProblemFieldError(BaseModel):
+    """One invalid field of a request."""
+
+    field: str = Field(description="Where: a body path (`gyro[17][2]`), a parameter name, or `body`",
+                       examples=["gyro[17][2]"])
+    message: str = Field(description="What is wrong with it", examples=["Input should be a finite number"])
+
+
+class Problem(BaseModel):
+    """An RFC 9457 problem details document: the body of every error response (``application/problem+json``)."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
+        "type": "urn:gaitmon:problem:validation-error", "title": "Validation failed", "status": 422,
+        "detail": "gyro[17][2]: Input should be a finite number",
+        "instance": "/v1/sessions/3f0c2a9e8b7d4c1a9e6f5d4c3b2a1908/batches",
+        "errors": [{"field": "gyro[17][2]", "message": "Input should be a finite number"}]}]})
+
+    type: str = Field(description="URI of the kind of problem, `urn:gaitmon:problem:<slug>`",
+                      examples=["urn:gaitmon:problem:not-found"])
+    title: str = Field(description="Short summary of the kind of problem", examples=["Not Found"])
+    status: int = Field(description="The HTTP status code", examples=[404])
+    detail: str = Field(description="What went wrong with this request", examples=["Session not found"])
+    instance: str | None = Field(None, description="The request path")
+    errors: list[ProblemFieldError] | None = Field(None, description="Validation problems: one entry per invalid "
+                                                                     f"field (at most {MAX_FIELD_ERRORS + 1})")
 
 
 def problem_type(slug: str) -> str:

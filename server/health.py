@@ -22,7 +22,8 @@ class HealthOut(BaseModel):
     database: str
 
 
-@router.get("/healthz", response_model=HealthOut, summary="200 when the service and its database answer, else 503",
+@router.get("/healthz", response_model=HealthOut, operation_id="getHealth",
+            summary="200 when the service and its database answer, else 503",
             responses={503: {"description": "The database does not answer"}})
 def healthz(request: Request) -> JSONResponse:
     """200 when the service and its database answer, 503 otherwise."""

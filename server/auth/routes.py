@@ -20,14 +20,15 @@ log = logging.getLogger("gaitmon.api")
 router = APIRouter(prefix="/v1", tags=["clinicians and tokens"])
 
 
-@router.get("/me", response_model=MeOut, summary="The identity behind the bearer token")
+@router.get("/me", response_model=MeOut, operation_id="getMe", summary="The identity behind the bearer token")
 def me(caller: Caller) -> MeOut:
     """The identity behind the bearer token."""
     return MeOut(token_id=caller.token_id, role=Role(caller.role), name=caller.name,
                  clinician_id=caller.clinician_id, patient_id=caller.patient_id)
 
 
-@router.post("/clinicians", status_code=201, response_model=ClinicianCreated,
+@router.post("/clinicians", status_code=201, response_model=ClinicianCreated, operation_id="createClinician",
+             responses={403: {"description": "Only an admin token may create clinicians"}},
              summary="Create a clinician and its first token (admin; the token is shown once)")
 def post_clinician(body: ClinicianIn, db: Db, caller: Caller) -> ClinicianCreated:
     """Create a clinician and its first token (admin only)."""
@@ -40,7 +41,8 @@ def post_clinician(body: ClinicianIn, db: Db, caller: Caller) -> ClinicianCreate
                             created_at=clinician.created_at, token=plaintext, token_id=token_id or "")
 
 
-@router.get("/clinicians", response_model=list[ClinicianOut], summary="All clinicians (admin)")
+@router.get("/clinicians", response_model=list[ClinicianOut], summary="All clinicians (admin)",
+            responses={403: {"description": "Only an admin token may list clinicians"}})
 def list_clinicians(db: Db, caller: Caller, limit: int = Query(200, ge=1, le=1000)) -> list[ClinicianOut]:
     """Every clinician (admin only)."""
     require_role(caller, Role.admin, action="list clinicians")
@@ -54,6 +56,7 @@ def token_out(t: Token) -> TokenOut:
 
 
 @router.delete("/tokens/{token_id}", status_code=204, response_class=Response,
+               responses={403: {"description": "Device tokens may not revoke tokens"}},
                summary="Revoke a token (admin: any; clinician: its own and its patients' device tokens)")
 def revoke_token(token_id: str, db: Db, caller: Caller) -> Response:
     """Revoke a token: an admin any, a clinician its own and its patients' device tokens."""

@@ -37,6 +37,7 @@ AFFECTED_HEADER = "Gaitmon-Affected-Sessions"
 
 
 @router.post("", status_code=201, response_model=CalibrationCreated,
+             responses={403: {"description": "Device tokens may not record calibrations"}},
              summary="Record a measured standing knee flexion of one leg (clinician/admin)")
 def create_calibration(patient_id: str, body: CalibrationIn, db: Db, caller: Caller) -> CalibrationCreated:
     """Record a calibration; sessions already processed keep their results until they are reprocessed."""
@@ -57,7 +58,8 @@ def create_calibration(patient_id: str, body: CalibrationIn, db: Db, caller: Cal
                                               "affected_session_ids": affected[:MAX_AFFECTED_IDS]})
 
 
-@router.get("", response_model=CalibrationPage, summary="The patient's calibrations, newest measurement first")
+@router.get("", response_model=CalibrationPage, summary="The patient's calibrations, newest measurement first",
+            responses={400: {"description": "cursor is not a next_cursor of this API"}})
 def list_calibrations(patient_id: str, db: Db, caller: Caller, leg: Leg | None = None,
                       limit: int = Query(50, ge=1, le=200),
                       cursor: str | None = Query(None, description="next_cursor of the previous page")
@@ -89,7 +91,8 @@ def get_calibration(patient_id: str, calibration_id: str, db: Db, caller: Caller
 @router.delete("/{calibration_id}", status_code=204, response_class=Response,
                responses={204: {"headers": {AFFECTED_HEADER: {
                    "description": "Processed sessions of that leg a reprocess would now change",
-                   "schema": {"type": "integer"}}}}},
+                   "schema": {"type": "integer"}}}},
+                          403: {"description": "Device tokens may not delete calibrations"}},
                summary="Delete a calibration (clinician/admin); processed sessions keep it until reprocessed")
 def delete_calibration(patient_id: str, calibration_id: str, db: Db, caller: Caller) -> Response:
     """Delete a calibration; the sessions processed with it keep their results until they are reprocessed."""

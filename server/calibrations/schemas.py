@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import timedelta
 from typing import Annotated
 
-from pydantic import AwareDatetime, BaseModel, Field, field_validator
+from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, field_validator
 
 from server.enums import CalibrationMethod, Leg
 from server.schema_types import OrmOut, StrictIn, UtcDatetime
@@ -38,6 +38,10 @@ def storable_text(value: str | None) -> str | None:
 
 class CalibrationIn(StrictIn):
     """A measured standing knee flexion of one leg."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"leg": "left", "standing_knee_deg": 7.5, "measured_at": "2026-11-20T10:15:00+01:00", "method": "goniometer",
+         "note": "after physiotherapy"}]})
 
     leg: Leg
     standing_knee_deg: Annotated[float, Field(ge=MIN_STANDING_KNEE_DEG, le=MAX_STANDING_KNEE_DEG,

@@ -31,6 +31,7 @@ def patient_out(p: Patient) -> PatientOut:
 
 
 @router.post("", status_code=201, response_model=PatientOut,
+             responses={403: {"description": "Device tokens may not create patients"}},
              summary="Create a patient owned by the calling clinician (an admin may name the clinician)")
 def create_patient(body: PatientIn, db: Db, caller: Caller) -> PatientOut:
     """Create a patient owned by the calling clinician (an admin may name the clinician)."""
@@ -51,7 +52,9 @@ def create_patient(body: PatientIn, db: Db, caller: Caller) -> PatientOut:
     return patient_out(patient)
 
 
-@router.get("", response_model=PatientPage, summary="The caller's patients (admin: all), oldest first")
+@router.get("", response_model=PatientPage, summary="The caller's patients (admin: all), oldest first",
+            responses={400: {"description": "cursor is not a next_cursor of this API"},
+                       403: {"description": "Device tokens may not list patients"}})
 def list_patients(db: Db, caller: Caller, limit: int = Query(50, ge=1, le=200),
                   cursor: str | None = Query(None, description="next_cursor of the previous page")) -> PatientPage:
     """The caller's patients, one page at a time."""
@@ -73,7 +76,8 @@ def get_patient(patient_id: str, db: Db, caller: Caller) -> PatientOut:
     return patient_out(get_patient_for(db, caller, patient_id))
 
 
-@router.patch("/{patient_id}", response_model=PatientOut, summary="Change a patient's details")
+@router.patch("/{patient_id}", response_model=PatientOut, summary="Change a patient's details",
+              operation_id="updatePatient", responses={403: {"description": "Device tokens may not change patients"}})
 def patch_patient(patient_id: str, body: PatientPatch, db: Db, caller: Caller) -> PatientOut:
     """Change some fields of a patient."""
     require_role(caller, Role.admin, Role.clinician, action="change patients")
@@ -85,6 +89,7 @@ def patch_patient(patient_id: str, body: PatientPatch, db: Db, caller: Caller) -
 
 
 @router.delete("/{patient_id}", status_code=204, response_class=Response,
+               responses={403: {"description": "Device tokens may not delete patients"}},
                summary="Delete the patient and all its data (sessions, raw batches, results, tokens)")
 def delete_patient(patient_id: str, db: Db, caller: Caller) -> Response:
     """Delete a patient with every session, result and token."""
@@ -104,6 +109,7 @@ def delete_patient(patient_id: str, db: Db, caller: Caller) -> Response:
 
 
 @router.post("/{patient_id}/device-tokens", status_code=201, response_model=DeviceTokenCreated,
+             responses={403: {"description": "Device tokens may not create device tokens"}},
              summary="Enrol a device: a token bound to this patient (shown once)")
 def create_device_token(patient_id: str, db: Db, caller: Caller,
                         body: DeviceTokenIn | None = None) -> DeviceTokenCreated:
@@ -118,6 +124,7 @@ def create_device_token(patient_id: str, db: Db, caller: Caller,
 
 
 @router.get("/{patient_id}/device-tokens", response_model=list[TokenOut],
+            responses={403: {"description": "Device tokens may not list device tokens"}},
             summary="The patient's device tokens (without their secret)")
 def list_device_tokens(patient_id: str, db: Db, caller: Caller) -> list[TokenOut]:
     """The device tokens of a patient (metadata only)."""
@@ -128,7 +135,8 @@ def list_device_tokens(patient_id: str, db: Db, caller: Caller) -> list[TokenOut
     return [token_out(t) for t in rows]
 
 
-@router.get("/{patient_id}/sessions", response_model=SessionPage,
+@router.get("/{patient_id}/sessions", response_model=SessionPage, operation_id="listPatientSessions",
+            responses={400: {"description": "cursor is not a next_cursor of this API"}},
             summary="The patient's sessions, newest first")
 def list_sessions(patient_id: str, db: Db, caller: Caller, limit: int = Query(50, ge=1, le=200),
                   cursor: str | None = Query(None, description="next_cursor of the previous page")) -> SessionPage:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Annotated
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
-from pydantic import BaseModel, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from server.enums import Leg
 from server.schema_types import OrmOut, StrictIn, UtcDatetime
@@ -23,6 +23,10 @@ def known_timezone(value: str) -> str:
 class PatientIn(StrictIn):
     """A new patient."""
 
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"external_id": "MRN-0042", "display_name": "Patient 42", "affected_leg": "left",
+         "timezone": "Europe/Berlin"}]})
+
     external_id: Annotated[str, Field(max_length=200)] | None = None
     display_name: Annotated[str, Field(max_length=200)] | None = None
     affected_leg: Leg | None = None
@@ -37,6 +41,8 @@ class PatientIn(StrictIn):
 
 class PatientPatch(StrictIn):
     """Fields to change; fields left out stay as they are (null clears an optional field)."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{"affected_leg": "right"}, {"display_name": None}]})
 
     external_id: Annotated[str, Field(max_length=200)] | None = None
     display_name: Annotated[str, Field(max_length=200)] | None = None
@@ -53,6 +59,11 @@ class PatientPatch(StrictIn):
 
 class PatientOut(OrmOut):
     """A patient."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"id": "8c1d0c6f2b7e4a5f9d3e2a1b0c9d8e7f", "clinician_id": "5b2e9f1c3a4d4e6f8a7b9c0d1e2f3a4b",
+         "external_id": "MRN-0042", "display_name": "Patient 42", "affected_leg": "left", "timezone": "Europe/Berlin",
+         "created_at": "2026-11-20T08:05:00Z"}]})
 
     id: str
     clinician_id: str | None

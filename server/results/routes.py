@@ -33,7 +33,8 @@ def _require_done(session: Session) -> None:
     raise ProblemError(409, detail, title="Results not available", slug="results-not-ready")
 
 
-@router.get("/{session_id}/strides", response_model=StridesOut,
+@router.get("/{session_id}/strides", response_model=StridesOut, operation_id="listStrides",
+            responses={409: {"description": "The session is not processed (yet, or processing failed)"}},
             summary="Every stride of the session (optionally one leg), heel strike to heel strike")
 def get_strides(session_id: str, db: Db, caller: Caller, leg: Leg | None = Query(None)) -> StridesOut:
     """Every stride of a processed session (optionally one leg)."""
@@ -81,6 +82,7 @@ def minmax_indices(angle_deg: np.ndarray, max_points: int) -> np.ndarray:
 
 
 @router.get("/{session_id}/knee-angle", response_model=KneeAngleOut,
+            responses={409: {"description": "The session is not processed (yet, or processing failed)"}},
             summary="The continuous knee flexion estimate of one leg, min/max down-sampled to max_points")
 def get_knee_angle(session_id: str, db: Db, caller: Caller,
                    leg: Leg | None = Query(None, description="Required when both legs were measured"),
@@ -124,6 +126,7 @@ def get_knee_angle(session_id: str, db: Db, caller: Caller,
 
 
 @router.get("/{session_id}/compare", response_model=CompareOut,
+            responses={409: {"description": "The session is still receiving or has no uploaded data"}},
             summary="Every knee estimator on this session: stride metrics per estimator and pairwise differences")
 async def compare_session(session_id: str, request: Request, caller: Caller,
                           estimators: str | None = Query(None, description="Comma-separated subset, e.g. go,kf; "

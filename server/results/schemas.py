@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, Field, create_model
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from server.enums import Leg, StrideActivity
 from server.results.stride_record import STRIDE_UNITS
@@ -44,6 +44,11 @@ class StridesOut(BaseModel):
 
 class KneeAngleOut(BaseModel):
     """The continuous knee flexion of one leg, possibly down-sampled."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "session_id": "3f0c2a9e8b7d4c1a9e6f5d4c3b2a1908", "leg": "left", "fs_hz": 100.0, "n_total": 6000,
+        "downsampling": "minmax", "t_s": [0.0, 0.41, 0.83], "angle_deg": [4.2, 61.8, None],
+        "estimator": ["go", "go", None]}]})
 
     session_id: str
     leg: Leg

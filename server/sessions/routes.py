@@ -71,7 +71,8 @@ def _same_or_conflict(existing: Session, body: SessionIn) -> Session:
 
 @router.post("", status_code=201, response_model=SessionOut,
              responses={200: {"description": "The session with this client_session_id already existed",
-                              "model": SessionOut}},
+                              "model": SessionOut},
+                        409: {"description": "The client_session_id is used by a session with other sensors"}},
              summary="Start a session (a repeated client_session_id returns the existing one with 200)")
 def create_session(body: SessionIn, response: Response, db: Db, caller: Caller) -> SessionOut:
     """Create a session (idempotent on the app's client_session_id)."""
@@ -137,6 +138,7 @@ def upload_batch(session_id: str, response: Response, db: Db, caller: Caller, se
 
 
 @router.post("/{session_id}/complete", status_code=202, response_model=SessionOut,
+             responses={422: {"description": "The session has no batches: nothing to process"}},
              summary="No more uploads: queue the session for processing (idempotent)")
 def complete_session(session_id: str, db: Db, caller: Caller, settings: AppSettings) -> SessionOut:
     """No more data will come: queue the session for processing."""
@@ -160,6 +162,8 @@ def complete_session(session_id: str, db: Db, caller: Caller, settings: AppSetti
 
 
 @router.post("/{session_id}/reprocess", status_code=202, response_model=SessionOut,
+             responses={403: {"description": "Device tokens may not reprocess sessions"},
+                        409: {"description": "The session is still receiving; complete it first"}},
              summary="Run the current algorithm again on the stored raw data (clinician/admin)")
 def reprocess_session(session_id: str, db: Db, caller: Caller, settings: AppSettings) -> SessionOut:
     """Run the current algorithm again on the stored raw data."""

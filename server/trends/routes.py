@@ -26,6 +26,14 @@ log = logging.getLogger("gaitmon.api")
 # field, which costs more than computing them; every value is already a JSON type. The response models document them.
 router = APIRouter(prefix="/v1", tags=["trends"])
 
+
+
+class FhirJSONResponse(JSONResponse):
+    """JSON served as FHIR's own media type."""
+
+    media_type = "application/fhir+json"
+
+
 MetricName = Enum("MetricName", {name: name for name in METRICS}, type=str)  # type: ignore[misc]
 LegName = Literal["left", "right"]
 BucketName = Literal["day", "week"]
@@ -55,7 +63,7 @@ def _range(patient: Patient, start: str | None, end: str | None) -> tuple[dateti
     return lo, hi
 
 
-@router.get("/patients/{patient_id}/trends", response_model=TrendsOut,
+@router.get("/patients/{patient_id}/trends", response_model=TrendsOut, operation_id="getPatientTrends",
             summary="Longitudinal trend of one gait metric of one leg")
 def get_trends(patient_id: str, db: Db, caller: Caller, metric: MetricName = MetricName.peak_swing_flexion_deg,
                leg: LegName | None = None, bucket: BucketName = "day", start: FromQ = None, end: ToQ = None,
@@ -70,7 +78,7 @@ def get_trends(patient_id: str, db: Db, caller: Caller, metric: MetricName = Met
                                                activity=activity))
 
 
-@router.get("/patients/{patient_id}/symmetry", response_model=SymmetryOut,
+@router.get("/patients/{patient_id}/symmetry", response_model=SymmetryOut, operation_id="getPatientSymmetry",
             summary="Affected vs other leg per bucket (ratio, symmetry index)")
 def get_symmetry(patient_id: str, db: Db, caller: Caller,
                  metric: MetricName = MetricName.peak_swing_flexion_deg, bucket: BucketName = "week",
@@ -84,6 +92,7 @@ def get_symmetry(patient_id: str, db: Db, caller: Caller,
 
 
 @router.get("/patients/{patient_id}/completeness", response_model=CompletenessOut,
+            operation_id="getPatientCompleteness",
             summary="Remote-monitoring view: days with data, strides and walking minutes per local day")
 def get_completeness(patient_id: str, db: Db, caller: Caller,
                      days: Annotated[int, Query(ge=1, le=366)] = 30,
@@ -93,7 +102,9 @@ def get_completeness(patient_id: str, db: Db, caller: Caller,
     return JSONResponse(service.patient_completeness(db, patient, days=days, activity=activity))
 
 
-@router.get("/attention", response_model=AttentionOut,
+@router.get("/attention", response_model=AttentionOut, operation_id="listAttention",
+            responses={400: {"description": "cursor is not a next_cursor of this API"},
+                       403: {"description": "Device tokens may not see the attention list"}},
             summary="Patients who need attention (declining, stalled, silent, sensor trouble)")
 def get_attention(db: Db, caller: Caller, limit: Annotated[int, Query(ge=1, le=200)] = 50,
                   cursor: str | None = None, metric: MetricName = MetricName.peak_swing_flexion_deg,
@@ -114,7 +125,10 @@ def get_attention(db: Db, caller: Caller, limit: Annotated[int, Query(ge=1, le=2
 
 
 @router.get("/patients/{patient_id}/strides.csv", summary="Every stride of the patient as CSV",
-            response_class=StreamingResponse)
+            response_class=StreamingResponse, operation_id="exportStridesCsv",
+            responses={200: {"description": "One row per stride, a header row first",
+                             "content": {"text/csv": {"schema": {"type": "string"}}}},
+                       403: {"description": "Device tokens may not export strides"}})
 def get_strides_csv(patient_id: str, request: Request, db: Db, caller: Caller, start: FromQ = None,
                     end: ToQ = None, activity: ActivityQ = StrideActivity.walking) -> StreamingResponse:
     """Every stride of one activity of the patient as CSV."""
@@ -135,7 +149,8 @@ def get_strides_csv(patient_id: str, request: Request, db: Db, caller: Caller, s
                              headers={"Content-Disposition": f'attachment; filename="{name}"'})
 
 
-@router.get("/patients/{patient_id}/fhir", response_model=FhirBundleOut,
+@router.get("/patients/{patient_id}/fhir", response_model=FhirBundleOut, response_class=FhirJSONResponse,
+            operation_id="getFhirBundle", responses={403: {"description": "Device tokens may not export FHIR"}},
             summary="Daily summaries as a FHIR R4 Bundle (collection) of Observations")
 def get_fhir(patient_id: str, db: Db, caller: Caller, settings: AppSettings, start: FromQ = None, end: ToQ = None,
              activity: ActivityQ = StrideActivity.walking,

@@ -56,6 +56,21 @@ class ChangeOut(_Doc):
 class TrendsOut(_Doc):
     """Longitudinal trend of one metric of one leg and activity."""
 
+    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
+        "patient_id": "8c1d0c6f2b7e4a5f9d3e2a1b0c9d8e7f", "metric": "peak_swing_flexion_deg", "unit": "deg",
+        "leg": "left", "bucket": "week", "activity": "walking", "timezone": "Europe/Berlin",
+        "from": "2026-10-31T23:00:00+00:00", "to": "2026-11-15T23:00:00+00:00",
+        "buckets": [{"start": "2026-11-02T00:00:00+01:00", "end": "2026-11-09T00:00:00+01:00", "n_sessions": 3,
+                     "n_strides": 60, "n_excluded": 0, "mean": 57.0, "sd": 1.6468, "median": 57.0, "p10": 55.0,
+                     "p90": 59.0, "cv": 0.0289, "n_values": 60}],
+        "trend": {"slope_per_week": 4.666667, "ci95": [4.666667, 4.666667], "n": 3, "method": "ols", "p_value": 0.0,
+                  "basis": "sessions"},
+        "change": {"baseline": 55.0, "latest": 59.0, "delta": 4.0, "mdc": 5.0, "significant": False,
+                   "direction": "unchanged", "window_days": 14.0, "reasons": ["|delta| 4 <= MDC 5"]},
+        "excluded": {"n_low_quality": 0, "n_implausible": 0},
+        "rules": {"min_quality": 0.5, "plausible_range": [0.0, 140.0], "min_strides_per_session": 5,
+                  "trend_points": "per session", "better": "higher"}}]})
+
     patient_id: str
     metric: str
     unit: str

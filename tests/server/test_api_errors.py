@@ -78,8 +78,9 @@ def test_openapi_and_docs(api: Api) -> None:
     tags = {t for p in spec["paths"].values() for op in p.values() for t in op.get("tags", [])}
     assert {"patients", "sessions and upload", "results", "health"} <= tags
     batch = spec["paths"]["/v1/sessions/{session_id}/batches"]["post"]
+    ref = batch["requestBody"]["content"]["application/json"]["schema"]["$ref"]
     assert {"sensor_id", "seq", "t0_ms", "gyro", "acc", "timestamps_ms"} <= \
-        set(batch["requestBody"]["content"]["application/json"]["schema"]["properties"])
+        set(spec["components"]["schemas"][ref.rsplit("/", 1)[-1]]["properties"])
     assert api.client.get("/docs").status_code == 200
 
 
