@@ -15,6 +15,10 @@ from server.schema_types import FiniteFloat, OrmOut, StrictIn, UtcDatetime, Xyz
 class SensorIn(StrictIn):
     """One sensor of a new session."""
 
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"sensor_id": "L-thigh", "leg": "left", "segment": "thigh", "sample_rate_hz": 100.0, "gyro_unit": "deg/s",
+         "acc_unit": "m/s2"}]})
+
     sensor_id: Annotated[str, Field(min_length=1, max_length=64)]
     leg: Leg
     segment: Segment
@@ -25,6 +29,12 @@ class SensorIn(StrictIn):
 
 class SessionIn(StrictIn):
     """A new recording session with its sensors."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "patient_id": "8c1d0c6f2b7e4a5f9d3e2a1b0c9d8e7f", "client_session_id": "721c30b8-cba4-552c-8244-4ddd3cc3bc67",
+        "started_at": "2026-11-21T09:30:00+01:00", "activity": "walking",
+        "sensors": [{"sensor_id": "L-thigh", "leg": "left", "segment": "thigh", "sample_rate_hz": 100.0},
+                     {"sensor_id": "L-shank", "leg": "left", "segment": "shank", "sample_rate_hz": 100.0}]}]})
 
     patient_id: str
     client_session_id: Annotated[str, Field(min_length=1, max_length=200)]
@@ -103,6 +113,17 @@ class SessionSummaryOut(BaseModel):
 class SessionOut(OrmOut):
     """A session with what it received and, once processed, its summary."""
 
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "id": "3f0c2a9e8b7d4c1a9e6f5d4c3b2a1908", "patient_id": "8c1d0c6f2b7e4a5f9d3e2a1b0c9d8e7f",
+        "client_session_id": "721c30b8-cba4-552c-8244-4ddd3cc3bc67", "started_at": "2026-11-21T08:30:00Z",
+        "activity": "walking", "status": "receiving", "error": None,
+        "sensors": [{"sensor_id": "L-shank", "leg": "left", "segment": "shank", "sample_rate_hz": 100.0,
+                     "gyro_unit": "deg/s", "acc_unit": "m/s2"}],
+        "received": {"L-shank": {"batches": 12, "samples": 600, "gaps": 0, "gap_s": 0.0, "first_t_s": 0.003,
+                                 "last_t_s": 5.993, "missing_seq": [], "observed_rate_hz": 100.0}},
+        "summary": None, "algorithm_version": None, "created_at": "2026-11-21T08:30:01Z", "completed_at": None,
+        "processed_at": None, "attempts": 0}]})
+
     id: str
     patient_id: str
     client_session_id: str
@@ -143,6 +164,12 @@ class SessionPage(BaseModel):
 class BatchIn(StrictIn):
     """One BLE batch of one sensor."""
 
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "sensor_id": "L-shank", "seq": 0, "t0_ms": 3.048,
+        "gyro": [[-0.618, 1.411, 2.32], [-0.208, 1.58, 2.353], [-1.297, 1.237, 2.296]],
+        "acc": [[9.1312, 2.6225, -2.3753], [9.0806, 2.6303, -2.4122], [9.1428, 2.6441, -2.4007]],
+        "timestamps_ms": [3.048, 13.048, 23.048]}]})
+
     sensor_id: Annotated[str, Field(min_length=1, max_length=64)]
     seq: Annotated[int, Field(ge=0, le=2**31 - 1)]
     t0_ms: FiniteFloat
@@ -163,6 +190,9 @@ class BatchIn(StrictIn):
 
 class BatchOut(BaseModel):
     """The acknowledgement of a stored (or replayed) batch."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"sensor_id": "L-shank", "seq": 0, "samples": 3, "duplicate": False}]})
 
     sensor_id: str
     seq: int
