@@ -25,6 +25,19 @@ class PrepareParams:
     the cubic still sees both sides of any knee event. Longer gaps are masked."""
     noted_bridge_s: float = 0.05
     """Bridged gaps longer than this [s] get a quality note on the strides they touch."""
+    periodic_bridge_s: float = 0.5
+    """Longest gap [s] filled from the neighbouring strides (:func:`pipeline.prepare.periodic_fill`) when the
+    sensor's signal around it is periodic. Below half of the shortest walking stride (~1 s): the hole never holds
+    both the swing and the stance of one stride, so at least one of a stride's two events stays observed, and a
+    template one stride away lies outside the hole. Three lost 20-sample packets at 128 Hz (0.47 s) fit; longer
+    gaps are masked."""
+    periodic_period_s: tuple[float, float] = (0.5, 2.5)
+    """Search range of the stride period [s] for the periodic fill (running ~0.6, very slow walking ~2.5)."""
+    periodic_context_s: float = 0.8
+    """Data [s] on either side of the hole compared with the same data one period earlier/later."""
+    periodic_min_corr: float = 0.8
+    """Least correlation between the hole's context and its one-period-shifted copy: gait repeats with r > 0.9
+    from stride to stride; standing noise, turns and transitions do not, and their holes stay masked."""
     saturation_run: int = 3
     """A gyro axis pinned at its extreme for this many samples in a row counts as saturated."""
     saturation_min_dps: float = 200.0
@@ -105,6 +118,10 @@ class PhaseParams:
     """Window around the zero crossing [s] searched for the heel-strike impact."""
     impact_prominence: float = 3.0
     """An impact stands out when its jump exceeds this multiple of the window's median jump."""
+    gap_guard_s: float = 0.15
+    """No stride whose heel strikes lie closer than this [s] to a masked sample: an event searched up to a hole
+    (heel strike up to ``impact_window_s[1]`` after the swing lobe's end) may have fallen inside it, and the nearest
+    measured point taken instead would be early."""
 
 
 @dataclass(frozen=True)
@@ -217,13 +234,25 @@ class FusionParams:
     """GO drift [deg] between two updates beyond which the stride falls back to CF."""
     mismatch_deg: float = 8.0
     """SD [deg] of GO minus CF over a stride beyond which the stride gets a mismatch note."""
+
+
+@dataclass(frozen=True)
+class QualityParams:
+    """Per-stride quality: 1 minus the penalties of its reasons, capped when the stride cannot be vouched for
+    (:mod:`pipeline.quality`). Trends take strides of quality >= 0.5 (``server.trends.metrics.MIN_QUALITY``)."""
+
     penalties: tuple[tuple[str, float], ...] = (
         ("no_absolute_reference", 0.2), ("no_zero_crossing", 0.3), ("drift", 0.3), ("saturation", 0.5),
         ("go_cf_mismatch", 0.3), ("cf_fallback", 0.2), ("no_go_estimate", 0.3), ("few_quiet_samples", 0.1),
-        ("bridged_gap", 0.1))
+        ("bridged_gap", 0.1), ("event_in_gap", 0.2), ("bout_edge", 0.1))
     """Quality lost per reason (quality = 1 - sum, floored at 0): saturation and a broken GO weigh most."""
     default_penalty: float = 0.1
     """Quality lost for a reason not listed."""
+    untrusted: tuple[str, ...] = ("peak_in_gap", "no_contralateral_swing")
+    """Reasons that leave the stride's metrics unobserved or the stride not gait: quality is capped below the
+    trend threshold."""
+    untrusted_cap: float = 0.3
+    """Quality ceiling of a stride with an untrusted reason."""
 
     def penalty(self, reason: str) -> float:
         """Quality lost for ``reason``."""
@@ -290,6 +319,7 @@ class PipelineParams:
     filter_inputs: FilterInputParams = field(default_factory=FilterInputParams)
     posture: PostureParams = field(default_factory=PostureParams)
     fusion: FusionParams = field(default_factory=FusionParams)
+    quality: QualityParams = field(default_factory=QualityParams)
     running: RunningParams = field(default_factory=RunningParams)
 
 

@@ -15,7 +15,8 @@ within ``impact_window_s`` of the zero crossing (if it stands out of the window)
 
 Robustness to standing, sitting, sit-to-stand, turns and slow walking: lobes must exceed an adaptive height
 threshold, consecutive MS peaks must be separated by a clearly negative (stance) region, and only bouts of at least
-``PhaseParams.min_bout_peaks`` peaks with consistent periods produce strides. No stride spans a masked sample.
+``PhaseParams.min_bout_peaks`` peaks with consistent periods produce strides. No stride spans a masked sample or
+ends next to one (``PhaseParams.gap_guard_s``).
 """
 
 from __future__ import annotations
@@ -145,7 +146,7 @@ def detect_gait_events(shank_sag_dps: np.ndarray, fs_hz: float, valid: np.ndarra
     for k in range(ms_a.size - 1):
         if hs_a[k] >= 0 and to_a[k + 1] > hs_a[k]:
             mst[k] = (hs_a[k] + to_a[k + 1]) // 2
-    strides = _strides(ms_a, to_a, hs_a, bout, valid, p)
+    strides = _strides(ms_a, to_a, hs_a, bout, valid, fs_hz, p)
     return GaitEvents(ms=ms_a, to=to_a, hs=hs_a, mst=mst, bout=bout, strides=strides)
 
 
@@ -215,9 +216,12 @@ def _bouts(ms: np.ndarray, ws: np.ndarray, valid: np.ndarray, fs_hz: float, min_
 
 
 def _strides(ms: np.ndarray, to: np.ndarray, hs: np.ndarray, bout: np.ndarray,
-             valid: np.ndarray, p: PhaseParams) -> list[tuple[int, int, int]]:
-    """Strides HS(k) -> TO(k+1) -> HS(k+1) for consecutive peaks of one bout, plausible stance share, no mask."""
+             valid: np.ndarray, fs_hz: float, p: PhaseParams) -> list[tuple[int, int, int]]:
+    """Strides HS(k) -> TO(k+1) -> HS(k+1) for consecutive peaks of one bout, plausible stance share, no masked
+    sample within ``gap_guard_s`` of the stride."""
     inv_cum = np.concatenate(([0], np.cumsum(~valid)))
+    n = valid.shape[0]
+    guard = int(round(p.gap_guard_s * fs_hz))
     out = []
     for k in range(ms.size - 1):
         if bout[k] < 0 or bout[k] != bout[k + 1]:
@@ -228,7 +232,7 @@ def _strides(ms: np.ndarray, to: np.ndarray, hs: np.ndarray, bout: np.ndarray,
         stance_pct = 100.0 * (t - a) / (b - a)
         if not (p.stance_pct_range[0] <= stance_pct <= p.stance_pct_range[1]):
             continue
-        if inv_cum[b + 1] != inv_cum[a]:
+        if inv_cum[min(b + guard, n - 1) + 1] != inv_cum[max(a - guard, 0)]:
             continue
         out.append((a, t, b))
     return out

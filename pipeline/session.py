@@ -20,6 +20,7 @@ from pipeline.leg_input import LegInput
 from pipeline.metrics import stride_values
 from pipeline.params import RUNNING, PipelineParams, preset
 from pipeline.policy import PolicyResult, auto, single_estimator
+from pipeline.quality import edge_reasons, gap_reasons, stride_quality
 from pipeline.running import build_running_leg_input, detect_running
 from pipeline.sync import SyncedLeg, synchronised_leg
 from pipeline.types import (
@@ -124,17 +125,28 @@ def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activi
 
 
 def _strides(leg: str, data: LegInput, result: PolicyResult) -> list[StrideMetrics]:
-    """Metrics of every stride whose angle is finite throughout, with the policy's choice for it."""
+    """Metrics of every stride whose angle is finite throughout, with the policy's choice for it and the data's
+    own reasons (:mod:`pipeline.quality`: filled gaps, unsteady bout edges)."""
     angle, t_s = result.angle_deg, data.prep.t_s
+    events = data.events
     out: list[StrideMetrics] = []
     # non-finite samples counted by prefix sum: one pass instead of a test per stride
     bad_cum = np.concatenate(([0], np.cumsum(~np.isfinite(angle))))
-    for (a, t, b), choice in zip(data.events.strides, result.choices, strict=True):
-        if bad_cum[b + 1] != bad_cum[a]:
-            continue
+    kept = [(s, c) for s, c in zip(events.strides, result.choices, strict=True) if bad_cum[s[2] + 1] == bad_cum[s[0]]]
+    triples = [s for s, _ in kept]
+    gap = gap_reasons(t_s, data.prep.filled_s, angle, triples)
+    lobe = {int(h): k for k, h in enumerate(events.hs) if h >= 0}
+    ks = [lobe[a] for a, _, _ in triples]
+    swing_dps = np.array([data.shank_sag_dps[events.ms[k + 1]] for k in ks]) if ks else np.zeros(0)
+    edge = edge_reasons(triples, [int(events.bout[k]) for k in ks], swing_dps)
+    qp = data.params.quality
+    for ((a, t, b), choice), g, e in zip(kept, gap, edge, strict=True):
         v = stride_values(angle, t_s, a, t, b, data.params.metrics)
-        out.append(StrideMetrics(leg=leg, index=len(out), estimator=choice.estimator, quality=float(choice.quality),
-                                 quality_reasons=tuple(choice.reasons), activity=data.activity,
+        extra = tuple(r for r in (*g, *e) if r not in choice.reasons)
+        reasons = (*choice.reasons, *extra)
+        quality = min(float(choice.quality), stride_quality(reasons, qp)) if extra else float(choice.quality)
+        out.append(StrideMetrics(leg=leg, index=len(out), estimator=choice.estimator, quality=quality,
+                                 quality_reasons=reasons, activity=data.activity,
                                  fallback=choice.fallback, **v.__dict__))
     return out
 
