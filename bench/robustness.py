@@ -233,7 +233,7 @@ def _swap_cell(reports: list[dict]) -> str:
         verdict = "refused"
     elif corr and min(corr) > 0.9 and max(rmse) < 5:
         verdict = "accepted; angles are right but belong to the other label" if reports[0].get("legs_only") \
-            else "accepted, angles right"
+            else "corrected (warned), angles right" if warns else "accepted, angles right"
     else:
         verdict = "accepted silently, angles wrong" if warns == 0 else "accepted with warnings, angles wrong"
     return (f"{verdict}: {legs_out}/{legs_in} legs out, {strides} strides, {warns} warnings, "

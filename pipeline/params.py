@@ -125,6 +125,27 @@ class PhaseParams:
 
 
 @dataclass(frozen=True)
+class AssignmentParams:
+    """Sensor-label checks (:mod:`pipeline.assignment`)."""
+
+    rate_percentile: float = 98.0
+    """Percentile of the gyro norm taken as the segment's swing rate (gait fills more than 2 % of any session that
+    has strides)."""
+    swap_ratio: float = 0.8
+    """Shank over thigh swing rate below this: the labels are swapped. In gait the shank swings ~2-3x faster than
+    the thigh (swing peaks ~350 vs ~150 deg/s); measured 1.9-2.7 over the simulator's robustness axes and 2.4 on the
+    real biomechZoo trial, 0.3-0.45 with the labels swapped."""
+    keep_ratio: float = 1.25
+    """Above this ratio the labelled order is confirmed; in between (no gait) nothing is decided."""
+    centre_suspect_mps2: float = 0.25
+    """A joint-centre fit residual (Seel Eq. 5) above this [m/s^2] makes the thigh pairing between the legs worth
+    testing: 0.04-0.22 with right labels (up to 0.55 with a thigh sensor 50 cm from the knee), 0.38-0.92 with the
+    thighs swapped."""
+    pairing_gain: float = 0.5
+    """The swapped thigh pairing is taken when its summed residual is below this share of the labelled one."""
+
+
+@dataclass(frozen=True)
 class MetricsParams:
     """Per-stride metrics (:mod:`pipeline.metrics`)."""
 
@@ -311,6 +332,7 @@ class PipelineParams:
     axes: AxesParams = field(default_factory=AxesParams)
     sync: SyncParams = field(default_factory=SyncParams)
     phases: PhaseParams = field(default_factory=PhaseParams)
+    assignment: AssignmentParams = field(default_factory=AssignmentParams)
     metrics: MetricsParams = field(default_factory=MetricsParams)
     go: GoParams = field(default_factory=GoParams)
     cf: CfParams = field(default_factory=CfParams)

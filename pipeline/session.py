@@ -15,10 +15,11 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from pipeline import ALGORITHM_VERSION
+from pipeline.assignment import check_segments, pairing_suspicious, swapped_pairing_better
 from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
 from pipeline.metrics import stride_values
-from pipeline.params import RUNNING, PipelineParams, preset
+from pipeline.params import RUNNING, AssignmentParams, PipelineParams, preset
 from pipeline.policy import PolicyResult, auto, single_estimator
 from pipeline.quality import edge_reasons, gap_reasons, stride_quality
 from pipeline.running import build_running_leg_input, detect_running
@@ -55,6 +56,8 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
         raise ValueError("the session has no samples")
     warnings: list[str] = []
     by_leg = _streams_by_leg(streams, warnings)
+    ap = (params if params is not None else preset(activity)).assignment
+    assigned = _check_labels(by_leg, ap, warnings)
     legs: dict[str, LegResult] = {}
     for leg in sorted(by_leg):
         segs = by_leg[leg]
@@ -67,7 +70,67 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
                                     (calibration or {}).get(leg))
         except ValueError as exc:
             warnings.append(f"{leg} leg skipped: {exc}")
+    legs = _check_thigh_pairing(legs, by_leg, activity, estimator, params, calibration, ap, assigned, warnings)
+    for leg, how in assigned.items():
+        lr = legs.get(leg)
+        if lr is not None and lr.diagnostics is not None:
+            lr.diagnostics = dataclasses.replace(lr.diagnostics, assignment=how)
     return SessionResult(algorithm_version=ALGORITHM_VERSION, activity=activity, legs=legs, warnings=warnings)
+
+
+def _check_labels(by_leg: dict[str, dict[str, RawSensorStream]], params: AssignmentParams, warnings: list[str]
+                  ) -> dict[str, str]:
+    """Exchange a leg's thigh and shank streams when their motion says the labels are swapped
+    (:func:`pipeline.assignment.check_segments`). Returns what was done per leg."""
+    assigned: dict[str, str] = {}
+    for leg in sorted(by_leg):
+        segs = by_leg[leg]
+        if "thigh" not in segs or "shank" not in segs:
+            continue
+        chk = check_segments(segs["thigh"], segs["shank"], params)
+        ratios = f"shank/thigh swing rate {chk.rate_ratio:.2f}, impact {chk.impact_ratio:.2f}"
+        if chk.verdict == "swapped":
+            segs["thigh"], segs["shank"] = segs["shank"], segs["thigh"]
+            assigned[leg] = "thigh_shank_exchanged"
+            warnings.append(f"{leg} leg: the sensor labelled thigh moves like a shank ({ratios}); "
+                            "thigh and shank labels exchanged")
+    return assigned
+
+
+def _centre_residuals(legs: dict[str, LegResult]) -> tuple[float, float] | None:
+    """Joint-centre fit residuals [m/s^2] of the left and right leg (None without diagnostics)."""
+    d = [legs[k].diagnostics for k in ("left", "right")]
+    if d[0] is None or d[1] is None:
+        return None
+    return d[0].centre_rms_residual_mps2, d[1].centre_rms_residual_mps2
+
+
+def _check_thigh_pairing(legs: dict[str, LegResult], by_leg: dict[str, dict[str, RawSensorStream]], activity: str,
+                         estimator: str, params: PipelineParams | None,
+                         calibration: Mapping[str, KneeCalibration] | None, ap: AssignmentParams,
+                         assigned: dict[str, str], warnings: list[str]) -> dict[str, LegResult]:
+    """Both legs processed again with the thighs exchanged when a joint-centre residual is suspicious; the swapped
+    pairing is kept when it fits clearly better (:func:`pipeline.assignment.swapped_pairing_better`)."""
+    if set(legs) != {"left", "right"}:
+        return legs
+    labelled = _centre_residuals(legs)
+    if labelled is None or not pairing_suspicious(labelled, ap):
+        return legs
+    other = {"left": "right", "right": "left"}
+    try:
+        swapped = {k: process_leg(k, by_leg[other[k]]["thigh"], by_leg[k]["shank"], activity, estimator, params,
+                                  (calibration or {}).get(k)) for k in ("left", "right")}
+    except ValueError:
+        swapped = {}
+    resid = _centre_residuals(swapped) if swapped else None
+    if resid is not None and swapped_pairing_better(labelled, resid, ap):
+        for k in ("left", "right"):
+            assigned[k] = "thighs_exchanged_between_legs"
+        warnings.append("thigh sensors exchanged between the legs: each fits the other leg's shank as a hinge "
+                        f"(joint-centre residual {labelled[0]:.2f}/{labelled[1]:.2f} -> {resid[0]:.2f}/{resid[1]:.2f}"
+                        " m/s^2, left/right)")
+        return swapped
+    return legs
 
 
 def _streams_by_leg(streams: Sequence[RawSensorStream], warnings: list[str]

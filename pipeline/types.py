@@ -130,6 +130,9 @@ class LegDiagnostics:
     standing_knee_deg: float | None = None
     level_source: str = "assumed"
     calibration_id: str | None = None
+    # what the sensor-label checks did (pipeline.assignment): "as_labelled", "thigh_shank_exchanged" or
+    # "thighs_exchanged_between_legs"
+    assignment: str = "as_labelled"
 
 
 @dataclass
