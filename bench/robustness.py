@@ -130,7 +130,9 @@ AXES: dict[str, Axis] = {
         _v("3 sit-to-stand repetitions", activities=("sit_to_stand",)))),
     "non_gait": Axis("Non-gait movements between bouts (no stride in the truth)", (
         _v("3 vertical jumps", activities=("jump",)), _v("3 step-ups onto a stair", activities=("stairs",)),
-        _v("jumps, stairs, sit-to-stand", activities=("jump", "stairs", "sit_to_stand")))),
+        _v("jumps, stairs, sit-to-stand", activities=("jump", "stairs", "sit_to_stand")),
+        _v("8 rhythmic jumps in a row", activities=("jump",), move_reps=8, jump_rest_s=0.0),
+        _v("8 step-ups in a row", activities=("stairs",), move_reps=8))),
     "labels": Axis("Wrongly labelled sensors (scored against the labelled leg; see 'pipeline did')", (
         _v("legs swapped (all four)", label_swap="legs"), _v("thighs swapped between legs", label_swap="thighs"),
         _v("thigh/shank swapped, both legs", label_swap="segments"),

@@ -269,7 +269,7 @@ class QualityParams:
     """Quality lost per reason (quality = 1 - sum, floored at 0): saturation and a broken GO weigh most."""
     default_penalty: float = 0.1
     """Quality lost for a reason not listed."""
-    untrusted: tuple[str, ...] = ("peak_in_gap", "no_contralateral_swing")
+    untrusted: tuple[str, ...] = ("peak_in_gap",)
     """Reasons that leave the stride's metrics unobserved or the stride not gait: quality is capped below the
     trend threshold."""
     untrusted_cap: float = 0.3

@@ -11,7 +11,6 @@ def test_untrusted_reasons_stay_below_the_trend_threshold() -> None:
     assert stride_quality(()) == 1.0
     assert stride_quality(("bridged_gap",)) == 0.9
     assert stride_quality(("bridged_gap", "peak_in_gap")) < 0.5
-    assert stride_quality(("no_contralateral_swing",)) < 0.5
 
 
 def test_gap_reasons_say_what_fell_in_the_hole() -> None:
