@@ -186,7 +186,8 @@ def _jerk(shank_acc_mps2: np.ndarray | None, valid: np.ndarray) -> np.ndarray | 
 def _bouts(ms: np.ndarray, ws: np.ndarray, valid: np.ndarray, fs_hz: float, min_peaks: int, p: PhaseParams
            ) -> np.ndarray:
     """Bout id per MS peak: chains of peaks with plausible, consistent periods, a real stance dip between
-    consecutive peaks and no masked sample in between; chains shorter than ``min_peaks`` get -1."""
+    consecutive peaks and no masked sample in between; chains shorter than ``min_peaks`` get -1, unless a masked
+    gap ends them (then two peaks, one stride, suffice)."""
     bout = np.full(ms.size, -1)
     if ms.size == 0:
         return bout
@@ -195,7 +196,8 @@ def _bouts(ms: np.ndarray, ws: np.ndarray, valid: np.ndarray, fs_hz: float, min_
     inv_cum = np.concatenate(([0], np.cumsum(~valid)))
     # minimum of ws between consecutive peaks, all at once (peaks are increasing; the last entry is unused)
     dip = np.minimum.reduceat(ws, ms)[:-1]
-    link &= (dip < -p.stance_neg_dps) & (inv_cum[ms[1:]] == inv_cum[ms[:-1]])
+    masked = inv_cum[ms[1:]] != inv_cum[ms[:-1]]
+    link &= (dip < -p.stance_neg_dps) & ~masked
     # period consistency: compare each link with the median of its linked neighbourhood
     if period.size >= 3:
         padded = np.pad(np.where(link, period, np.nan), 2, constant_values=np.nan)
@@ -203,12 +205,16 @@ def _bouts(ms: np.ndarray, ws: np.ndarray, valid: np.ndarray, fs_hz: float, min_
         with np.errstate(all="ignore"):
             local = np.nanmedian(np.where(np.isnan(windows).all(axis=1, keepdims=True), 1.0, windows), axis=1)
         link &= np.abs(period - local) <= p.period_tol * local
+    # a chain cut by missing data is not an isolated step: the strides beyond the hole were walked, not observed
+    cut_before = np.concatenate(([False], masked))
+    cut_after = np.concatenate((masked, [False]))
     chain_id = 0
     start = 0
     for k in range(ms.size):
         end_of_chain = k == ms.size - 1 or not link[k]
         if end_of_chain:
-            if k - start + 1 >= min_peaks:
+            need = min(min_peaks, 2) if cut_before[start] or cut_after[k] else min_peaks
+            if k - start + 1 >= need:
                 bout[start:k + 1] = chain_id
                 chain_id += 1
             start = k + 1
