@@ -16,6 +16,7 @@ from pipeline.types import LegResult, StrideMetrics
 # the pipeline's own bridging limit (periodic fill from the neighbouring strides): longer gaps are masked and no
 # stride may span them
 MAX_BRIDGE_S = WALKING.prepare.periodic_bridge_s
+TREND_QUALITY = 0.5  # server.trends.metrics.MIN_QUALITY: the strides a clinician's trend is built on
 QUALITY_BINS = ((0.0, 0.5), (0.5, 0.8), (0.8, 1.0001))  # below the trend threshold, trend, vouched for
 
 PLAUSIBLE_DEG = (-15.0, 160.0)  # a knee angle outside this cannot be true (issue targets)
@@ -47,12 +48,14 @@ class LegScore:
     # every matched stride (steady or not, across gaps or not): (quality, peak error [deg]); unmatched: quality
     quality_err: list[tuple[float, float]] = field(default_factory=list)
     fp_quality: list[float] = field(default_factory=list)
+    peak_err_trend: list[float] = field(default_factory=list)  # hits that enter trends (quality >= TREND_QUALITY)
 
     def add(self, other: LegScore) -> None:
         for name in ("n_expected", "n_steady", "tp", "fp", "sq_err_sum", "n_samples", "stride_sq_err_sum",
                      "n_stride_samples", "outside_sq_err_sum", "n_outside_samples", "n_non_gait", "n_implausible"):
             setattr(self, name, getattr(self, name) + getattr(other, name))
-        for name in ("peak_err", "rom_err", "min_err", "hs_err_s", "to_err_s", "quality_err", "fp_quality"):
+        for name in ("peak_err", "rom_err", "min_err", "hs_err_s", "to_err_s", "quality_err", "fp_quality",
+                     "peak_err_trend"):
             getattr(self, name).extend(getattr(other, name))
 
 
@@ -118,6 +121,8 @@ def score_leg(res: LegResult | None, truth: LegTruth, gaps: list[tuple[float, fl
         d, t = res.strides[i], truth.strides[j]
         sc.tp += 1
         sc.peak_err.append(d.peak_swing_flexion_deg - t.peak_swing_flexion_deg)
+        if d.quality >= TREND_QUALITY:
+            sc.peak_err_trend.append(d.peak_swing_flexion_deg - t.peak_swing_flexion_deg)
         sc.rom_err.append(d.rom_deg - t.rom_deg)
         sc.min_err.append(d.min_flexion_deg - t.min_flexion_deg)
         sc.hs_err_s.append(d.t_start_s - t.t_start_s)
@@ -186,6 +191,7 @@ def summarise(sc: LegScore) -> dict[str, float]:
     """The figures of one table row."""
     peak = bland_altman(sc.peak_err)
     rom = bland_altman(sc.rom_err)
+    trend = bland_altman(sc.peak_err_trend)
     nan = float("nan")
     return {
         "n_true": float(sc.n_expected),
@@ -196,6 +202,8 @@ def summarise(sc: LegScore) -> dict[str, float]:
         "coverage_max": sc.n_expected / sc.n_steady if sc.n_steady else nan,
         "peak_bias": peak[0], "peak_lo": peak[1], "peak_hi": peak[2],
         "rom_bias": rom[0], "rom_lo": rom[1], "rom_hi": rom[2],
+        "trend_share": len(sc.peak_err_trend) / sc.tp if sc.tp else nan,
+        "peak_trend_bias": trend[0], "peak_trend_lo": trend[1], "peak_trend_hi": trend[2],
         "rmse": float(np.sqrt(sc.sq_err_sum / sc.n_samples)) if sc.n_samples else nan,
         "rmse_strides": float(np.sqrt(sc.stride_sq_err_sum / sc.n_stride_samples)) if sc.n_stride_samples else nan,
         "rmse_outside": float(np.sqrt(sc.outside_sq_err_sum / sc.n_outside_samples)) if sc.n_outside_samples

@@ -142,7 +142,7 @@ AXES: dict[str, Axis] = {
 
 HEADER = ["strides", "recall", "precision", "coverage", "peak bias (deg)", "peak LoA (deg)",
           "ROM bias (deg)", "ROM LoA (deg)", "RMSE in strides (deg)", "RMSE outside gait (deg)", "non-gait strides",
-          "angles out of band", "coverage possible"]
+          "angles out of band", "coverage possible", "trend strides: share, peak bias, LoA (deg)"]
 
 
 @dataclass(frozen=True)
@@ -243,6 +243,14 @@ def _swap_cell(reports: list[dict]) -> str:
             f"RMSE {_f(float(np.median(rmse)) if rmse else math.nan)} deg")
 
 
+def _trend_cell(s: dict[str, float]) -> str:
+    """The hits of quality >= 0.5 (what trends take): their share and peak-flexion agreement."""
+    if math.isnan(s.get("trend_share", math.nan)):
+        return "-"
+    return (f"{100 * s['trend_share']:.0f} %, {_f(s['peak_trend_bias'], '{:+.2f}')}, "
+            f"{_f(s['peak_trend_lo'])} .. {_f(s['peak_trend_hi'])}")
+
+
 def format_row(label: str, s: dict[str, float], targets: dict, extra: list[str] | None = None) -> str:
     """One Markdown row; cells missing an issue target get a ✗."""
     def bad(x: float, cond: bool) -> bool:
@@ -262,6 +270,7 @@ def format_row(label: str, s: dict[str, float], targets: dict, extra: list[str] 
         _miss(f"{int(s['non_gait_strides'])}", s["non_gait_strides"] > 0),
         _miss(_f(100 * s["implausible_share"], "{:.2f} %"), bad(s["implausible_share"], s["implausible_share"] > 0)),
         _f(s.get("coverage_max", math.nan), "{:.3f}"),
+        _trend_cell(s),
         *(extra or []),
     ]
     return "| " + " | ".join(cells) + " |"
@@ -396,8 +405,9 @@ def main(argv: list[str] | None = None) -> int:
         "estimate minus truth per stride. Recall: matched share of the steady strides without a gap longer than the "
         f"pipeline's bridge limit ({MAX_BRIDGE_S:g} s); coverage: of all steady strides (the recall target applies to "
         "both: strides across short holes are to be kept); coverage possible: the share of steady strides without "
-        "such a gap (what the data allows). RMSE outside gait: the continuous trace farther than 1 s from every "
-        "walking bout (standing, sitting, movements; no target, shown because a clinician sees it). Angles out of "
+        "such a gap (what the data allows); trend strides: the hits of quality >= 0.5, which trends take. RMSE "
+        "outside gait: the continuous trace farther than 1 s from every walking bout (standing, sitting, movements; "
+        "no target, shown because a clinician sees it). Angles out of "
         "band: share of all estimated samples.", "",
     ]
     for name in axes:
