@@ -13,8 +13,11 @@ from pipeline.params import WALKING
 from pipeline.simulate import LegTruth, SimSession, TruthStride
 from pipeline.types import LegResult, StrideMetrics
 
-# the pipeline's own bridging limit: longer gaps are masked and no stride may span them
-MAX_BRIDGE_S = WALKING.prepare.max_bridge_s
+# the pipeline's own bridging limit (periodic fill from the neighbouring strides): longer gaps are masked and no
+# stride may span them
+MAX_BRIDGE_S = WALKING.prepare.periodic_bridge_s
+TREND_QUALITY = 0.5  # server.trends.metrics.MIN_QUALITY: the strides a clinician's trend is built on
+QUALITY_BINS = ((0.0, 0.5), (0.5, 0.8), (0.8, 1.0001))  # below the trend threshold, trend, vouched for
 
 PLAUSIBLE_DEG = (-15.0, 160.0)  # a knee angle outside this cannot be true (issue targets)
 MATCH_TOL_S = 0.15  # both heel strikes of a detected stride within this of the true ones (and < 25 % of a stride)
@@ -42,12 +45,17 @@ class LegScore:
     n_outside_samples: int = 0
     n_non_gait: int = 0  # detected strides overlapping a non-gait movement (sitting, jumps, stairs...)
     n_implausible: int = 0  # finite angle samples outside PLAUSIBLE_DEG
+    # every matched stride (steady or not, across gaps or not): (quality, peak error [deg]); unmatched: quality
+    quality_err: list[tuple[float, float]] = field(default_factory=list)
+    fp_quality: list[float] = field(default_factory=list)
+    peak_err_trend: list[float] = field(default_factory=list)  # hits that enter trends (quality >= TREND_QUALITY)
 
     def add(self, other: LegScore) -> None:
         for name in ("n_expected", "n_steady", "tp", "fp", "sq_err_sum", "n_samples", "stride_sq_err_sum",
                      "n_stride_samples", "outside_sq_err_sum", "n_outside_samples", "n_non_gait", "n_implausible"):
             setattr(self, name, getattr(self, name) + getattr(other, name))
-        for name in ("peak_err", "rom_err", "min_err", "hs_err_s", "to_err_s"):
+        for name in ("peak_err", "rom_err", "min_err", "hs_err_s", "to_err_s", "quality_err", "fp_quality",
+                     "peak_err_trend"):
             getattr(self, name).extend(getattr(other, name))
 
 
@@ -106,16 +114,21 @@ def score_leg(res: LegResult | None, truth: LegTruth, gaps: list[tuple[float, fl
     pairs = match_strides(res.strides, truth.strides)
     matched_d = {i for i, _ in pairs}
     for i, j in pairs:
+        sc.quality_err.append((res.strides[i].quality,
+                               res.strides[i].peak_swing_flexion_deg - truth.strides[j].peak_swing_flexion_deg))
         if not expected[j]:
             continue  # gait initiation/termination or across a gap: neither a hit nor a false alarm
         d, t = res.strides[i], truth.strides[j]
         sc.tp += 1
         sc.peak_err.append(d.peak_swing_flexion_deg - t.peak_swing_flexion_deg)
+        if d.quality >= TREND_QUALITY:
+            sc.peak_err_trend.append(d.peak_swing_flexion_deg - t.peak_swing_flexion_deg)
         sc.rom_err.append(d.rom_deg - t.rom_deg)
         sc.min_err.append(d.min_flexion_deg - t.min_flexion_deg)
         sc.hs_err_s.append(d.t_start_s - t.t_start_s)
         sc.to_err_s.append(d.t_toe_off_s - t.t_toe_off_s)
     sc.fp = len(res.strides) - len(matched_d)
+    sc.fp_quality = [d.quality for i, d in enumerate(res.strides) if i not in matched_d]
     sc.n_non_gait = sum(1 for d in res.strides
                         if any(a < d.t_end_s and d.t_start_s < b for _, a, b in (non_gait or [])))
     angle = np.asarray(res.angle_deg, dtype=float)
@@ -147,6 +160,24 @@ def score_leg(res: LegResult | None, truth: LegTruth, gaps: list[tuple[float, fl
     return sc
 
 
+def quality_bins(sc: LegScore) -> list[dict[str, float]]:
+    """Per :data:`QUALITY_BINS` bin: matched strides, |peak error| p50/p95 [deg], share within 3 deg, false
+    strides."""
+    q = np.array([x for x, _ in sc.quality_err], dtype=float)
+    e = np.abs(np.array([y for _, y in sc.quality_err], dtype=float))
+    fq = np.asarray(sc.fp_quality, dtype=float)
+    out = []
+    for lo, hi in QUALITY_BINS:
+        sel = e[(q >= lo) & (q < hi)]
+        nan = float("nan")
+        out.append({"lo": lo, "hi": min(hi, 1.0), "n": float(sel.size),
+                    "p50": float(np.percentile(sel, 50)) if sel.size else nan,
+                    "p95": float(np.percentile(sel, 95)) if sel.size else nan,
+                    "within3": float(np.mean(sel <= 3.0)) if sel.size else nan,
+                    "fp": float(np.sum((fq >= lo) & (fq < hi)))})
+    return out
+
+
 def bland_altman(err: list[float] | np.ndarray) -> tuple[float, float, float]:
     """(bias, lower, upper) 95 % limits of agreement; NaN when fewer than two values."""
     e = np.asarray(err, dtype=float)
@@ -160,14 +191,19 @@ def summarise(sc: LegScore) -> dict[str, float]:
     """The figures of one table row."""
     peak = bland_altman(sc.peak_err)
     rom = bland_altman(sc.rom_err)
+    trend = bland_altman(sc.peak_err_trend)
     nan = float("nan")
     return {
         "n_true": float(sc.n_expected),
         "recall": sc.tp / sc.n_expected if sc.n_expected else nan,
         "precision": sc.tp / (sc.tp + sc.fp) if sc.tp + sc.fp else nan,
         "coverage": sc.tp / sc.n_steady if sc.n_steady else nan,
+        # the coverage the data allows: steady strides without a gap longer than the bridge limit
+        "coverage_max": sc.n_expected / sc.n_steady if sc.n_steady else nan,
         "peak_bias": peak[0], "peak_lo": peak[1], "peak_hi": peak[2],
         "rom_bias": rom[0], "rom_lo": rom[1], "rom_hi": rom[2],
+        "trend_share": len(sc.peak_err_trend) / sc.tp if sc.tp else nan,
+        "peak_trend_bias": trend[0], "peak_trend_lo": trend[1], "peak_trend_hi": trend[2],
         "rmse": float(np.sqrt(sc.sq_err_sum / sc.n_samples)) if sc.n_samples else nan,
         "rmse_strides": float(np.sqrt(sc.stride_sq_err_sum / sc.n_stride_samples)) if sc.n_stride_samples else nan,
         "rmse_outside": float(np.sqrt(sc.outside_sq_err_sum / sc.n_outside_samples)) if sc.n_outside_samples

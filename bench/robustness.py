@@ -35,7 +35,16 @@ from dataclasses import dataclass, field  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench.accuracy import _f, _miss, real_tables  # noqa: E402
-from bench.matching import PLAUSIBLE_DEG, LegScore, data_gaps, score_leg, summarise  # noqa: E402
+from bench.matching import (  # noqa: E402
+    MAX_BRIDGE_S,
+    PLAUSIBLE_DEG,
+    QUALITY_BINS,
+    LegScore,
+    data_gaps,
+    quality_bins,
+    score_leg,
+    summarise,
+)
 from pipeline.simulate import SimConfig, SimSession, simulate_session  # noqa: E402
 
 TUNE_SEEDS = tuple(range(5))
@@ -135,7 +144,9 @@ AXES: dict[str, Axis] = {
         _v("3 sit-to-stand repetitions", activities=("sit_to_stand",)))),
     "non_gait": Axis("Non-gait movements between bouts (no stride in the truth)", (
         _v("3 vertical jumps", activities=("jump",)), _v("3 step-ups onto a stair", activities=("stairs",)),
-        _v("jumps, stairs, sit-to-stand", activities=("jump", "stairs", "sit_to_stand")))),
+        _v("jumps, stairs, sit-to-stand", activities=("jump", "stairs", "sit_to_stand")),
+        _v("8 rhythmic jumps in a row", activities=("jump",), move_reps=8, jump_rest_s=0.0),
+        _v("8 step-ups in a row", activities=("stairs",), move_reps=8))),
     "labels": Axis("Wrongly labelled sensors (scored against the labelled leg; see 'pipeline did')", (
         _v("legs swapped (all four)", label_swap="legs"), _v("thighs swapped between legs", label_swap="thighs"),
         _v("thigh/shank swapped, both legs", label_swap="segments"),
@@ -143,9 +154,9 @@ AXES: dict[str, Axis] = {
         note="Desired behaviour: detect and refuse, or correct; the last column says what the pipeline did."),
 }
 
-HEADER = ["strides", "recall", "precision", "coverage", "peak bias (deg)", "peak LoA (deg)", "ROM bias (deg)",
-          "ROM LoA (deg)", "RMSE in strides (deg)", "RMSE outside gait (deg)", "non-gait strides",
-          "angles out of band"]
+HEADER = ["strides", "recall", "precision", "coverage", "peak bias (deg)", "peak LoA (deg)",
+          "ROM bias (deg)", "ROM LoA (deg)", "RMSE in strides (deg)", "RMSE outside gait (deg)", "non-gait strides",
+          "angles out of band", "coverage possible", "trend strides: share, peak bias, LoA (deg)"]
 
 
 @dataclass(frozen=True)
@@ -243,12 +254,20 @@ def _swap_cell(reports: list[dict]) -> str:
         verdict = "refused"
     elif corr and min(corr) > 0.9 and max(rmse) < 5:
         verdict = "accepted; angles are right but belong to the other label" if reports[0].get("legs_only") \
-            else "accepted, angles right"
+            else "corrected (warned), angles right" if warns else "accepted, angles right"
     else:
         verdict = "accepted silently, angles wrong" if warns == 0 else "accepted with warnings, angles wrong"
     return (f"{verdict}: {legs_out}/{legs_in} legs out, {strides} strides, {warns} warnings, "
             f"r with the shank's knee {_f(float(np.median(corr)) if corr else math.nan, '{:+.2f}')}, "
             f"RMSE {_f(float(np.median(rmse)) if rmse else math.nan)} deg")
+
+
+def _trend_cell(s: dict[str, float]) -> str:
+    """The hits of quality >= 0.5 (what trends take): their share and peak-flexion agreement."""
+    if math.isnan(s.get("trend_share", math.nan)):
+        return "-"
+    return (f"{100 * s['trend_share']:.0f} %, {_f(s['peak_trend_bias'], '{:+.2f}')}, "
+            f"{_f(s['peak_trend_lo'])} .. {_f(s['peak_trend_hi'])}")
 
 
 def format_row(label: str, s: dict[str, float], targets: dict, extra: list[str] | None = None) -> str:
@@ -269,6 +288,8 @@ def format_row(label: str, s: dict[str, float], targets: dict, extra: list[str] 
         _f(s["rmse_outside"], "{:.1f}"),
         _miss(f"{int(s['non_gait_strides'])}", s["non_gait_strides"] > 0),
         _miss(_f(100 * s["implausible_share"], "{:.2f} %"), bad(s["implausible_share"], s["implausible_share"] > 0)),
+        _f(s.get("coverage_max", math.nan), "{:.3f}"),
+        _trend_cell(s),
         *(extra or []),
     ]
     return "| " + " | ".join(cells) + " |"
@@ -297,6 +318,34 @@ def axis_table(name: str, results: list[CaseResult]) -> list[str]:
         label = value.label + (" (crashed: " + "; ".join({r.error for r in rows if r.error}) + ")"
                                if any(r.error for r in rows) else "")
         lines.append(format_row(label, summarise(pooled), value.targets, extra))
+    return lines + [""]
+
+
+def quality_table(axes: list[str], results: list[CaseResult]) -> list[str]:
+    """Stride quality against peak-flexion error, per axis (all its values pooled) and over every axis: does a
+    quality >= 0.8 stride really sit within ~3 deg, and does what trends exclude (< 0.5) deserve it?"""
+    bins = [f"[{lo:g}, {min(hi, 1.0):g}{']' if hi > 1 else ')'}" for lo, hi in QUALITY_BINS]
+    header = ["axis", *[f"{b} {c}" for b in bins for c in ("strides", "abs err p50 / p95 (deg)", "within 3 deg",
+                                                           "false")]]
+    lines = ["### Stride quality against peak-flexion error (`quality`)", "",
+             "Every matched stride (steady or not, across bridged holes or not) by its quality; 'false': unmatched "
+             "strides in the bin. Trends take quality >= 0.5.", "",
+             "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    everything = LegScore()
+    for name in [*axes, ""]:
+        pooled = LegScore()
+        for r in results:
+            if r.case.axis == name and name != "labels":
+                pooled.add(r.score)
+        if name == "":
+            pooled, name = everything, "**all but labels**"
+        else:
+            everything.add(pooled)
+        cells = [name]
+        for b in quality_bins(pooled):
+            cells += [f"{int(b['n'])}", f"{_f(b['p50'])} / {_f(b['p95'])}", _f(100 * b["within3"], "{:.0f} %"),
+                      f"{int(b['fp'])}"]
+        lines.append("| " + " | ".join(cells) + " |")
     return lines + [""]
 
 
@@ -373,13 +422,16 @@ def main(argv: list[str] | None = None) -> int:
         f"strides <= {TARGETS['rmse']:g} deg, no stride during non-gait movements, no angle outside "
         f"[{PLAUSIBLE_DEG[0]:g}, {PLAUSIBLE_DEG[1]:g}] deg; ✗ marks a miss. LoA: Bland-Altman 95 % limits of "
         "estimate minus truth per stride. Recall: matched share of the steady strides without a gap longer than the "
-        "pipeline's bridge limit; coverage: of all steady strides (the recall target applies to both: strides across "
-        "short holes are to be kept). RMSE outside gait: the continuous trace farther than 1 s from every walking "
-        "bout (standing, sitting, movements; no target, shown because a clinician sees it). Angles out of band: "
-        "share of all estimated samples.", "",
+        f"pipeline's bridge limit ({MAX_BRIDGE_S:g} s); coverage: of all steady strides (the recall target applies to "
+        "both: strides across short holes are to be kept); coverage possible: the share of steady strides without "
+        "such a gap (what the data allows); trend strides: the hits of quality >= 0.5, which trends take. RMSE "
+        "outside gait: the continuous trace farther than 1 s from every walking bout (standing, sitting, movements; "
+        "no target, shown because a clinician sees it). Angles out of "
+        "band: share of all estimated samples.", "",
     ]
     for name in axes:
         lines += axis_table(name, results)
+    lines += quality_table(axes, results)
     print("\n".join(lines), flush=True)
     if not args.no_real:
         try:

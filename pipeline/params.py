@@ -25,6 +25,19 @@ class PrepareParams:
     the cubic still sees both sides of any knee event. Longer gaps are masked."""
     noted_bridge_s: float = 0.05
     """Bridged gaps longer than this [s] get a quality note on the strides they touch."""
+    periodic_bridge_s: float = 0.5
+    """Longest gap [s] filled from the neighbouring strides (:func:`pipeline.prepare.periodic_fill`) when the
+    sensor's signal around it is periodic. Below half of the shortest walking stride (~1 s): the hole never holds
+    both the swing and the stance of one stride, so at least one of a stride's two events stays observed, and a
+    template one stride away lies outside the hole. Three lost 20-sample packets at 128 Hz (0.47 s) fit; longer
+    gaps are masked."""
+    periodic_period_s: tuple[float, float] = (0.5, 2.5)
+    """Search range of the stride period [s] for the periodic fill (running ~0.6, very slow walking ~2.5)."""
+    periodic_context_s: float = 0.8
+    """Data [s] on either side of the hole compared with the same data one period earlier/later."""
+    periodic_min_corr: float = 0.8
+    """Least correlation between the hole's context and its one-period-shifted copy: gait repeats with r > 0.9
+    from stride to stride; standing noise, turns and transitions do not, and their holes stay masked."""
     saturation_run: int = 3
     """A gyro axis pinned at its extreme for this many samples in a row counts as saturated."""
     saturation_min_dps: float = 200.0
@@ -106,6 +119,31 @@ class PhaseParams:
     """Window around the zero crossing [s] searched for the heel-strike impact."""
     impact_prominence: float = 3.0
     """An impact stands out when its jump exceeds this multiple of the window's median jump."""
+    gap_guard_s: float = 0.15
+    """No stride whose heel strikes lie closer than this [s] to a masked sample: an event searched up to a hole
+    (heel strike up to ``impact_window_s[1]`` after the swing lobe's end) may have fallen inside it, and the nearest
+    measured point taken instead would be early."""
+
+
+@dataclass(frozen=True)
+class AssignmentParams:
+    """Sensor-label checks (:mod:`pipeline.assignment`)."""
+
+    rate_percentile: float = 98.0
+    """Percentile of the gyro norm taken as the segment's swing rate (gait fills more than 2 % of any session that
+    has strides)."""
+    swap_ratio: float = 0.8
+    """Shank over thigh swing rate below this: the labels are swapped. In gait the shank swings ~2-3x faster than
+    the thigh (swing peaks ~350 vs ~150 deg/s); measured 1.9-2.7 over the simulator's robustness axes and 2.4 on the
+    real biomechZoo trial, 0.3-0.45 with the labels swapped."""
+    keep_ratio: float = 1.25
+    """Above this ratio the labelled order is confirmed; in between (no gait) nothing is decided."""
+    centre_suspect_mps2: float = 0.25
+    """A joint-centre fit residual (Seel Eq. 5) above this [m/s^2] makes the thigh pairing between the legs worth
+    testing: 0.04-0.22 with right labels (up to 0.55 with a thigh sensor 50 cm from the knee), 0.38-0.92 with the
+    thighs swapped."""
+    pairing_gain: float = 0.5
+    """The swapped thigh pairing is taken when its summed residual is below this share of the labelled one."""
 
 
 @dataclass(frozen=True)
@@ -222,13 +260,27 @@ class FusionParams:
     """GO drift [deg] between two updates beyond which the stride falls back to CF."""
     mismatch_deg: float = 8.0
     """SD [deg] of GO minus CF over a stride beyond which the stride gets a mismatch note."""
+
+
+@dataclass(frozen=True)
+class QualityParams:
+    """Per-stride quality: 1 minus the penalties of its reasons, capped when the stride cannot be vouched for
+    (:mod:`pipeline.quality`). Trends take strides of quality >= 0.5 (``server.trends.metrics.MIN_QUALITY``)."""
+
     penalties: tuple[tuple[str, float], ...] = (
         ("no_absolute_reference", 0.2), ("no_zero_crossing", 0.3), ("drift", 0.3), ("saturation", 0.5),
-        ("go_cf_mismatch", 0.3), ("cf_fallback", 0.2), ("no_go_estimate", 0.3), ("few_quiet_samples", 0.1),
-        ("bridged_gap", 0.1), ("assumed_level", 0.0))
-    """Quality lost per reason (quality = 1 - sum, floored at 0): saturation and a broken GO weigh most."""
+        ("go_cf_mismatch", 0.6), ("cf_fallback", 0.2), ("no_go_estimate", 0.3), ("few_quiet_samples", 0.1),
+        ("bridged_gap", 0.1), ("event_in_gap", 0.2), ("bout_edge", 0.1), ("assumed_level", 0.0))
+    """Quality lost per reason (quality = 1 - sum, floored at 0): saturation and a broken GO weigh most. GO and CF
+    disagreeing in shape within a stride leaves it below the trend threshold: on the sweep's tune seeds only 61 % of
+    those strides were within 3 deg of the truth (p95 5 deg), and far fewer with long lever arms or around jumps."""
     default_penalty: float = 0.1
     """Quality lost for a reason not listed."""
+    untrusted: tuple[str, ...] = ("peak_in_gap",)
+    """Reasons that leave the stride's metrics unobserved or the stride not gait: quality is capped below the
+    trend threshold."""
+    untrusted_cap: float = 0.3
+    """Quality ceiling of a stride with an untrusted reason."""
 
     def penalty(self, reason: str) -> float:
         """Quality lost for ``reason``."""
@@ -289,6 +341,7 @@ class PipelineParams:
     axes: AxesParams = field(default_factory=AxesParams)
     sync: SyncParams = field(default_factory=SyncParams)
     phases: PhaseParams = field(default_factory=PhaseParams)
+    assignment: AssignmentParams = field(default_factory=AssignmentParams)
     metrics: MetricsParams = field(default_factory=MetricsParams)
     go: GoParams = field(default_factory=GoParams)
     cf: CfParams = field(default_factory=CfParams)
@@ -297,6 +350,7 @@ class PipelineParams:
     filter_inputs: FilterInputParams = field(default_factory=FilterInputParams)
     posture: PostureParams = field(default_factory=PostureParams)
     fusion: FusionParams = field(default_factory=FusionParams)
+    quality: QualityParams = field(default_factory=QualityParams)
     running: RunningParams = field(default_factory=RunningParams)
 
 

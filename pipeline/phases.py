@@ -15,7 +15,8 @@ within ``impact_window_s`` of the zero crossing (if it stands out of the window)
 
 Robustness to standing, sitting, sit-to-stand, turns and slow walking: lobes must exceed an adaptive height
 threshold, consecutive MS peaks must be separated by a clearly negative (stance) region, and only bouts of at least
-``PhaseParams.min_bout_peaks`` peaks with consistent periods produce strides. No stride spans a masked sample.
+``PhaseParams.min_bout_peaks`` peaks with consistent periods produce strides. No stride spans a masked sample or
+ends next to one (``PhaseParams.gap_guard_s``).
 """
 
 from __future__ import annotations
@@ -145,7 +146,7 @@ def detect_gait_events(shank_sag_dps: np.ndarray, fs_hz: float, valid: np.ndarra
     for k in range(ms_a.size - 1):
         if hs_a[k] >= 0 and to_a[k + 1] > hs_a[k]:
             mst[k] = (hs_a[k] + to_a[k + 1]) // 2
-    strides = _strides(ms_a, to_a, hs_a, bout, valid, p)
+    strides = _strides(ms_a, to_a, hs_a, bout, valid, fs_hz, p)
     return GaitEvents(ms=ms_a, to=to_a, hs=hs_a, mst=mst, bout=bout, strides=strides)
 
 
@@ -185,7 +186,8 @@ def _jerk(shank_acc_mps2: np.ndarray | None, valid: np.ndarray) -> np.ndarray | 
 def _bouts(ms: np.ndarray, ws: np.ndarray, valid: np.ndarray, fs_hz: float, min_peaks: int, p: PhaseParams
            ) -> np.ndarray:
     """Bout id per MS peak: chains of peaks with plausible, consistent periods, a real stance dip between
-    consecutive peaks and no masked sample in between; chains shorter than ``min_peaks`` get -1."""
+    consecutive peaks and no masked sample in between; chains shorter than ``min_peaks`` get -1, unless a masked
+    gap ends them (then two peaks, one stride, suffice)."""
     bout = np.full(ms.size, -1)
     if ms.size == 0:
         return bout
@@ -194,7 +196,8 @@ def _bouts(ms: np.ndarray, ws: np.ndarray, valid: np.ndarray, fs_hz: float, min_
     inv_cum = np.concatenate(([0], np.cumsum(~valid)))
     # minimum of ws between consecutive peaks, all at once (peaks are increasing; the last entry is unused)
     dip = np.minimum.reduceat(ws, ms)[:-1]
-    link &= (dip < -p.stance_neg_dps) & (inv_cum[ms[1:]] == inv_cum[ms[:-1]])
+    masked = inv_cum[ms[1:]] != inv_cum[ms[:-1]]
+    link &= (dip < -p.stance_neg_dps) & ~masked
     # period consistency: compare each link with the median of its linked neighbourhood
     if period.size >= 3:
         padded = np.pad(np.where(link, period, np.nan), 2, constant_values=np.nan)
@@ -202,12 +205,16 @@ def _bouts(ms: np.ndarray, ws: np.ndarray, valid: np.ndarray, fs_hz: float, min_
         with np.errstate(all="ignore"):
             local = np.nanmedian(np.where(np.isnan(windows).all(axis=1, keepdims=True), 1.0, windows), axis=1)
         link &= np.abs(period - local) <= p.period_tol * local
+    # a chain cut by missing data is not an isolated step: the strides beyond the hole were walked, not observed
+    cut_before = np.concatenate(([False], masked))
+    cut_after = np.concatenate((masked, [False]))
     chain_id = 0
     start = 0
     for k in range(ms.size):
         end_of_chain = k == ms.size - 1 or not link[k]
         if end_of_chain:
-            if k - start + 1 >= min_peaks:
+            need = min(min_peaks, 2) if cut_before[start] or cut_after[k] else min_peaks
+            if k - start + 1 >= need:
                 bout[start:k + 1] = chain_id
                 chain_id += 1
             start = k + 1
@@ -215,9 +222,12 @@ def _bouts(ms: np.ndarray, ws: np.ndarray, valid: np.ndarray, fs_hz: float, min_
 
 
 def _strides(ms: np.ndarray, to: np.ndarray, hs: np.ndarray, bout: np.ndarray,
-             valid: np.ndarray, p: PhaseParams) -> list[tuple[int, int, int]]:
-    """Strides HS(k) -> TO(k+1) -> HS(k+1) for consecutive peaks of one bout, plausible stance share, no mask."""
+             valid: np.ndarray, fs_hz: float, p: PhaseParams) -> list[tuple[int, int, int]]:
+    """Strides HS(k) -> TO(k+1) -> HS(k+1) for consecutive peaks of one bout, plausible stance share, no masked
+    sample within ``gap_guard_s`` of the stride."""
     inv_cum = np.concatenate(([0], np.cumsum(~valid)))
+    n = valid.shape[0]
+    guard = int(round(p.gap_guard_s * fs_hz))
     out = []
     for k in range(ms.size - 1):
         if bout[k] < 0 or bout[k] != bout[k + 1]:
@@ -228,7 +238,7 @@ def _strides(ms: np.ndarray, to: np.ndarray, hs: np.ndarray, bout: np.ndarray,
         stance_pct = 100.0 * (t - a) / (b - a)
         if not (p.stance_pct_range[0] <= stance_pct <= p.stance_pct_range[1]):
             continue
-        if inv_cum[b + 1] != inv_cum[a]:
+        if inv_cum[min(b + guard, n - 1) + 1] != inv_cum[max(a - guard, 0)]:
             continue
         out.append((a, t, b))
     return out

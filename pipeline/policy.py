@@ -38,8 +38,9 @@ from pipeline.estimators.cf import complementary_filter
 from pipeline.estimators.go import GoDiagnostics, go_relative
 from pipeline.estimators.kf import FilterDiagnostics
 from pipeline.leg_input import EstimatorDiagnostics, LegInput
-from pipeline.params import FusionParams
+from pipeline.params import FusionParams, QualityParams
 from pipeline.posture import in_bouts, standing_reference
+from pipeline.quality import stride_quality
 from pipeline.signal_utils import row_norm
 from pipeline.tuning import TuningDiagnostics
 from pipeline.types import AbsoluteReference
@@ -260,7 +261,7 @@ def _stride_flags(leg: LegInput, go_diag: GoDiagnostics, go_abs: np.ndarray, cf_
 
 
 def _choose(flags: _StrideFlags, k: int, absolute_ok: bool, quiet_count: int, p: FusionParams,
-            level_reasons: tuple[str, ...] = ()) -> StrideChoice:
+            q: QualityParams, level_reasons: tuple[str, ...] = ()) -> StrideChoice:
     """GO or the CF fallback for stride ``k``, its quality and reasons."""
     reasons: list[str] = list(level_reasons)
     if not absolute_ok:
@@ -279,8 +280,8 @@ def _choose(flags: _StrideFlags, k: int, absolute_ok: bool, quiet_count: int, p:
         reasons.append("go_cf_mismatch")
     if not use_go:
         reasons.append("cf_fallback")
-    quality = max(0.0, 1.0 - sum(p.penalty(r) for r in reasons))
-    return StrideChoice(estimator="go" if use_go else "cf", quality=round(quality, 3), reasons=tuple(reasons),
+    return StrideChoice(estimator="go" if use_go else "cf", quality=stride_quality(reasons, q),
+                        reasons=tuple(reasons),
                         fallback=not use_go)
 
 
@@ -318,7 +319,8 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     lo, hi = arr[:, 0], arr[:, 2] + 1
     flags = _stride_flags(leg, go_diag, go_abs, cf_used, lo, hi)
     level = _level_reasons(leg)
-    choices = tuple(_choose(flags, k, absolute_ok, int(quiet_counts[k]), p, level) for k in range(len(strides)))
+    choices = tuple(_choose(flags, k, absolute_ok, int(quiet_counts[k]), p, leg.params.quality, level)
+                    for k in range(len(strides)))
     use = np.array([c.estimator == "go" for c in choices])
     cover = np.zeros(n + 1, dtype=int)
     np.add.at(cover, lo[use], 1)

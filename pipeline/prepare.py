@@ -5,8 +5,9 @@ grid at the faster of the two rates by a cubic Hermite (Catmull-Rom) curve: gait
 a cubic keeps swing peaks that straight lines would cut. A gap is a step between consecutive samples longer than
 ``PrepareParams.gap_factor`` nominal periods. Gaps up to ``PrepareParams.max_bridge_s`` (one or two lost BLE
 packets; shorter than the swing-flexion phase, so the cubic still sees both sides of any knee event) are bridged by
-the cubic and reported (``bridged_s``, strides touching one get a quality note); longer gaps are masked: no angle,
-no stride across.
+the cubic and reported (``bridged_s``, strides touching one get a quality note). Longer gaps up to
+``PrepareParams.periodic_bridge_s`` inside periodic gait are filled from the sensor's own neighbouring strides
+(:func:`periodic_fill`, reported in ``filled_s``); the rest is masked: no angle, no stride across.
 """
 
 from __future__ import annotations
@@ -41,6 +42,13 @@ class PreparedLeg:
     gaps_s: list[tuple[float, float]] = field(default_factory=list)
     bridged_gaps: int = 0
     bridged_s: list[tuple[float, float]] = field(default_factory=list)  # bridged gaps worth a quality note
+    # gaps filled from the neighbouring strides (:func:`periodic_fill`): valid, but the samples are a model
+    filled_s: list[tuple[float, float]] = field(default_factory=list)
+    # the thigh's own masked and filled gaps, so a re-stamped shank can reuse the thigh channels
+    thigh_gaps_s: list[tuple[float, float]] = field(default_factory=list)
+    thigh_filled_s: list[tuple[float, float]] = field(default_factory=list)
+    thigh_noted_s: list[tuple[float, float]] = field(default_factory=list)
+    shank_bridged: int = 0
 
     @property
     def n(self) -> int:
@@ -155,6 +163,91 @@ def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray, max_bridge_
     return out
 
 
+def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, float]], fs_hz: float,
+                  params: PrepareParams = WALKING.prepare
+                  ) -> tuple[np.ndarray, list[tuple[float, float]], list[tuple[float, float]]]:
+    """Fill one sensor's gaps ``(t_last_before, t_first_after)`` on the grid ``t_grid`` from its neighbouring strides.
+
+    Gait is periodic: a shank or thigh IMU's signal one stride earlier and later predicts the missing one well
+    (stride-to-stride correlation of the shank rate > 0.9 in steady walking). The stride period T is the lag in
+    ``periodic_period_s`` that best aligns the ``periodic_context_s`` of data on both sides of the hole with the same
+    data shifted by T (the autocorrelation period estimate of gait cycles, Moe-Nilssen and Helbostad 2004); the hole
+    is the mean of the samples one period before and after (what is available) - the phase-aligned mean of the
+    neighbouring strides - plus a straight line that matches it to the measured samples at both edges of the hole.
+    ``x`` (N, C): the sensor's grid channels, gyro in the first three (the only ones scored). A gap longer than
+    ``periodic_bridge_s``, without periodic context (correlation below ``periodic_min_corr``) or at the grid's edge
+    stays a gap. Returns the filled channels, the filled gaps and the remaining gaps."""
+    if not gaps:
+        return x, [], []
+    n = t_grid.shape[0]
+    bad = _mask_intervals(t_grid, gaps)
+    lags = np.arange(max(int(params.periodic_period_s[0] * fs_hz), 1), int(params.periodic_period_s[1] * fs_hz) + 1)
+    ctx = max(int(params.periodic_context_s * fs_hz), 2)
+    out = x
+    filled: list[tuple[float, float]] = []
+    kept: list[tuple[float, float]] = []
+    for g0, g1 in gaps:
+        i0 = int(np.searchsorted(t_grid, g0, side="right"))
+        i1 = int(np.searchsorted(t_grid, g1, side="left"))
+        if i1 <= i0:
+            filled.append((g0, g1))  # no grid sample inside: nothing to fill
+            continue
+        if g1 - g0 > params.periodic_bridge_s or i0 < 1 or i1 >= n:
+            kept.append((g0, g1))
+            continue
+        fill = _periodic_hole(x, bad, i0, i1, lags, ctx, params.periodic_min_corr)
+        if fill is None:
+            kept.append((g0, g1))
+            continue
+        if out is x:
+            out = x.copy()
+        out[i0:i1] = fill
+        filled.append((g0, g1))
+    return out, filled, kept
+
+
+def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.ndarray, ctx: int, min_corr: float
+                   ) -> np.ndarray | None:
+    """Samples ``[i0, i1)`` of ``x`` from the best-aligned period (:func:`periodic_fill`), None without one."""
+    n = x.shape[0]
+    c = np.concatenate((np.arange(max(i0 - ctx, 0), i0), np.arange(i1, min(i1 + ctx, n))))
+    c = c[~bad[c]]
+    if c.size < ctx:
+        return None
+    g = x[:, :3]
+    a = g[c] - g[c].mean(axis=0)
+    score = np.full(lags.size, -np.inf)
+    for sign in (-1, 1):
+        src = c[None, :] + sign * lags[:, None]  # (lags, context)
+        ok = (src >= 0) & (src < n)
+        ok[ok] = ~bad[src[ok]]
+        b = g[np.clip(src, 0, n - 1)] - g[c].mean(axis=0)  # (lags, context, 3)
+        w = ok[:, :, None]
+        num = np.sum(w * a[None] * b, axis=(1, 2))
+        den = np.sqrt(np.sum(w * a[None] ** 2, axis=(1, 2)) * np.sum(w * b ** 2, axis=(1, 2)))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = np.where(ok.mean(axis=1) >= 0.5, num / den, -np.inf)
+        score = np.maximum(score, np.nan_to_num(r, nan=-np.inf))
+    k = int(np.argmax(score))
+    if not score[k] >= min_corr:
+        return None
+    lag = int(lags[k])
+    h = np.arange(i0 - 1, i1 + 1)  # the hole with its measured edge samples
+    acc = np.zeros((h.size, x.shape[1]))
+    cnt = np.zeros(h.size)
+    for src in (h - lag, h + lag):
+        ok = (src >= 0) & (src < n)
+        ok[ok] = ~bad[src[ok]]
+        acc[ok] += x[src[ok]]
+        cnt += ok
+    if not cnt.all():
+        return None
+    tmpl = acc / cnt[:, None]
+    r0, r1 = x[i0 - 1] - tmpl[0], x[i1] - tmpl[-1]
+    u = (np.arange(1, h.size - 1) / (h.size - 1))[:, None]
+    return tmpl[1:-1] + (1 - u) * r0 + u * r1
+
+
 def _mask_intervals(t_grid: np.ndarray, gaps: list[tuple[float, float]]) -> np.ndarray:
     """True for grid samples strictly inside any gap interval."""
     bad = np.zeros(t_grid.shape[0], dtype=bool)
@@ -207,27 +300,33 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
     keep_grid = reuse is not None and reuse.t_s[0] >= t2[0] and reuse.t_s[-1] <= t2[-1] and reuse.fs_hz == fs_hz
     if keep_grid:
         t_grid, t_start = reuse.t_s, float(reuse.t_s[0])
-    gaps1, br1, noted1 = find_gaps(t1, fs1, params)
     gaps2, br2, noted2 = find_gaps(t2, fs2, params)
-    gaps = sorted(gaps1 + gaps2)
-    valid = ~_mask_intervals(t_grid, gaps)
     sat1 = saturation_mask(g1, params)
     sat2 = saturation_mask(g2, params)
     saturated = (np.interp(t_grid, t1, sat1.astype(float)) > 0) | (np.interp(t_grid, t2, sat2.astype(float)) > 0)
-    merged = _merge_intervals(gaps)
     if keep_grid:
         # the first pass's arrays themselves (never modified in place): same values and memory layout
         gyr_thigh, acc_thigh = reuse.gyr_thigh_rps, reuse.acc_thigh_mps2
+        gaps1, filled1 = reuse.thigh_gaps_s, reuse.thigh_filled_s
+        br1, noted1 = reuse.bridged_gaps - reuse.shank_bridged, reuse.thigh_noted_s
     else:
-        thigh6 = _interp_columns(t_grid, t1, np.hstack([g1, a1]), params.max_bridge_s)
+        gaps1, br1, noted1 = find_gaps(t1, fs1, params)
+        thigh6, filled1, gaps1 = periodic_fill(
+            t_grid, _interp_columns(t_grid, t1, np.hstack([g1, a1]), params.max_bridge_s), gaps1, fs_hz, params)
+        br1 += len(filled1)
         gyr_thigh, acc_thigh = thigh6[:, :3], thigh6[:, 3:]
-    shank6 = _interp_columns(t_grid, t2, np.hstack([g2, a2]), params.max_bridge_s)
+    shank6, filled2, gaps2 = periodic_fill(
+        t_grid, _interp_columns(t_grid, t2, np.hstack([g2, a2]), params.max_bridge_s), gaps2, fs_hz, params)
+    br2 += len(filled2)
+    gaps = sorted(gaps1 + gaps2)
+    valid = ~_mask_intervals(t_grid, gaps)
     return PreparedLeg(
         leg=leg, fs_hz=fs_hz, t0_s=float(t_start), t_s=t_grid,
         gyr_thigh_rps=gyr_thigh, gyr_shank_rps=shank6[:, :3],
         acc_thigh_mps2=acc_thigh, acc_shank_mps2=shank6[:, 3:],
-        valid=valid, saturated=saturated, gaps_s=merged, bridged_gaps=br1 + br2,
-        bridged_s=_merge_intervals(noted1 + noted2),
+        valid=valid, saturated=saturated, gaps_s=_merge_intervals(gaps), bridged_gaps=br1 + br2,
+        bridged_s=_merge_intervals(noted1 + noted2), filled_s=_merge_intervals(filled1 + filled2),
+        thigh_gaps_s=gaps1, thigh_filled_s=filled1, thigh_noted_s=noted1, shank_bridged=br2,
     )
 
 

@@ -15,11 +15,14 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from pipeline import ALGORITHM_VERSION
+from pipeline.assignment import check_segments, pairing_suspicious, swapped_pairing_better
+from pipeline.bilateral import non_alternating
 from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
 from pipeline.metrics import stride_values
-from pipeline.params import RUNNING, PipelineParams, preset
+from pipeline.params import RUNNING, AssignmentParams, PipelineParams, preset
 from pipeline.policy import PolicyResult, auto, single_estimator
+from pipeline.quality import edge_reasons, gap_reasons, stride_quality
 from pipeline.running import build_running_leg_input, detect_running
 from pipeline.sync import SyncedLeg, synchronised_leg
 from pipeline.types import (
@@ -54,7 +57,10 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
         raise ValueError("the session has no samples")
     warnings: list[str] = []
     by_leg = _streams_by_leg(streams, warnings)
+    ap = (params if params is not None else preset(activity)).assignment
+    assigned = _check_labels(by_leg, ap, warnings)
     legs: dict[str, LegResult] = {}
+    swings: dict[str, np.ndarray] = {}
     for leg in sorted(by_leg):
         segs = by_leg[leg]
         if "thigh" not in segs or "shank" not in segs:
@@ -62,11 +68,106 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
             warnings.append(f"{leg} leg skipped: no {missing} sensor")
             continue
         try:
-            legs[leg] = process_leg(leg, segs["thigh"], segs["shank"], activity, estimator, params,
-                                    (calibration or {}).get(leg))
+            legs[leg], swings[leg] = _process_leg(leg, segs["thigh"], segs["shank"], activity, estimator, params,
+                                                  (calibration or {}).get(leg))
         except ValueError as exc:
             warnings.append(f"{leg} leg skipped: {exc}")
+    legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
+                                        warnings)
+    legs = _alternating_strides(legs, swings, warnings)
+    for leg, how in assigned.items():
+        lr = legs.get(leg)
+        if lr is not None and lr.diagnostics is not None:
+            lr.diagnostics = dataclasses.replace(lr.diagnostics, assignment=how)
     return SessionResult(algorithm_version=ALGORITHM_VERSION, activity=activity, legs=legs, warnings=warnings)
+
+
+def _check_labels(by_leg: dict[str, dict[str, RawSensorStream]], params: AssignmentParams, warnings: list[str]
+                  ) -> dict[str, str]:
+    """Exchange a leg's thigh and shank streams when their motion says the labels are swapped
+    (:func:`pipeline.assignment.check_segments`). Returns what was done per leg."""
+    assigned: dict[str, str] = {}
+    for leg in sorted(by_leg):
+        segs = by_leg[leg]
+        if "thigh" not in segs or "shank" not in segs:
+            continue
+        chk = check_segments(segs["thigh"], segs["shank"], params)
+        ratios = f"shank/thigh swing rate {chk.rate_ratio:.2f}, impact {chk.impact_ratio:.2f}"
+        if chk.verdict == "swapped":
+            segs["thigh"], segs["shank"] = segs["shank"], segs["thigh"]
+            assigned[leg] = "thigh_shank_exchanged"
+            warnings.append(f"{leg} leg: the sensor labelled thigh moves like a shank ({ratios}); "
+                            "thigh and shank labels exchanged")
+    return assigned
+
+
+def _centre_residuals(legs: dict[str, LegResult]) -> tuple[float, float] | None:
+    """Joint-centre fit residuals [m/s^2] of the left and right leg (None without diagnostics)."""
+    d = [legs[k].diagnostics for k in ("left", "right")]
+    if d[0] is None or d[1] is None:
+        return None
+    return d[0].centre_rms_residual_mps2, d[1].centre_rms_residual_mps2
+
+
+def _check_thigh_pairing(legs: dict[str, LegResult], swings: dict[str, np.ndarray],
+                         by_leg: dict[str, dict[str, RawSensorStream]], activity: str,
+                         estimator: str, params: PipelineParams | None,
+                         calibration: Mapping[str, KneeCalibration] | None, ap: AssignmentParams,
+                         assigned: dict[str, str], warnings: list[str]
+                         ) -> tuple[dict[str, LegResult], dict[str, np.ndarray]]:
+    """Both legs processed again with the thighs exchanged when a joint-centre residual is suspicious; the swapped
+    pairing is kept when it fits clearly better (:func:`pipeline.assignment.swapped_pairing_better`)."""
+    if set(legs) != {"left", "right"}:
+        return legs, swings
+    labelled = _centre_residuals(legs)
+    if labelled is None or not pairing_suspicious(labelled, ap):
+        return legs, swings
+    other = {"left": "right", "right": "left"}
+    try:
+        runs = {k: _process_leg(k, by_leg[other[k]]["thigh"], by_leg[k]["shank"], activity, estimator, params,
+                                (calibration or {}).get(k)) for k in ("left", "right")}
+    except ValueError:
+        runs = {}
+    swapped = {k: v[0] for k, v in runs.items()}
+    resid = _centre_residuals(swapped) if swapped else None
+    if resid is not None and swapped_pairing_better(labelled, resid, ap):
+        for k in ("left", "right"):
+            assigned[k] = "thighs_exchanged_between_legs"
+        warnings.append("thigh sensors exchanged between the legs: each fits the other leg's shank as a hinge "
+                        f"(joint-centre residual {labelled[0]:.2f}/{labelled[1]:.2f} -> {resid[0]:.2f}/{resid[1]:.2f}"
+                        " m/s^2, left/right)")
+        return swapped, {k: v[1] for k, v in runs.items()}
+    return legs, swings
+
+
+def _alternating_strides(legs: dict[str, LegResult], swings: dict[str, np.ndarray], warnings: list[str]
+                         ) -> dict[str, LegResult]:
+    """Each leg without the strides in which the other leg does not swing in anti-phase (jumps, squats,
+    sit-to-stand: :mod:`pipeline.bilateral`); a leg alone is not judged."""
+    if set(legs) != {"left", "right"}:
+        return legs
+    out = dict(legs)
+    for leg, other in (("left", "right"), ("right", "left")):
+        lr = legs[leg]
+        own = np.sort(swings[leg])
+        spans = []
+        for s in lr.strides:
+            k = np.searchsorted(own, s.t_toe_off_s)
+            ms = float(own[k]) if k < own.size and own[k] <= s.t_end_s else (s.t_toe_off_s + s.t_end_s) / 2
+            spans.append((s.t_start_s, ms, s.t_end_s))
+        drop = set(non_alternating(spans, swings[other], legs[other].gaps_s))
+        if not drop:
+            continue
+        kept = [dataclasses.replace(s, index=i) for i, s in enumerate(x for k, x in enumerate(lr.strides)
+                                                                        if k not in drop)]
+        diag = lr.diagnostics
+        if diag is not None:
+            diag = dataclasses.replace(diag, n_strides=len(kept), n_fallback=sum(1 for s in kept if s.fallback))
+        out[leg] = dataclasses.replace(lr, strides=kept, walking_s=float(sum(s.duration_s for s in kept)),
+                                       diagnostics=diag)
+        warnings.append(f"{leg} leg: {len(drop)} stride(s) dropped: the other leg did not swing in anti-phase "
+                        "(not gait)")
+    return out
 
 
 def _streams_by_leg(streams: Sequence[RawSensorStream], warnings: list[str]
@@ -110,6 +211,13 @@ def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activi
                 estimator: str = "auto", params: PipelineParams | None = None,
                 calibration: KneeCalibration | None = None) -> LegResult:
     """Knee flexion and strides of one leg (:func:`process_session` for one thigh/shank pair)."""
+    return _process_leg(leg, thigh, shank, activity, estimator, params, calibration)[0]
+
+
+def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str, estimator: str,
+                 params: PipelineParams | None, calibration: KneeCalibration | None
+                 ) -> tuple[LegResult, np.ndarray]:
+    """:func:`process_leg` and the times [s] of every mid-swing peak of the leg (in bouts or not)."""
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore", RuntimeWarning)
         synced = synchronised_leg(leg, thigh, shank, params if params is not None else preset(activity))
@@ -120,21 +228,32 @@ def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activi
     return LegResult(leg=leg, fs_hz=data.fs_hz, t_s=data.prep.t_s, angle_deg=result.angle_deg,
                      estimator=result.estimator, strides=strides, gaps_s=list(data.prep.gaps_s),
                      walking_s=float(sum(s.duration_s for s in strides)), activity=data.activity,
-                     diagnostics=diagnostics)
+                     diagnostics=diagnostics), data.prep.t_s[data.events.ms]
 
 
 def _strides(leg: str, data: LegInput, result: PolicyResult) -> list[StrideMetrics]:
-    """Metrics of every stride whose angle is finite throughout, with the policy's choice for it."""
+    """Metrics of every stride whose angle is finite throughout, with the policy's choice for it and the data's
+    own reasons (:mod:`pipeline.quality`: filled gaps, unsteady bout edges)."""
     angle, t_s = result.angle_deg, data.prep.t_s
+    events = data.events
     out: list[StrideMetrics] = []
     # non-finite samples counted by prefix sum: one pass instead of a test per stride
     bad_cum = np.concatenate(([0], np.cumsum(~np.isfinite(angle))))
-    for (a, t, b), choice in zip(data.events.strides, result.choices, strict=True):
-        if bad_cum[b + 1] != bad_cum[a]:
-            continue
+    kept = [(s, c) for s, c in zip(events.strides, result.choices, strict=True) if bad_cum[s[2] + 1] == bad_cum[s[0]]]
+    triples = [s for s, _ in kept]
+    gap = gap_reasons(t_s, data.prep.filled_s, angle, triples)
+    lobe = {int(h): k for k, h in enumerate(events.hs) if h >= 0}
+    ks = [lobe[a] for a, _, _ in triples]
+    swing_dps = np.array([data.shank_sag_dps[events.ms[k + 1]] for k in ks]) if ks else np.zeros(0)
+    edge = edge_reasons(triples, [int(events.bout[k]) for k in ks], swing_dps)
+    qp = data.params.quality
+    for ((a, t, b), choice), g, e in zip(kept, gap, edge, strict=True):
         v = stride_values(angle, t_s, a, t, b, data.params.metrics)
-        out.append(StrideMetrics(leg=leg, index=len(out), estimator=choice.estimator, quality=float(choice.quality),
-                                 quality_reasons=tuple(choice.reasons), activity=data.activity,
+        extra = tuple(r for r in (*g, *e) if r not in choice.reasons)
+        reasons = (*choice.reasons, *extra)
+        quality = min(float(choice.quality), stride_quality(reasons, qp)) if extra else float(choice.quality)
+        out.append(StrideMetrics(leg=leg, index=len(out), estimator=choice.estimator, quality=quality,
+                                 quality_reasons=reasons, activity=data.activity,
                                  fallback=choice.fallback, **v.__dict__))
     return out
 

@@ -148,6 +148,8 @@ class SimConfig:
     # "ringing": the shank shock rings 3 x longer at a lower frequency and rocks the sensor about a random axis
     # (the gyro sees it too), as a loosely strapped sensor would; "default": the model above
     impact_model: Literal["default", "ringing"] = "default"
+    move_reps: int = 3  # repetitions of each jump, step-up or sit-to-stand block between bouts
+    jump_rest_s: float = 1.0  # standing between two jumps (0: rhythmic jumping at the jump's own period)
 
 
 @dataclass(frozen=True)
@@ -290,12 +292,12 @@ def _keyframes(grid: np.ndarray, t0: float, frames: np.ndarray) -> np.ndarray:
     return out
 
 
-def _move_duration_s(kind: str) -> float:
+def _move_duration_s(kind: str, reps: int = _MOVE_REPS, jump_rest_s: float = 1.0) -> float:
     if kind == "jump":
-        return _MOVE_REPS * (_JUMP[-1, 0] + 1.0)
+        return reps * (_JUMP[-1, 0] + jump_rest_s)
     if kind == "stairs":
-        return _MOVE_REPS * (_STEP[-1, 0] + 0.8)
-    return _MOVE_REPS * (1.5 + 2.5 + 1.5 + 2.0)  # sit_to_stand: down, seated, up, standing
+        return reps * (_STEP[-1, 0] + 0.8)
+    return reps * (1.5 + 2.5 + 1.5 + 2.0)  # sit_to_stand: down, seated, up, standing
 
 
 def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator) -> _Timeline:  # noqa: C901 - one pass over the bout/break plan keeps the random draws in a fixed order (seeded outputs stay reproducible)
@@ -329,7 +331,7 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
         sit_s = rng.uniform(8, 15)
         brk = {"sitting": 5.5 + sit_s, "turn": 5.0}.get(kind, rng.uniform(4, 8))
         if kind in ("jump", "stairs", "sit_to_stand"):
-            brk = _move_duration_s(kind) + 3.0
+            brk = _move_duration_s(kind, cfg.move_reps, cfg.jump_rest_s) + 3.0
         if cfg.duration_s is not None and t + brk + 3 * stride_s + 3 > cfg.duration_s:
             break
         if kind == "sitting":
@@ -337,12 +339,13 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
         elif kind == "turn":
             events.append(("turn", t + 1.0, t + 3.5, {"angle": np.pi * rng.choice([-1, 1]) * rng.uniform(0.5, 1)}))
         elif kind == "sit_to_stand":
-            rep_s = _move_duration_s(kind) / _MOVE_REPS
-            for r in range(_MOVE_REPS):
+            rep_s = _move_duration_s(kind, cfg.move_reps) / cfg.move_reps
+            for r in range(cfg.move_reps):
                 t_r = t + 1.0 + r * rep_s
                 events.append(("sit", t_r, t_r + 1.5 + 2.5 + 1.5, {"ramp": 1.5}))
         elif kind in ("jump", "stairs"):
-            events.append((kind, t + 1.0, t + 1.0 + _move_duration_s(kind), {"lead": k % 2}))
+            events.append((kind, t + 1.0, t + 1.0 + _move_duration_s(kind, cfg.move_reps, cfg.jump_rest_s),
+                           {"lead": k % 2}))
         t += brk
         k += 1
     t_end = max(t + 2.5, cfg.duration_s or 0.0) if cfg.standing_s is None else t + cfg.standing_s
@@ -381,7 +384,7 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
             sit += down - up
             moves.non_gait_s.append(("sit", t0, t1))
         elif kind in ("jump", "stairs"):
-            _add_moves(moves, grid, kind, t0, p["lead"], cfg.legs)
+            _add_moves(moves, grid, kind, t0, p["lead"], cfg.legs, cfg.move_reps, cfg.jump_rest_s)
         elif kind == "turn":
             heading += p["angle"] * _smoothstep((grid - t0) / (t1 - t0))
     phase = np.concatenate([[0.0], np.cumsum(0.5 * (freq[1:] + freq[:-1]) / _GRID_HZ)])
@@ -395,15 +398,16 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
     return _Timeline(grid, env, phase, sit, heading, bouts, moves)
 
 
-def _add_moves(mv: _Moves, grid: np.ndarray, kind: str, t0: float, lead: int, legs: tuple[str, ...]) -> None:
-    """Add ``_MOVE_REPS`` jumps or step-ups starting at t0 to the movement layers ``mv``."""
+def _add_moves(mv: _Moves, grid: np.ndarray, kind: str, t0: float, lead: int, legs: tuple[str, ...],
+               reps: int = _MOVE_REPS, jump_rest_s: float = 1.0) -> None:
+    """Add ``reps`` jumps or step-ups starting at t0 to the movement layers ``mv``."""
     if mv.height is None:
         mv.height = np.zeros_like(grid)
         for leg in legs:
             mv.knee[leg] = np.zeros_like(grid)
             mv.hip[leg] = np.zeros_like(grid)
-    rep_s = _move_duration_s(kind) / _MOVE_REPS
-    for r in range(_MOVE_REPS):
+    rep_s = _move_duration_s(kind, reps, jump_rest_s) / reps
+    for r in range(reps):
         t_r = t0 + r * rep_s
         if kind == "jump":
             kf = _keyframes(grid, t_r, _JUMP)
@@ -420,7 +424,7 @@ def _add_moves(mv: _Moves, grid: np.ndarray, kind: str, t0: float, lead: int, le
                 mv.knee[leg] += kf[:, c]
                 mv.hip[leg] += kf[:, c + 1]
             mv.height += kf[:, 4]
-    mv.non_gait_s.append((kind, t0, t0 + _move_duration_s(kind)))
+    mv.non_gait_s.append((kind, t0, t0 + _move_duration_s(kind, reps, jump_rest_s)))
 
 
 def _smooth_noise(rng: np.random.Generator, t: np.ndarray, sd: float, corr_s: float) -> np.ndarray:

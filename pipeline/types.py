@@ -132,6 +132,9 @@ class LegDiagnostics:
     calibration_id: str | None = None
     # knee angles outside the plausibility band (pipeline.params.PostureParams.plausible_knee_deg), masked to NaN
     masked_implausible_samples: int = 0
+    # what the sensor-label checks did (pipeline.assignment): "as_labelled", "thigh_shank_exchanged" or
+    # "thighs_exchanged_between_legs"
+    assignment: str = "as_labelled"
 
 
 @dataclass

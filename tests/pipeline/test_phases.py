@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pipeline.params import WALKING
 from pipeline.phases import detect_gait_events, shank_sagittal_dps
 from pipeline.simulate import SimConfig, simulate_session
 
@@ -69,3 +70,15 @@ def test_no_stride_spans_a_masked_gap() -> None:
     assert len(cut.strides) < len(full.strides)
     for a2, _, b2 in cut.strides:
         assert valid[a2:b2 + 1].all()
+
+
+def test_no_stride_ends_next_to_a_masked_gap() -> None:
+    """A heel strike in a hole must not be replaced by the last measured point before it."""
+    sim, s, w = _shank("normal", seed=3)
+    valid = np.ones(w.size, dtype=bool)
+    full = detect_gait_events(w, s.fs_hz, valid=valid)
+    _, _, b = full.strides[len(full.strides) // 2]
+    valid[b - 2:b + 40] = False  # the hole swallows the true heel strike
+    guard = int(WALKING.phases.gap_guard_s * s.fs_hz)
+    for a2, _, b2 in detect_gait_events(w, s.fs_hz, valid=valid).strides:
+        assert valid[max(a2 - guard, 0):b2 + guard + 1].all()

@@ -72,3 +72,28 @@ def test_no_overlap_is_an_error() -> None:
     g, a = _signals(t)
     with pytest.raises(ValueError, match="overlap"):
         prepare_leg("left", _stream("thigh", t, g, a, 100), _stream("shank", t + 5, g, a, 100))
+
+
+def test_holes_in_periodic_gait_are_filled_from_the_neighbouring_strides() -> None:
+    t = np.arange(0, 12, 0.01)
+    ph = 2 * np.pi * t / 1.1  # a 1.1 s stride with a swing peak: several harmonics, like a shank rate
+    g = np.column_stack([300 * np.sin(ph) ** 3 + 80 * np.sin(2 * ph), 40 * np.cos(ph), 20 * np.sin(3 * ph)])
+    a = np.column_stack([np.sin(ph), np.cos(ph), 9.81 + np.sin(2 * ph)])
+    drop = np.zeros(t.size, dtype=bool)
+    drop[600:640] = True  # 0.41 s: longer than the cubic bridge, inside periodic gait
+    thigh = _stream("thigh", t[~drop], g[~drop], a[~drop], 100)
+    p = prepare_leg("left", thigh, _stream("shank", t, g, a, 100))
+    assert p.valid.all() and len(p.filled_s) == 1 and not p.gaps_s
+    err = np.rad2deg(p.gyr_thigh_rps[595:645]) - g[595:645]
+    assert np.max(np.abs(err)) < 5.0  # of a 300 deg/s swing
+
+
+def test_holes_without_periodic_context_stay_masked() -> None:
+    t = np.arange(0, 12, 0.01)
+    rng = np.random.default_rng(0)
+    g = np.cumsum(rng.normal(0, 5, (t.size, 3)), axis=0)  # a random walk repeats nothing
+    a = np.column_stack([0 * t, 0 * t, 9.81 + 0 * t])
+    drop = np.zeros(t.size, dtype=bool)
+    drop[600:640] = True
+    p = prepare_leg("left", _stream("thigh", t[~drop], g[~drop], a[~drop], 100), _stream("shank", t, g, a, 100))
+    assert len(p.gaps_s) == 1 and not p.filled_s

@@ -1,0 +1,85 @@
+"""Per-stride quality: what a stride's reasons cost, and the stride-side reasons (gaps, bout edges).
+
+A stride's quality is 1 minus the penalties of its reasons (:class:`pipeline.params.QualityParams`), floored at 0.
+A reason in ``QualityParams.untrusted`` caps it below the trend threshold (``server.trends.metrics.MIN_QUALITY`` =
+0.5): its peak or minimum was not measured, or it is not a gait stride. The estimators' reasons come from
+:mod:`pipeline.policy`; the data's reasons from here:
+
+- ``bridged_gap``: the stride holds a hole filled from the neighbouring strides
+  (:func:`pipeline.prepare.periodic_fill`);
+- ``event_in_gap``: a heel strike or toe-off lies in such a hole (its timing is the neighbours', not measured);
+- ``peak_in_gap``: the stride's swing peak or minimum of the angle lies in it (the metric itself is a model);
+- ``bout_edge``: the first or last stride of a bout is not steady (gait initiation and termination change stride
+  time and swing speed: Jian et al. 1993, steady state within ~2 strides).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from pipeline.params import WALKING, QualityParams
+
+
+def stride_quality(reasons: Sequence[str], params: QualityParams = WALKING.quality) -> float:
+    """Quality 0..1 of a stride with ``reasons`` (rounded to 3 decimals)."""
+    q = max(0.0, 1.0 - sum(params.penalty(r) for r in reasons))
+    if any(r in params.untrusted for r in reasons):
+        q = min(q, params.untrusted_cap)
+    return round(q, 3)
+
+
+def gap_reasons(t_s: np.ndarray, filled_s: Sequence[tuple[float, float]], angle_deg: np.ndarray,
+                strides: Sequence[tuple[int, int, int]], margin: int = 1) -> list[tuple[str, ...]]:
+    """The gap reasons of each stride ``(hs, to, hs_next)`` (sample indices of ``t_s``) against the filled holes
+    ``filled_s`` (``(t_last_before, t_first_after)`` [s]). ``angle_deg`` (N,): finite on the strides. An event or
+    extremum within ``margin`` samples of a hole counts as inside (the fill is matched to its edge samples)."""
+    if not filled_s or not strides:
+        return [() for _ in strides]
+    n = t_s.shape[0]
+    holes = np.zeros(n + 1, dtype=int)
+    for g0, g1 in filled_s:
+        i0 = max(int(np.searchsorted(t_s, g0, side="right")) - margin, 0)
+        i1 = min(int(np.searchsorted(t_s, g1, side="left")) + margin, n)
+        if i1 > i0:
+            holes[i0] += 1
+            holes[i1] -= 1
+    inside = np.cumsum(holes)[:-1] > 0
+    cum = np.concatenate(([0], np.cumsum(inside)))
+    out: list[tuple[str, ...]] = []
+    for a, t, b in strides:
+        if cum[b + 1] == cum[a]:
+            out.append(())
+            continue
+        reasons = ["bridged_gap"]
+        if inside[a] or inside[t] or inside[b]:
+            reasons.append("event_in_gap")
+        peak = t + int(np.argmax(angle_deg[t:b + 1]))
+        low = a + int(np.argmin(angle_deg[a:b + 1]))
+        if inside[peak] or inside[low]:
+            reasons.append("peak_in_gap")
+        out.append(tuple(reasons))
+    return out
+
+
+def edge_reasons(strides: Sequence[tuple[int, int, int]], bout_of_stride: Sequence[int], swing_peak_dps: np.ndarray,
+                 duration_tol: float = 0.1, peak_tol: float = 0.15) -> list[tuple[str, ...]]:
+    """``bout_edge`` for the first and last stride of each bout whose duration or shank swing peak
+    (``swing_peak_dps``, one per stride) is off the bout's median by more than ``duration_tol`` / ``peak_tol``."""
+    out: list[tuple[str, ...]] = [() for _ in strides]
+    if not strides:
+        return out
+    bouts = np.asarray(bout_of_stride)
+    dur = np.array([b - a for a, _, b in strides], dtype=float)
+    peak = np.asarray(swing_peak_dps, dtype=float)
+    for bout in np.unique(bouts):
+        idx = np.flatnonzero(bouts == bout)
+        if idx.size < 3:
+            continue
+        inner = idx[1:-1]
+        d_med, p_med = float(np.median(dur[inner])), float(np.median(peak[inner]))
+        for k in (idx[0], idx[-1]):
+            if abs(dur[k] - d_med) > duration_tol * d_med or abs(peak[k] - p_med) > peak_tol * abs(p_med):
+                out[k] = ("bout_edge",)
+    return out

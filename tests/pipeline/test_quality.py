@@ -1,0 +1,29 @@
+"""pipeline.quality: penalties, the cap of strides that cannot be vouched for, gap and bout-edge reasons."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.quality import edge_reasons, gap_reasons, stride_quality
+
+
+def test_untrusted_reasons_stay_below_the_trend_threshold() -> None:
+    assert stride_quality(()) == 1.0
+    assert stride_quality(("bridged_gap",)) == 0.9
+    assert stride_quality(("bridged_gap", "peak_in_gap")) < 0.5
+
+
+def test_gap_reasons_say_what_fell_in_the_hole() -> None:
+    t = np.arange(300) / 100.0
+    angle = 30 - 30 * np.cos(2 * np.pi * t)  # peaks at 0.5, 1.5, 2.5 s
+    strides = [(0, 20, 100), (100, 120, 200), (200, 220, 299)]
+    out = gap_reasons(t, [(1.45, 1.55), (2.05, 2.1)], angle, strides)
+    assert out[0] == ()
+    assert "peak_in_gap" in out[1] and "bridged_gap" in out[1]
+    assert out[2] == ("bridged_gap",)
+
+
+def test_unsteady_first_stride_of_a_bout_is_marked() -> None:
+    strides = [(0, 60, 140), (140, 200, 250), (250, 310, 360), (360, 420, 470), (470, 530, 580)]
+    out = edge_reasons(strides, [0] * 5, np.array([200.0, 300.0, 300.0, 300.0, 300.0]))
+    assert out[0] == ("bout_edge",) and out[-1] == () and out[2] == ()
