@@ -25,6 +25,20 @@ class Settings(BaseSettings):
     # A job whose worker stopped heart-beating for this long is taken up again.
     job_stall_seconds: int = 300
     log_level: str = "INFO"
+    # Database pool (PostgreSQL): the API never holds a pooled connection across a thread hop, so threads that
+    # talk to the database are capped at pool_size + max_overflow (see api_threads) and a request waiting longer
+    # than pool_timeout_s for a connection is answered 503 + Retry-After instead of queueing.
+    db_pool_size: int = 20
+    db_max_overflow: int = 10
+    db_pool_timeout_s: float = 5.0
+    # SQLite: how long a writer waits for the single write lock before the request is answered 503.
+    sqlite_busy_timeout_s: float = 5.0
+    # Requests in progress in one API process (health checks excluded) beyond which new ones get 503 at once.
+    max_in_flight: int = 256
+    # The seconds a 503 for transient overload tells the client to wait (Retry-After).
+    retry_after_s: int = 1
+    # A session whose sensors span more than this is refused at /complete and by processing.
+    max_session_s: float = 12 * 3600.0
 
     @property
     def resolved_database_url(self) -> str:
@@ -32,6 +46,12 @@ class Settings(BaseSettings):
             return self.database_url
         self.data_dir.mkdir(parents=True, exist_ok=True)
         return f"sqlite:///{(self.data_dir / 'gaitmon.sqlite').resolve()}"
+
+    @property
+    def api_threads(self) -> int:
+        """Worker threads for sync routes: no more than the connections the pool can hand out at once, so a
+        thread never waits for a connection another request holds while waiting for a thread."""
+        return max(4, self.db_pool_size + self.db_max_overflow)
 
     @property
     def is_sqlite(self) -> bool:

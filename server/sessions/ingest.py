@@ -14,12 +14,11 @@ from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session as DbSession
 
-from pipeline.prepare import GAP_FACTOR
 from server.codec import content_sha256, encode_samples
 from server.enums import SessionStatus
 from server.errors import conflict, invalid
 from server.sessions.models import Batch, Session, SessionSensor
-from server.sessions.schemas import BatchIn
+from server.sessions.schemas import GAP_FACTOR, BatchIn
 
 log = logging.getLogger("gaitmon.ingest")
 
@@ -189,8 +188,8 @@ def _sensor_received(rows: list, fs_hz: float) -> dict:
 
 
 def received_summary(db: DbSession, session: Session) -> dict[str, dict]:
-    """Per declared sensor: batches, samples, gaps (the pipeline's :data:`pipeline.prepare.GAP_FACTOR` rule), gap_s,
-    time span, missing seq."""
+    """Per declared sensor: batches, samples, gaps (the pipeline's rule, :data:`server.sessions.schemas.GAP_FACTOR`),
+    gap_s, time span, missing seq."""
     rows = db.execute(
         select(Batch.sensor_id, Batch.seq, Batch.n_samples, Batch.t_first_ms, Batch.t_last_ms, Batch.t_ms)
         .where(Batch.session_id == session.id)

@@ -4,20 +4,23 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from pipeline.prepare import GAP_FACTOR
+from pipeline.params import WALKING
 from server.enums import AccUnit, Activity, GyroUnit, Leg, Segment, SessionStatus
-from server.schema_types import FiniteFloat, OrmOut, StrictIn, UtcDatetime, Xyz
+from server.schema_types import FiniteFloat, OrmOut, SafeStr, StartedAt, StrictIn, StrictInt, UtcDatetime, Xyz
+
+# The pipeline's gap rule (a step longer than this many sample periods), so received.gaps matches summary.gaps.
+GAP_FACTOR = WALKING.prepare.gap_factor
 
 
 class SensorIn(StrictIn):
     """One sensor of a new session."""
 
-    sensor_id: Annotated[str, Field(min_length=1, max_length=64)]
+    sensor_id: Annotated[SafeStr, Field(min_length=1, max_length=64)]
     leg: Leg
     segment: Segment
-    sample_rate_hz: Annotated[float, Field(ge=1, le=2000, allow_inf_nan=False)]
+    sample_rate_hz: Annotated[FiniteFloat, Field(ge=1, le=2000)]
     gyro_unit: GyroUnit = GyroUnit.deg_s
     acc_unit: AccUnit = AccUnit.m_s2
 
@@ -25,9 +28,9 @@ class SensorIn(StrictIn):
 class SessionIn(StrictIn):
     """A new recording session with its sensors."""
 
-    patient_id: str
-    client_session_id: Annotated[str, Field(min_length=1, max_length=200)]
-    started_at: AwareDatetime
+    patient_id: SafeStr
+    client_session_id: Annotated[SafeStr, Field(min_length=1, max_length=200)]
+    started_at: StartedAt
     activity: Activity = Activity.walking
     sensors: Annotated[list[SensorIn], Field(min_length=1, max_length=16)]
 
@@ -138,8 +141,8 @@ class SessionPage(BaseModel):
 class BatchIn(StrictIn):
     """One BLE batch of one sensor."""
 
-    sensor_id: Annotated[str, Field(min_length=1, max_length=64)]
-    seq: Annotated[int, Field(ge=0, le=2**31 - 1)]
+    sensor_id: Annotated[SafeStr, Field(min_length=1, max_length=64)]
+    seq: Annotated[StrictInt, Field(ge=0, le=2**31 - 1)]
     t0_ms: FiniteFloat
     gyro: list[Xyz]
     acc: list[Xyz]

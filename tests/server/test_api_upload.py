@@ -318,7 +318,7 @@ def test_malformed_json_names_the_body(api: Api) -> None:
 def test_time_jumps_count_as_gaps_by_the_pipelines_rule(api: Api, jump_periods: float, gaps: int) -> None:
     """received.gaps uses the pipeline's gap threshold (GAP_FACTOR sample periods), so it agrees with the
     processing summary's gaps: a step of 1.6 periods is no gap to either, 1.9 periods is one to both."""
-    from pipeline.prepare import GAP_FACTOR
+    from server.sessions.schemas import GAP_FACTOR
 
     assert 1.6 < GAP_FACTOR < 1.9
     _, dev, sess = api.setup_device_session()
