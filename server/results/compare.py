@@ -30,10 +30,12 @@ from pipeline.estimators import available
 from pipeline.session import process_session
 from pipeline.types import RawSensorStream, SessionResult
 from server.auth.service import Principal, get_session_for
+from server.config import get_settings
 from server.enums import SessionStatus
 from server.errors import ProblemError, invalid
 from server.numbers import finite_round
 from server.results.schemas import CompareOut, EstimatorSummary, LegComparison, MetricSummary, PairDifference
+from server.sessions.bounds import session_span_problem
 from server.sessions.models import Batch
 from server.sessions.rawdata import load_streams
 
@@ -140,6 +142,10 @@ def load_input(factory: sessionmaker[DbSession], principal: Principal, session_i
         if not n_batches:
             raise ProblemError(409, "The session has no uploaded data", title="Comparison not available",
                                slug="compare-not-ready")
+        problem = session_span_problem(db, session.id, get_settings().max_session_s)
+        if problem is not None:
+            raise ProblemError(422, f"The session cannot be compared: {problem}", title="Session out of bounds",
+                               slug="session-out-of-bounds")
         key = (session.id, n_batches, last_batch, session.activity, ALGORITHM_VERSION, estimator_set(estimators))
         with _cache_lock:
             cached = key in _cache

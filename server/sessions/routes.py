@@ -19,6 +19,7 @@ from server.deps import AppSettings, Caller, Db, ended
 from server.enums import Role, SessionStatus
 from server.errors import ProblemError, conflict, invalid
 from server.processing.queue import enqueue
+from server.sessions.bounds import session_span_problem
 from server.sessions.ingest import ingest_batch, received_summary, still_in_status
 from server.sessions.models import Batch, Session, SessionSensor
 from server.sessions.schemas import BatchIn, BatchOut, SensorOut, SessionIn, SessionOut
@@ -175,6 +176,11 @@ def _complete_session(session_id: str, db: DbSession, caller: Principal, setting
         db.rollback()
         raise ProblemError(422, "The session has no batches: upload data before completing it",
                            title="Nothing to process", slug="session-empty")
+    problem = session_span_problem(db, session.id, settings.max_session_s)
+    if problem is not None:
+        db.rollback()
+        raise ProblemError(422, f"The session cannot be processed: {problem}", title="Session out of bounds",
+                           slug="session-out-of-bounds")
     session.status = SessionStatus.queued
     session.error = None
     session.completed_at = utcnow()
