@@ -38,11 +38,15 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import anyio
 import httpx
 import numpy as np
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
 from sqlalchemy import create_engine, text
 
 from bench.ingest import _free_port, _fresh_pg, _gaitmon, _log, _wait_healthy
+from server.sessions.schemas import BatchIn
 
 REPO = Path(__file__).resolve().parents[1]
 SEGMENTS = [("left", "thigh"), ("left", "shank"), ("right", "thigh"), ("right", "shank")]
@@ -50,12 +54,6 @@ SEGMENTS = [("left", "thigh"), ("left", "shank"), ("right", "thigh"), ("right", 
 
 def bare_app():  # noqa: ANN201 - the reference app (uvicorn --factory bench.load:bare_app)
     """A FastAPI app with one endpoint doing what the upload costs without a database: inflate, validate."""
-    import anyio
-    from fastapi import FastAPI, Request
-    from fastapi.responses import JSONResponse
-
-    from server.sessions.schemas import BatchIn
-
     app = FastAPI()
 
     @app.post("/bare/batches", status_code=201)
@@ -142,21 +140,37 @@ class Server:
             except subprocess.TimeoutExpired:
                 os.killpg(p.pid, signal.SIGKILL)
 
+    def _group_pids(self) -> list[int]:
+        pids = []
+        for pid_dir in Path("/proc").iterdir():
+            if pid_dir.name.isdigit():
+                try:
+                    if self.api is not None and os.getpgid(int(pid_dir.name)) == self.api.pid:
+                        pids.append(int(pid_dir.name))
+                except (OSError, ProcessLookupError):
+                    continue
+        return pids
+
+    def cpu_s(self) -> float:
+        """CPU seconds used so far by the API processes (user + system)."""
+        total = 0
+        for pid in self._group_pids():
+            try:
+                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+                total += int(fields[11]) + int(fields[12])
+            except (OSError, IndexError, ValueError):
+                continue
+        return total / os.sysconf("SC_CLK_TCK")
+
     def rss_mb(self) -> float:
         """Resident memory of the API processes (the uvicorn process group), MB."""
-        if self.api is None:
-            return 0.0
         total = 0
-        for pid_dir in Path("/proc").iterdir():
-            if not pid_dir.name.isdigit():
-                continue
+        for pid in self._group_pids():
             try:
-                if os.getpgid(int(pid_dir.name)) != self.api.pid:
-                    continue
-                for line in (pid_dir / "status").read_text().splitlines():
+                for line in Path(f"/proc/{pid}/status").read_text().splitlines():
                     if line.startswith("VmRSS:"):
                         total += int(line.split()[1])
-            except (OSError, ProcessLookupError):
+            except OSError:
                 continue
         return total / 1024.0
 
@@ -297,9 +311,11 @@ async def drive_phones(base: str, phones: list[tuple[str, str, list[str]]], args
 
 
 async def saturate(base: str, path_for: list[tuple[str, str, str]], seconds: float, clients: int,
-                   fs: float) -> float:
-    """Closed loop: ``clients`` senders posting new batches back to back; acknowledged batches per second."""
+                   fs: float, server: Server) -> tuple[float, float]:
+    """Closed loop: ``clients`` senders posting new batches back to back; acknowledged batches per second and
+    the API's CPU milliseconds per acknowledged batch (a figure that holds on a machine shared with others)."""
     acked = 0
+    cpu0 = server.cpu_s()
     deadline = time.monotonic() + seconds
     limits = httpx.Limits(max_connections=clients)
     async with httpx.AsyncClient(base_url=base, timeout=30, limits=limits) as c:
@@ -322,7 +338,8 @@ async def saturate(base: str, path_for: list[tuple[str, str, str]], seconds: flo
 
         t0 = time.monotonic()
         await asyncio.gather(*(sender(k) for k in range(clients)))
-        return acked / (time.monotonic() - t0)
+        rate = acked / (time.monotonic() - t0)
+        return rate, 1000 * (server.cpu_s() - cpu0) / max(acked, 1)
 
 
 def db_check(url: str, stats: Stats) -> dict[str, int]:
@@ -432,8 +449,8 @@ def run(args: argparse.Namespace) -> dict:
                    health_fail=stats.health_fail, api_rss_peak_mb=peak, wall_s=wall, **check)
         if args.saturate:
             targets = [(f"/v1/sessions/{sid}/batches", sensors[0], tok) for tok, sid, sensors in phones]
-            out["gaitmon_batches_per_s"] = asyncio.run(saturate(base, targets, args.saturate_s, args.saturate,
-                                                                args.fs))
+            out["gaitmon_batches_per_s"], out["gaitmon_cpu_ms"] = asyncio.run(
+                saturate(base, targets, args.saturate_s, args.saturate, args.fs, server))
             server.stop()
             bare_port = _free_port()
             bare = Server(env, bare_port, args.api_workers, False, tmp / "bare.log", app="bench.load:bare_app")
@@ -441,11 +458,13 @@ def run(args: argparse.Namespace) -> dict:
             bare_base = f"http://127.0.0.1:{bare_port}"
             _wait_bare(bare_base)
             try:
-                out["bare_batches_per_s"] = asyncio.run(saturate(bare_base, [("/bare/batches", "L-thigh", "x")],
-                                                                 args.saturate_s, args.saturate, args.fs))
+                out["bare_batches_per_s"], out["bare_cpu_ms"] = asyncio.run(
+                    saturate(bare_base, [("/bare/batches", "L-thigh", "x")], args.saturate_s, args.saturate,
+                             args.fs, bare))
             finally:
                 bare.stop()
             out["ratio"] = out["gaitmon_batches_per_s"] / out["bare_batches_per_s"]
+            out["cpu_ratio"] = out["bare_cpu_ms"] / out["gaitmon_cpu_ms"]
         _print(out, args)
         return out
     finally:
@@ -482,9 +501,12 @@ def _print(o: dict, args: argparse.Namespace) -> None:
     if "ratio" in o:
         print(f"| saturated: gaitmon / bare endpoint | {o['gaitmon_batches_per_s']:.0f} / "
               f"{o['bare_batches_per_s']:.0f} batches/s = {o['ratio']:.2f} |")
+        print(f"| API CPU per batch: gaitmon / bare endpoint | {o['gaitmon_cpu_ms']:.2f} / {o['bare_cpu_ms']:.2f} ms "
+              f"(bare/gaitmon = {o['cpu_ratio']:.2f}) |")
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line of the benchmark."""
     ap = argparse.ArgumentParser(prog="python -m bench.load", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--phones", type=int, default=20)
@@ -503,7 +525,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--server-repo", type=Path, default=None,
                     help="serve the code of another checkout (to compare with an earlier version)")
     ap.add_argument("--json", action="store_true", help="also print the figures as JSON")
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     out = run(args)
     if args.json:
         print(json.dumps(out, indent=1, default=str))

@@ -34,7 +34,7 @@ class Settings(BaseSettings):
     # SQLite: how long a writer waits for the single write lock before the request is answered 503.
     sqlite_busy_timeout_s: float = 5.0
     # Requests in progress in one API process (health checks excluded) beyond which new ones get 503 at once.
-    max_in_flight: int = 256
+    max_in_flight: int = 64
     # The seconds a 503 for transient overload tells the client to wait (Retry-After).
     retry_after_s: int = 1
     # A session whose sensors span more than this is refused at /complete and by processing.
