@@ -6,6 +6,7 @@ import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
+import anyio
 from fastapi import FastAPI
 from fastapi.responses import RedirectResponse
 from fastapi.staticfiles import StaticFiles
@@ -14,6 +15,7 @@ from starlette.middleware.gzip import GZipMiddleware
 
 from server import health
 from server import metadata as _metadata  # noqa: F401 - registers every table before the first query
+from server.admission import InFlightLimitMiddleware
 from server.auth import routes as auth_routes
 from server.body_limit import BodyLimitMiddleware
 from server.calibrations import routes as calibration_routes
@@ -24,6 +26,7 @@ from server.openapi import install as install_openapi
 from server.openapi import operation_id
 from server.ops import install as install_ops
 from server.patients import routes as patient_routes
+from server.request_hygiene import RequestHygieneMiddleware
 from server.results import routes as result_routes
 from server.sessions import routes as session_routes
 from server.trends import routes as trend_routes
@@ -49,10 +52,13 @@ TAGS = [
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The FastAPI application: routers, error handlers, body limits and, with SQLite, the embedded job runner."""
     settings = settings or get_settings()
-    engine = make_engine(settings.resolved_database_url)
+    engine = make_engine(settings.resolved_database_url, settings)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        # Sync routes run in anyio's default thread pool; no more threads than pooled connections (see
+        # Settings.api_threads), so a thread that needs a connection never waits for one forever.
+        anyio.to_thread.current_default_thread_limiter().total_tokens = settings.api_threads
         handle = None
         if settings.resolved_job_runner == "embedded":
             from server.processing import embedded
@@ -77,6 +83,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # Responses too: a full-resolution knee-angle trace or an export is mostly digits and shrinks ~4x.
     app.add_middleware(GZipMiddleware, minimum_size=1024)
     install_ops(app, settings)
+    app.add_middleware(RequestHygieneMiddleware)
+    # Outermost: an overloaded process refuses before reading a body or taking a thread.
+    app.add_middleware(InFlightLimitMiddleware, max_in_flight=settings.max_in_flight,
+                       retry_after_s=settings.retry_after_s)
     app.include_router(health.router)
     app.include_router(auth_routes.router)
     app.include_router(patient_routes.router)

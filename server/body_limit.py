@@ -1,8 +1,11 @@
-"""Pure ASGI middleware: request body size limit applied AFTER gzip decompression, streaming.
+"""Pure ASGI middleware: request body size limit applied AFTER gzip decompression, and JSON-only bodies on /v1.
 
 The body is read chunk by chunk and inflated with ``zlib.decompressobj(...).decompress(data, max_length)``, so
 a gzip bomb stops at ``max_body_bytes + 1`` inflated bytes and answers 413 instead of filling memory. The app
-behind sees an ordinary (decompressed) body without ``Content-Encoding``.
+behind sees an ordinary (decompressed) body without ``Content-Encoding``. Inflation runs in a worker thread, so
+a body of many tiny gzip members cannot hold the event loop; their number is capped too.
+
+A non-empty body sent to ``/v1`` must say ``Content-Type: application/json`` (or ``+json``): 415 otherwise.
 """
 
 from __future__ import annotations
@@ -12,6 +15,8 @@ import logging
 import zlib
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
+
+import anyio
 
 from server.errors import PROBLEM_JSON, problem_body
 
@@ -24,6 +29,15 @@ ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 log = logging.getLogger("gaitmon.api")
 
 BODY_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
+JSON_ONLY_PREFIX = "/v1/"
+# Concatenated gzip members accepted in one body: an app sends one; thousands of empty ones are an attack.
+MAX_GZIP_MEMBERS = 64
+
+
+def is_json_media_type(content_type: str) -> bool:
+    """``application/json`` or a ``+json`` type, parameters (charset) ignored."""
+    media = content_type.split(";", 1)[0].strip().lower()
+    return media == "application/json" or (media.startswith("application/") and media.endswith("+json"))
 
 
 class _Reject(Exception):
@@ -41,6 +55,7 @@ class _GzipInflater:
         self.out = bytearray()
         self._d = zlib.decompressobj(wbits=16 + zlib.MAX_WBITS)
         self._seen_input = False
+        self._members = 1
 
     def feed(self, data: bytes) -> None:
         pending = data
@@ -48,6 +63,9 @@ class _GzipInflater:
             self._seen_input = True
             if self._d.eof:
                 # Another gzip member follows the previous one (RFC 1952 allows concatenation).
+                self._members += 1
+                if self._members > MAX_GZIP_MEMBERS:
+                    raise _Reject(400, f"Request body has more than {MAX_GZIP_MEMBERS} gzip members")
                 self._d = zlib.decompressobj(wbits=16 + zlib.MAX_WBITS)
             # max_length >= 1 here (0 would mean unlimited): the check below raises as soon as out > limit.
             try:
@@ -79,6 +97,10 @@ class BodyLimitMiddleware:
         headers = [(k.lower(), v) for k, v in scope.get("headers", [])]
         encoding = next((v.decode("latin-1").strip().lower() for k, v in headers if k == b"content-encoding"), "")
         try:
+            if scope.get("path", "").startswith(JSON_ONLY_PREFIX) and _announces_body(headers):
+                content_type = next((v.decode("latin-1") for k, v in headers if k == b"content-type"), "")
+                if not is_json_media_type(content_type):
+                    raise _Reject(415, f"Content-Type must be application/json (got {content_type[:100]!r})")
             body = await self._read_body(headers, encoding, receive)
         except _Reject as rej:
             log.info("%s %s -> %d %s", scope["method"], scope.get("path"), rej.status, rej.detail)
@@ -110,7 +132,7 @@ class BodyLimitMiddleware:
             # A compressed body larger than the limit is rejected too: it cannot be legitimate here.
             if declared > self.max_body_bytes:
                 raise _Reject(413, f"Request body of {declared} bytes exceeds the limit of {self.max_body_bytes}")
-        inflater = _GzipInflater(self.max_body_bytes) if encoding in ("gzip", "x-gzip") else None
+        gzipped = encoding in ("gzip", "x-gzip")
         raw = bytearray()
         received = 0
         while True:
@@ -121,19 +143,35 @@ class BodyLimitMiddleware:
             received += len(chunk)
             if received > self.max_body_bytes:
                 raise _Reject(413, f"Request body exceeds the limit of {self.max_body_bytes} bytes")
-            if inflater is not None:
-                inflater.feed(chunk)
-            else:
-                raw += chunk
+            raw += chunk
             if not message.get("more_body", False):
                 break
-        return inflater.finish() if inflater is not None else bytes(raw)
+        if not gzipped:
+            return bytes(raw)
+        # The compressed body is at most max_body_bytes; inflating it is CPU work that must not hold the loop.
+        return await anyio.to_thread.run_sync(_inflate, bytes(raw), self.max_body_bytes)
+
+
+def _announces_body(headers: list[tuple[bytes, bytes]]) -> bool:
+    """Whether the request has a body (HTTP/1.1: a positive Content-Length or a Transfer-Encoding)."""
+    for k, v in headers:
+        if k == b"transfer-encoding":
+            return True
+        if k == b"content-length":
+            return v.strip() not in (b"0", b"")
+    return False
+
+
+def _inflate(data: bytes, limit: int) -> bytes:
+    inflater = _GzipInflater(limit)
+    inflater.feed(data)
+    return inflater.finish()
 
 
 async def _send_problem(scope: Scope, send: Send, status: int, detail: str) -> None:
     payload = json.dumps(problem_body(status, detail, instance=scope.get("path"))).encode()
     headers = [(b"content-type", PROBLEM_JSON.encode()), (b"content-length", str(len(payload)).encode())]
-    if status == 413:
+    if status in (413, 415):
         # The rest of the body was not read: the client must not reuse the connection.
         headers.append((b"connection", b"close"))
     await send({"type": "http.response.start", "status": status, "headers": headers})

@@ -45,6 +45,20 @@ class Settings(BaseSettings):
     metrics_enabled: bool = True
     # FHIR Patient.identifier system of the patients' external_id (the clinic's MRN namespace URI).
     fhir_identifier_system: str = "urn:gaitmon:patient-external-id"
+    # Database pool (PostgreSQL): the API never holds a pooled connection across a thread hop, so threads that
+    # talk to the database are capped at pool_size + max_overflow (see api_threads) and a request waiting longer
+    # than pool_timeout_s for a connection is answered 503 + Retry-After instead of queueing.
+    db_pool_size: int = 20
+    db_max_overflow: int = 10
+    db_pool_timeout_s: float = 5.0
+    # SQLite: how long a writer waits for the single write lock before the request is answered 503.
+    sqlite_busy_timeout_s: float = 5.0
+    # Requests in progress in one API process (health checks excluded) beyond which new ones get 503 at once.
+    max_in_flight: int = 64
+    # The seconds a 503 for transient overload tells the client to wait (Retry-After).
+    retry_after_s: int = 1
+    # A session whose sensors span more than this is refused at /complete and by processing.
+    max_session_s: float = 12 * 3600.0
 
     @property
     def resolved_database_url(self) -> str:
@@ -55,7 +69,14 @@ class Settings(BaseSettings):
 
     @property
     def cors_origin_list(self) -> list[str]:
+        """The CORS origins as a list (empty: CORS off)."""
         return [o.strip().rstrip("/") for o in self.cors_origins.split(",") if o.strip()]
+
+    @property
+    def api_threads(self) -> int:
+        """Worker threads for sync routes: no more than the connections the pool can hand out at once, so a
+        thread never waits for a connection another request holds while waiting for a thread."""
+        return max(4, self.db_pool_size + self.db_max_overflow)
 
     @property
     def is_sqlite(self) -> bool:

@@ -3,10 +3,17 @@
 from __future__ import annotations
 
 import uuid
+from typing import TYPE_CHECKING
 
 from sqlalchemy import create_engine, event
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
+
+if TYPE_CHECKING:
+    from server.config import Settings
+
+# Seconds to wait for the TCP connection to PostgreSQL: an unreachable database answers 503 quickly.
+CONNECT_TIMEOUT_S = 5
 
 
 def new_id() -> str:
@@ -24,10 +31,24 @@ class Base(DeclarativeBase):
     """Declarative base of every table (every change needs an Alembic migration in ``migrations/versions``)."""
 
 
-def make_engine(url: str) -> Engine:
-    """The engine for a database URL (SQLite: WAL, foreign keys and a busy timeout on every connection)."""
+def make_engine(url: str, settings: Settings | None = None) -> Engine:
+    """The engine for a database URL, its pool sized from ``settings`` (``GAITMON_DB_POOL_*``).
+
+    SQLite: WAL, foreign keys and a busy timeout on every connection. A pool that cannot hand out a connection
+    within ``db_pool_timeout_s`` raises :class:`sqlalchemy.exc.TimeoutError`, answered 503 by
+    :mod:`server.errors`.
+    """
+    from server.config import Settings
+
+    settings = settings or Settings()
+    pool = {"pool_size": settings.db_pool_size, "max_overflow": settings.db_max_overflow,
+            "pool_timeout": settings.db_pool_timeout_s}
     if url.startswith("sqlite"):
-        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
+        busy_ms = int(settings.sqlite_busy_timeout_s * 1000)
+        if ":memory:" in url or url in ("sqlite://", "sqlite:///"):
+            pool = {}  # a memory database lives in one connection (SingletonThreadPool)
+        engine = create_engine(url, connect_args={"check_same_thread": False,
+                                                  "timeout": settings.sqlite_busy_timeout_s}, **pool)
 
         @event.listens_for(engine, "connect")
         def _sqlite_pragmas(dbapi_conn, _record) -> None:  # noqa: ANN001
@@ -35,11 +56,11 @@ def make_engine(url: str) -> Engine:
             cur = dbapi_conn.cursor()
             cur.execute("PRAGMA journal_mode=WAL")
             cur.execute("PRAGMA foreign_keys=ON")
-            cur.execute("PRAGMA busy_timeout=30000")
+            cur.execute(f"PRAGMA busy_timeout={busy_ms}")
             cur.close()
 
         return engine
-    return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=10)
+    return create_engine(url, pool_pre_ping=True, connect_args={"connect_timeout": CONNECT_TIMEOUT_S}, **pool)
 
 
 def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:

@@ -10,6 +10,8 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
+from sqlalchemy.exc import OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 log = logging.getLogger("gaitmon.api")
@@ -123,6 +125,16 @@ def invalid(field: str, message: str, *, status: int = 422) -> ProblemError:
                         errors=[{"field": field, "message": message}])
 
 
+def retry_after_headers(seconds: int) -> dict[str, str]:
+    """The ``Retry-After`` header of a transient 503."""
+    return {"Retry-After": str(seconds)}
+
+
+def _retry_after(request: Request) -> dict[str, str]:
+    settings = getattr(request.app.state, "settings", None)
+    return retry_after_headers(getattr(settings, "retry_after_s", 1))
+
+
 def _field_name(loc: tuple[Any, ...]) -> str:
     """("body", "gyro", 17, 2) -> "gyro[17][2]"; ("query", "leg") -> "leg"."""
     parts = list(loc[1:]) if loc and loc[0] in ("body", "query", "path", "header", "cookie") else list(loc)
@@ -176,6 +188,22 @@ async def _http_exception_handler(request: Request, exc: Exception) -> JSONRespo
     return problem_response(status, detail, instance=request.url.path, headers=dict(exc.headers or {}))
 
 
+async def _pool_timeout_handler(request: Request, exc: Exception) -> JSONResponse:
+    # Every pooled connection stayed busy for the pool timeout: tell the client to come back, do not queue.
+    log.warning("%s %s -> 503: no database connection free (%s)", request.method, request.url.path, exc)
+    return problem_response(503, "The service is busy; retry after the time in Retry-After", title="Busy",
+                            slug="overloaded", instance=request.url.path, headers=_retry_after(request))
+
+
+async def _operational_handler(request: Request, exc: Exception) -> JSONResponse:
+    # Unreachable server, dropped connection, SQLite write lock held past its busy timeout: all transient.
+    log.warning("%s %s -> 503: database unavailable: %s", request.method, request.url.path,
+                " ".join(str(getattr(exc, "orig", exc)).split())[:200])
+    return problem_response(503, "The database is unavailable or busy; retry after the time in Retry-After",
+                            title="Database unavailable", slug="database-unavailable", instance=request.url.path,
+                            headers=_retry_after(request))
+
+
 async def _unhandled_handler(request: Request, exc: Exception) -> JSONResponse:
     # The traceback goes to the log only; the client gets a generic problem document.
     log.exception("unhandled error on %s %s", request.method, request.url.path)
@@ -188,4 +216,6 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(ProblemError, _problem_error_handler)
     app.add_exception_handler(RequestValidationError, _validation_handler)
     app.add_exception_handler(StarletteHTTPException, _http_exception_handler)
+    app.add_exception_handler(PoolTimeoutError, _pool_timeout_handler)
+    app.add_exception_handler(OperationalError, _operational_handler)
     app.add_exception_handler(Exception, _unhandled_handler)

@@ -112,3 +112,12 @@ def get_session_for(db: DbSession, principal: Principal, session_id: str, *, for
     if not ok:
         raise not_found("Session")
     return session
+
+
+def principal_for_token(db: DbSession, plaintext: str) -> Principal | None:
+    """The identity behind a bearer token's plaintext, or None when it is unknown or revoked."""
+    token = db.scalar(select(Token).where(Token.token_hash == hash_token(plaintext.strip())))
+    if token is None or token.revoked_at is not None:
+        return None
+    return Principal(token_id=token.id, role=token.role, name=token.name, clinician_id=token.clinician_id,
+                     patient_id=token.patient_id)

@@ -159,9 +159,19 @@ Processor = Callable[..., object]
 
 
 def process_claimed(sm: sessionmaker[DbSession], session_id: str, token: str, *,
-                    heartbeat_s: float = DEFAULT_HEARTBEAT_S, processor: Processor | None = None) -> str:
-    """Process a session this runner has claimed. Returns "done", "failed" or "lost" (claim taken over)."""
+                    heartbeat_s: float = DEFAULT_HEARTBEAT_S, processor: Processor | None = None,
+                    max_session_s: float | None = None) -> str:
+    """Process a session this runner has claimed. Returns "done", "failed" or "lost" (claim taken over).
+
+    A session whose batches would ask for an absurd processing grid (:mod:`server.sessions.bounds`) fails with
+    the reason before any sample is decoded.
+    """
+    from server.config import get_settings
+    from server.sessions.bounds import session_span_problem
     from server.sessions.rawdata import load_streams
+
+    if max_session_s is None:
+        max_session_s = get_settings().max_session_s
 
     processor = processor or _default_processor
     t_start = time.perf_counter()
@@ -175,6 +185,9 @@ def process_claimed(sm: sessionmaker[DbSession], session_id: str, token: str, *,
                 activity = sess.activity
                 # The calibration valid at the session's start, read now: a reprocess applies the current one.
                 calibration = calibrations.applicable(db, sess.patient_id, sess.started_at)
+                problem = session_span_problem(db, session_id, max_session_s)
+                if problem is not None:
+                    raise ValueError(f"not processed: {problem}")
                 streams = load_streams(db, session_id)
             n_samples = sum(len(s.t_s) for s in streams)
             result = processor(streams, activity=activity, calibration=calibrations.for_pipeline(calibration))

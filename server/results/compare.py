@@ -32,10 +32,12 @@ from pipeline.session import process_session
 from pipeline.types import KneeCalibration, RawSensorStream, SessionResult
 from server.auth.service import Principal, get_session_for
 from server.calibrations import service as calibrations
+from server.config import get_settings
 from server.enums import SessionStatus
 from server.errors import ProblemError, invalid
 from server.numbers import finite_round
 from server.results.schemas import CompareOut, EstimatorSummary, LegComparison, MetricSummary, PairDifference
+from server.sessions.bounds import session_span_problem
 from server.sessions.models import Batch
 from server.sessions.rawdata import load_streams
 
@@ -143,6 +145,10 @@ def load_input(factory: sessionmaker[DbSession], principal: Principal, session_i
         if not n_batches:
             raise ProblemError(409, "The session has no uploaded data", title="Comparison not available",
                                slug="compare-not-ready")
+        problem = session_span_problem(db, session.id, get_settings().max_session_s)
+        if problem is not None:
+            raise ProblemError(422, f"The session cannot be compared: {problem}", title="Session out of bounds",
+                               slug="session-out-of-bounds")
         calibration = calibrations.for_pipeline(calibrations.applicable(db, session.patient_id, session.started_at))
         levels = tuple(sorted((leg, c.calibration_id, c.standing_knee_deg) for leg, c in calibration.items()))
         key = (session.id, n_batches, last_batch, session.activity, ALGORITHM_VERSION, estimator_set(estimators),

@@ -13,12 +13,14 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session as DbSession
 
-from server.auth.service import get_patient_for, get_session_for, require_role
-from server.deps import AppSettings, Caller, Db
+from server.auth.service import Principal, get_patient_for, get_session_for, require_role
+from server.config import Settings
+from server.deps import AppSettings, Caller, Db, ended
 from server.enums import Role, SessionStatus
-from server.errors import ProblemError, conflict
+from server.errors import ProblemError, conflict, invalid
 from server.ops import metrics as ops_metrics
 from server.processing.queue import enqueue
+from server.sessions.bounds import session_span_problem
 from server.sessions.ingest import ingest_batch, received_summary, still_in_status
 from server.sessions.models import Batch, Session, SessionSensor
 from server.sessions.schemas import BatchIn, BatchOut, SensorOut, SessionIn, SessionOut
@@ -35,11 +37,24 @@ async def parse_batch(request: Request) -> BatchIn:
     parse and are then rejected by the finite-number check. Runs in a thread so the event loop stays free.
     """
     raw = await request.body()
+    settings = request.app.state.settings
+    # Every sample is a gyro and an acc row, each opening a bracket: counted on the bytes (memchr speed) before
+    # pydantic builds a Python list per row, so a 1M-row body costs milliseconds, not a gigabyte.
+    brackets = raw.count(b"[")
+    if brackets > bracket_limit(settings.max_samples_per_batch):
+        raise invalid("gyro", f"the body holds more than {settings.max_samples_per_batch} samples, the limit "
+                              f"per batch ({brackets} arrays)")
     try:
         return await anyio.to_thread.run_sync(BatchIn.model_validate_json, raw)
     except ValidationError as exc:
         errors = exc.errors(include_url=False, include_context=False, include_input=False)
         raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in errors]) from None
+
+
+def bracket_limit(max_samples: int) -> int:
+    """Most ``[`` a valid batch body can hold: a gyro and an acc row per sample, the three arrays, the
+    timestamps array, and brackets inside the sensor id (at most its length)."""
+    return 2 * max_samples + 4 + 64
 
 
 def session_out(db: DbSession, s: Session) -> SessionOut:
@@ -76,6 +91,11 @@ def _same_or_conflict(existing: Session, body: SessionIn) -> Session:
              summary="Start a session (a repeated client_session_id returns the existing one with 200)")
 def create_session(body: SessionIn, response: Response, db: Db, caller: Caller) -> SessionOut:
     """Create a session (idempotent on the app's client_session_id)."""
+    with ended(db):
+        return _create_session(body, response, db, caller)
+
+
+def _create_session(body: SessionIn, response: Response, db: DbSession, caller: Principal) -> SessionOut:
     patient = get_patient_for(db, caller, body.patient_id)
     existing = _existing(db, patient.id, body.client_session_id)
     if existing is not None:
@@ -107,7 +127,8 @@ def create_session(body: SessionIn, response: Response, db: Db, caller: Caller) 
             summary="Status, what was received per sensor (batches, samples, gaps) and the result summary")
 def get_session(session_id: str, db: Db, caller: Caller) -> SessionOut:
     """A session with what it received and, once processed, its summary."""
-    return session_out(db, get_session_for(db, caller, session_id))
+    with ended(db):
+        return session_out(db, get_session_for(db, caller, session_id))
 
 
 @router.post("/{session_id}/batches", status_code=201, response_model=BatchOut,
@@ -121,10 +142,12 @@ def get_session(session_id: str, db: Db, caller: Caller) -> SessionOut:
 def upload_batch(session_id: str, response: Response, db: Db, caller: Caller, settings: AppSettings,
                  body: BatchIn = Depends(parse_batch)) -> BatchOut:
     """Store one batch of one sensor (idempotent on sensor_id and seq)."""
-    # Row lock: a concurrent /complete waits until this batch is committed (or sees it is not).
-    session = get_session_for(db, caller, session_id, for_update=True)
     try:
-        outcome = ingest_batch(db, session, body, max_samples=settings.max_samples_per_batch)
+        # Row lock: a concurrent /complete waits until this batch is committed (or sees it is not). The lock
+        # and the connection are released before the answer, a replay's (200) included.
+        with ended(db):
+            session = get_session_for(db, caller, session_id, for_update=True)
+            outcome = ingest_batch(db, session, body, max_samples=settings.max_samples_per_batch)
     except ProblemError as exc:
         log.info("batch session=%s sensor=%s seq=%d rejected %d: %s", session_id, body.sensor_id, body.seq,
                  exc.status, exc.detail)
@@ -142,6 +165,11 @@ def upload_batch(session_id: str, response: Response, db: Db, caller: Caller, se
              summary="No more uploads: queue the session for processing (idempotent)")
 def complete_session(session_id: str, db: Db, caller: Caller, settings: AppSettings) -> SessionOut:
     """No more data will come: queue the session for processing."""
+    with ended(db):
+        return _complete_session(session_id, db, caller, settings)
+
+
+def _complete_session(session_id: str, db: DbSession, caller: Principal, settings: Settings) -> SessionOut:
     session = get_session_for(db, caller, session_id, for_update=True)
     if session.status != SessionStatus.receiving or not still_in_status(db, session.id, (SessionStatus.receiving,)):
         # Already completed (idempotent): 202 with the current state.
@@ -152,6 +180,11 @@ def complete_session(session_id: str, db: Db, caller: Caller, settings: AppSetti
         db.rollback()
         raise ProblemError(422, "The session has no batches: upload data before completing it",
                            title="Nothing to process", slug="session-empty")
+    problem = session_span_problem(db, session.id, settings.max_session_s)
+    if problem is not None:
+        db.rollback()
+        raise ProblemError(422, f"The session cannot be processed: {problem}", title="Session out of bounds",
+                           slug="session-out-of-bounds")
     session.status = SessionStatus.queued
     session.error = None
     session.completed_at = utcnow()
@@ -167,6 +200,11 @@ def complete_session(session_id: str, db: Db, caller: Caller, settings: AppSetti
              summary="Run the current algorithm again on the stored raw data (clinician/admin)")
 def reprocess_session(session_id: str, db: Db, caller: Caller, settings: AppSettings) -> SessionOut:
     """Run the current algorithm again on the stored raw data."""
+    with ended(db):
+        return _reprocess_session(session_id, db, caller, settings)
+
+
+def _reprocess_session(session_id: str, db: DbSession, caller: Principal, settings: Settings) -> SessionOut:
     require_role(caller, Role.admin, Role.clinician, action="reprocess sessions")
     session = get_session_for(db, caller, session_id, for_update=True)
     if session.status == SessionStatus.receiving:

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from pipeline.params import WALKING
 from server.calibrations.schemas import CalibrationUsed
 from server.enums import AccUnit, Activity, GyroUnit, Leg, Segment, SessionStatus
-from server.schema_types import FiniteFloat, OrmOut, StrictIn, UtcDatetime, Xyz
+from server.schema_types import FiniteFloat, OrmOut, SafeStr, StartedAt, StrictIn, StrictInt, UtcDatetime, Xyz
 
 
 class SensorIn(StrictIn):
@@ -19,10 +19,10 @@ class SensorIn(StrictIn):
         {"sensor_id": "L-thigh", "leg": "left", "segment": "thigh", "sample_rate_hz": 100.0, "gyro_unit": "deg/s",
          "acc_unit": "m/s2"}]})
 
-    sensor_id: Annotated[str, Field(min_length=1, max_length=64)]
+    sensor_id: Annotated[SafeStr, Field(min_length=1, max_length=64)]
     leg: Leg
     segment: Segment
-    sample_rate_hz: Annotated[float, Field(ge=1, le=2000, allow_inf_nan=False)]
+    sample_rate_hz: Annotated[FiniteFloat, Field(ge=1, le=2000)]
     gyro_unit: GyroUnit = GyroUnit.deg_s
     acc_unit: AccUnit = AccUnit.m_s2
 
@@ -36,9 +36,9 @@ class SessionIn(StrictIn):
         "sensors": [{"sensor_id": "L-thigh", "leg": "left", "segment": "thigh", "sample_rate_hz": 100.0},
                      {"sensor_id": "L-shank", "leg": "left", "segment": "shank", "sample_rate_hz": 100.0}]}]})
 
-    patient_id: str
-    client_session_id: Annotated[str, Field(min_length=1, max_length=200)]
-    started_at: AwareDatetime
+    patient_id: SafeStr
+    client_session_id: Annotated[SafeStr, Field(min_length=1, max_length=200)]
+    started_at: StartedAt
     activity: Activity = Activity.walking
     sensors: Annotated[list[SensorIn], Field(min_length=1, max_length=16)]
 
@@ -170,8 +170,8 @@ class BatchIn(StrictIn):
         "acc": [[9.1312, 2.6225, -2.3753], [9.0806, 2.6303, -2.4122], [9.1428, 2.6441, -2.4007]],
         "timestamps_ms": [3.048, 13.048, 23.048]}]})
 
-    sensor_id: Annotated[str, Field(min_length=1, max_length=64)]
-    seq: Annotated[int, Field(ge=0, le=2**31 - 1)]
+    sensor_id: Annotated[SafeStr, Field(min_length=1, max_length=64)]
+    seq: Annotated[StrictInt, Field(ge=0, le=2**31 - 1)]
     t0_ms: FiniteFloat
     gyro: list[Xyz]
     acc: list[Xyz]

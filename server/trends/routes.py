@@ -11,6 +11,7 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, StreamingResponse
 
 from server.auth.service import get_patient_for, require_role
+from server.content_disposition import attachment
 from server.deps import AppSettings, Caller, Db
 from server.enums import Role, StrideActivity
 from server.errors import invalid
@@ -143,10 +144,10 @@ def get_strides_csv(patient_id: str, request: Request, db: Db, caller: Caller, s
         with factory() as own:
             yield from exports.strides_csv(own, patient, lo, hi, activity=activity)
 
-    name = f"strides-{patient.external_id or patient.id}.csv".replace('"', "")
+    name = f"strides-{patient.external_id or patient.id}.csv"
     log.info("strides.csv of patient %s exported by token %s", patient.id, caller.token_id)
     return StreamingResponse(body(), media_type="text/csv; charset=utf-8",
-                             headers={"Content-Disposition": f'attachment; filename="{name}"'})
+                             headers={"Content-Disposition": attachment(name)})
 
 
 @router.get("/patients/{patient_id}/fhir", response_model=FhirBundleOut, response_class=FhirJSONResponse,

@@ -19,12 +19,10 @@ import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
-from starlette.requests import Request
 
+from server.auth import service as auth_service
 from server.auth.service import Principal, get_patient_for, get_session_for
 from server.codec import decode_trace
-from server.deps import current_principal
-from server.errors import ProblemError
 from server.patients.models import Patient
 from server.results import compare as compare_service
 from server.results.models import KneeAngleTrace, Stride
@@ -46,11 +44,7 @@ CYCLE_POINTS = 101  # 0, 1, ..., 100 % of the gait cycle
 
 def principal_for_token(db: DbSession, token: str) -> Principal | None:
     """The principal of a bearer token exactly as the API resolves it (hash lookup, revocation), or None."""
-    request = Request({"type": "http", "headers": [(b"authorization", f"Bearer {token}".encode())]})
-    try:
-        return current_principal(request, db)
-    except ProblemError:
-        return None
+    return auth_service.principal_for_token(db, token)
 
 
 def patient_for(db: DbSession, principal: Principal, patient_id: str) -> Patient:
