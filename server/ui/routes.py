@@ -20,6 +20,7 @@ from fastapi.routing import APIRoute
 from fastapi.templating import Jinja2Templates
 from sqlalchemy.orm import Session as DbSession
 
+from server.content_disposition import attachment
 from server.deps import AppSettings, get_db
 from server.errors import ProblemError
 from server.ui import data, signin, views
@@ -177,7 +178,7 @@ def patient_csv(request: Request, patient_id: str, db: Db, user: User) -> Stream
     name = f"strides-{p.external_id or p.id}.csv".replace('"', "")
     log.info("ui strides.csv of patient %s by token %s", p.id, user.principal.token_id)
     return StreamingResponse(body(), media_type="text/csv; charset=utf-8",
-                             headers={"Content-Disposition": f'attachment; filename="{name}"'})
+                             headers={"Content-Disposition": attachment(name)})
 
 
 @router.get("/patients/{patient_id}/fhir.json")
@@ -188,7 +189,7 @@ def patient_fhir(patient_id: str, db: Db, user: User, settings: AppSettings) -> 
     log.info("ui FHIR export of patient %s by token %s", p.id, user.principal.token_id)
     bundle = data.fhir_bundle(db, p, settings.fhir_identifier_system)
     return Response(json.dumps(bundle), media_type="application/fhir+json",
-                    headers={"Content-Disposition": f'attachment; filename="{name}"'})
+                    headers={"Content-Disposition": attachment(name)})
 
 
 @router.get("/sessions/{session_id}", response_class=HTMLResponse)
