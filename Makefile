@@ -25,6 +25,8 @@ test: setup
 lint: setup
 	$(BIN)/ruff check .
 
+# The figures of the README (each prints Markdown; see the README's Benchmarks section for the others).
 bench: setup
 	$(BIN)/python -m bench.accuracy
+	$(BIN)/python -m bench.robustness
 	$(BIN)/python -m bench.speed
