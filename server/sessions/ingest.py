@@ -14,7 +14,7 @@ from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session as DbSession
 
-from pipeline.prepare import GAP_FACTOR
+from pipeline.params import WALKING
 from server.codec import content_sha256, encode_samples
 from server.enums import SessionStatus
 from server.errors import conflict, invalid
@@ -152,7 +152,7 @@ def _sensor_received(rows: list, fs_hz: float) -> dict:
                 "missing_seq": [], "observed_rate_hz": None}
     rows = sorted(rows, key=lambda r: r.seq)
     period_ms = 1000.0 / fs_hz
-    limit = GAP_FACTOR * period_ms  # the pipeline's rule, so received.gaps matches summary.gaps
+    limit = WALKING.prepare.gap_factor * period_ms  # the pipeline's rule, so received.gaps matches summary.gaps
     # Steps between consecutive samples inside each batch (the steps across batch boundaries are masked out).
     t = np.frombuffer(b"".join(r.t_ms for r in rows), dtype="<f8")
     steps = np.diff(t)
@@ -189,7 +189,7 @@ def _sensor_received(rows: list, fs_hz: float) -> dict:
 
 
 def received_summary(db: DbSession, session: Session) -> dict[str, dict]:
-    """Per declared sensor: batches, samples, gaps (the pipeline's :data:`pipeline.prepare.GAP_FACTOR` rule), gap_s,
+    """Per declared sensor: batches, samples, gaps (the pipeline's ``PrepareParams.gap_factor`` rule), gap_s,
     time span, missing seq."""
     rows = db.execute(
         select(Batch.sensor_id, Batch.seq, Batch.n_samples, Batch.t_first_ms, Batch.t_last_ms, Batch.t_ms)

@@ -6,7 +6,7 @@ from typing import Annotated, Any
 
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, model_validator
 
-from pipeline.prepare import GAP_FACTOR
+from pipeline.params import WALKING
 from server.enums import AccUnit, Activity, GyroUnit, Leg, Segment, SessionStatus
 from server.schema_types import FiniteFloat, OrmOut, StrictIn, UtcDatetime, Xyz
 
@@ -58,7 +58,8 @@ class ReceivedOut(BaseModel):
 
     batches: int
     samples: int
-    gaps: int = Field(description=f"Detected gaps: missing seq numbers or time jumps > {GAP_FACTOR:g} sample "
+    gaps: int = Field(description=f"Detected gaps: missing seq numbers or time jumps > "
+                                  f"{WALKING.prepare.gap_factor:g} sample "
                                   "periods (the pipeline's gap rule)")
     gap_s: float = Field(description="Total time missing inside gaps, seconds")
     first_t_s: float | None
