@@ -31,6 +31,13 @@ class TrendSessionLeg(Base):
     n_fallback: Mapped[int] = mapped_column(Integer)  # strides whose angle came from a fallback estimator
     n_gaps: Mapped[int] = mapped_column(Integer)
     walking_s: Mapped[float] = mapped_column(Float)
+    # Quality-passing strides with a knee angle outside its plausibility limits (any angle metric).
+    n_implausible: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    # Strides the leg should have given: the most strides any leg of the session gave in this activity (both legs
+    # walk the same cycles), or, for a lone leg whose sensors stopped early, its strides scaled up to full coverage.
+    n_expected: Mapped[int | None] = mapped_column(Integer)
+    # Share of the session's recording span that both sensors of this leg delivered data for (None: unknown).
+    coverage: Mapped[float | None] = mapped_column(Float)
     algorithm_version: Mapped[str | None] = mapped_column(String(32))
     refreshed_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 

@@ -254,7 +254,7 @@ def _sessions(db: DbSession, p: Patient, days_ago: list[float], peak: float | li
                     {"left": {"n": n, "peak_swing_flexion_deg": _alternating(v - 1, v + 1, n), **extra}})
 
 
-def test_attention_flags_declining_stalled_silent_and_sensor_trouble(factory) -> None:
+def test_attention_flags_declining_stalled_improving_silent_and_sensor_trouble(factory) -> None:
     with factory() as db:
         c = Clinician(name="Dr. A")
         other = Clinician(name="Dr. B")
@@ -283,7 +283,7 @@ def test_attention_flags_declining_stalled_silent_and_sensor_trouble(factory) ->
     kinds = {it["patient"]["id"]: [f["kind"] for f in it["flags"]] for it in out["items"]}
     assert kinds[declining.id] == ["declining"]
     assert kinds[stalled.id] == ["stalled"]
-    assert improving.id not in kinds
+    assert kinds[improving.id] == ["improving"]
     assert kinds[silent.id] == ["silent"]
     assert kinds[troubled.id] == ["sensor_trouble"]
     assert foreign.id not in kinds and out["n_patients"] == 5
@@ -293,6 +293,11 @@ def test_attention_flags_declining_stalled_silent_and_sensor_trouble(factory) ->
     flag = out["items"][0]["flags"][0]
     assert flag["delta"] == pytest.approx(-15.0) and flag["mdc"] == 5.0
     assert flag["baseline"]["mean"] == pytest.approx(60.0) and flag["latest"]["mean"] == pytest.approx(45.0)
+    assert flag["slope_per_week"] < 0 and flag["p_value"] < 0.01 and flag["fitted_change"] < -5.0
+    assert flag["ci95_per_week"][1] < 0 and flag["n_sessions"] == 6
+    # Good news comes last: improving is the least severe item.
+    assert out["items"][-1]["patient"]["id"] == improving.id and out["items"][-1]["severity"] == 0
+    assert set(out["rules"]) >= {"declining", "improving", "stalled", "silent", "sensor_trouble"}
     trouble = next(it for it in out["items"] if it["patient"]["id"] == troubled.id)["flags"][0]
     assert trouble["fallback_rate"] == pytest.approx(80 / 120, abs=1e-3)
     silent_flag = next(it for it in out["items"] if it["patient"]["id"] == silent.id)["flags"][0]

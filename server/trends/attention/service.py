@@ -1,0 +1,174 @@
+"""The attention list: which patients need the clinician, with the reason and the numbers behind each flag.
+
+Three lean reads of the precomputed per session-leg summaries (session means of one metric, sensor evidence of the
+sensor window, failed runs) plus the last session per patient; the flags are pure functions
+(:mod:`server.trends.attention.rules`), so the cost grows with patients and sessions in the windows, never with
+strides.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from datetime import datetime, timedelta
+from typing import Any
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session as DbSession
+
+from server.enums import SessionStatus
+from server.patients.models import Patient
+from server.sessions.models import Session
+from server.trends import stats
+from server.trends.attention import rules
+from server.trends.attention.params import AttentionParams
+from server.trends.metrics import METRICS, MIN_STRIDES_PER_SESSION, Metric
+from server.trends.models import TrendMetricValues, TrendSessionLeg
+from server.utc import as_utc, utcnow
+
+
+def _points(db: DbSession, owned: list[Any], metric: str, activity: str,
+            since: datetime, now: datetime) -> dict[str, dict[str, list[tuple[float, int, float, float | None]]]]:
+    """Session means per patient and leg since ``since``: {pid: {leg: [(t_days before now, n, mean, sd)]}}."""
+    m = TrendMetricValues
+    q = (select(m.patient_id, m.leg, m.started_at, m.n_included, m.mean, m.sd)
+         .join(Patient, Patient.id == m.patient_id)
+         .where(*owned, m.metric == metric, m.activity == activity, m.n_included >= MIN_STRIDES_PER_SESSION,
+                m.started_at >= since, m.started_at <= now))
+    out: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
+    for pid, leg, t, n, mean, sd in db.execute(q):
+        out[pid][leg].append(((as_utc(t) - now).total_seconds() / 86400.0, n, mean, sd))
+    return out
+
+
+def _sensor_rows(db: DbSession, owned: list[Any], since: datetime) -> dict[str, list[rules.SessionLegEvidence]]:
+    s = TrendSessionLeg
+    q = (select(s.patient_id, s.started_at, s.leg, s.n_strides, s.n_expected, s.n_low_quality, s.n_fallback,
+                s.n_implausible, s.n_gaps, s.walking_s, s.coverage)
+         .join(Patient, Patient.id == s.patient_id).where(*owned, s.started_at >= since))
+    out: dict[str, list[rules.SessionLegEvidence]] = defaultdict(list)
+    for pid, t, leg, n, n_exp, low, fb, impl, gaps, walk, cov in db.execute(q):
+        out[pid].append(rules.SessionLegEvidence(t, leg, n or 0, max(n_exp or 0, n or 0), low or 0, fb or 0,
+                                                 impl or 0, gaps or 0, float(walk or 0.0), cov))
+    return out
+
+
+def _as_points(raw: list[tuple[float, int, float, float | None]], since_days: float) -> list[stats.Point]:
+    return [stats.Point(t, n, mean, sd) for t, n, mean, sd in raw if t >= since_days]
+
+
+def patient_flags(p: AttentionParams, metric: Metric, now: datetime, per_leg: dict[str, list],
+                  affected: str | None, last: datetime | None, created: datetime, prescribed: float | None,
+                  sensor_rows: list[rules.SessionLegEvidence], n_failed: int) -> list[dict[str, Any]]:
+    """Every flag of one patient. Assessed leg: the affected leg when it has data, otherwise every leg."""
+    flags: list[dict[str, Any]] = []
+    silent = rules.silent_flag(p, now, last, created, prescribed)
+    if silent:
+        flags.append(silent)
+    legs = [affected] if affected in per_leg else sorted(per_leg)
+    for leg in legs:
+        trend = _as_points(per_leg[leg], -2.0 * p.window_days)
+        leg_flag = (rules.change_flag("declining", p, metric, leg, trend)
+                    or rules.change_flag("improving", p, metric, leg, trend)
+                    or rules.stalled_flag(p, metric, leg, _as_points(per_leg[leg], -7.0 * p.stalled_weeks)))
+        if leg_flag:
+            flags.append(leg_flag)
+    trouble = rules.sensor_flag(p, sensor_rows, n_failed)
+    if trouble:
+        flags.append(trouble)
+    for f in flags:
+        f["severity"] = rules.SEVERITY[f["kind"]]
+    flags.sort(key=lambda f: (-f["severity"], -(f.get("effect") or 0.0)))
+    return flags
+
+
+def _render(page: list[dict[str, Any]], now: datetime) -> None:
+    """Only the returned page is rendered in full (windows as JSON, times as ISO strings)."""
+    for it in page:
+        it["last_session_at"] = it["last_session_at"].isoformat() if it["last_session_at"] else None
+        for f in it["flags"]:
+            for key in ("baseline", "latest"):
+                if isinstance(f.get(key), stats.Window):
+                    f[key] = rules.window_json(f[key], now)
+
+
+def rules_block(p: AttentionParams, metric: Metric) -> dict[str, Any]:
+    """What each flag means, with the thresholds of this response (the clinic's preset and overrides)."""
+    trend_days = 2.0 * p.window_days
+    goal = p.goal()
+    return {
+        "preset": p.preset, "metric": metric.name, "activity": str(p.activity),
+        "declining": {
+            "severity": rules.SEVERITY["declining"],
+            "method": (f"OLS slope of session means of the last {trend_days:g} days (>= {p.min_trend_sessions} "
+                       f"sessions over >= {p.min_trend_span_days:g} days): one-sided t-test, alpha {p.alpha:g}, AND "
+                       f"fitted change beyond the MDC ({metric.mdc:g} {metric.unit})"),
+            "nominal_false_alarm_rate": p.alpha,
+            "references": ["Montgomery & Runger, Applied Statistics, eq. 11-21", "Allseits et al. 2018 (MDC)"]},
+        "improving": {"severity": rules.SEVERITY["improving"], "method": "the declining rule in the better direction",
+                      "nominal_false_alarm_rate": p.alpha},
+        "stalled": {
+            "severity": rules.SEVERITY["stalled"],
+            "method": (f">= {p.stalled_min_span_days:g} days of data in the last {p.stalled_weeks} weeks, 90 % CI "
+                       f"of the slope inside +-MDC per {p.stalled_weeks} weeks (two one-sided tests), latest "
+                       f"{p.window_days:g}-day mean below the goal, no significant improvement"),
+            "goal": goal, "references": ["Schuirmann 1987 (TOST)"]},
+        "silent": {"severity": rules.SEVERITY["silent"],
+                   "method": (f"no session for {p.silent_missed_sessions:g} prescribed intervals (7 / prescribed "
+                              f"sessions per week) when a schedule is set, else {p.silent_days:g} days")},
+        "sensor_trouble": {
+            "severity": rules.SEVERITY["sensor_trouble"],
+            "method": (f"per leg over the last {p.window_days:g} days, after {p.min_strides_for_rates} expected "
+                       f"strides: lost > {p.max_lost_rate:g}, low quality > {p.max_low_quality_rate:g}, fallback > "
+                       f"{p.max_fallback_rate:g}, implausible angle > {p.max_implausible_rate:g}; per session: a "
+                       f"sensor covering < {p.min_coverage:g} of it that cost >= {p.min_lost_strides} strides; "
+                       f"> {p.max_failed_sessions} failed runs. Data gaps that cost no strides never count")},
+        "ranking": "severity, then effect size (how far past its threshold the evidence is), most first",
+    }
+
+
+def attention_list(db: DbSession, *, clinician_id: str | None, params: AttentionParams | None = None,
+                   now: datetime | None = None, limit: int = 50, offset: int = 0) -> dict[str, Any]:
+    """Flagged patients, most severe first. ``clinician_id`` None = every patient (admin)."""
+    p = params or AttentionParams()
+    metric = METRICS[p.metric]
+    now = as_utc(now or utcnow())
+    owned = [Patient.clinician_id == clinician_id] if clinician_id is not None else []
+    patients = db.execute(
+        select(Patient.id, Patient.display_name, Patient.external_id, Patient.affected_leg, Patient.created_at,
+               Patient.prescribed_sessions_per_week).where(*owned).order_by(Patient.id)
+    ).all()
+    last_session = dict(db.execute(
+        select(Session.patient_id, func.max(Session.started_at)).join(Patient, Patient.id == Session.patient_id)
+        .where(*owned).group_by(Session.patient_id)
+    ).all())
+    horizon_days = max(2.0 * p.window_days, 7.0 * p.stalled_weeks)
+    points = _points(db, owned, metric.name, p.activity, now - timedelta(days=horizon_days), now)
+    sensor_since = now - timedelta(days=p.window_days)
+    sensor = _sensor_rows(db, owned, sensor_since)
+    failed = dict(db.execute(
+        select(Session.patient_id, func.count()).join(Patient, Patient.id == Session.patient_id)
+        .where(*owned, Session.status == SessionStatus.failed, Session.started_at >= sensor_since)
+        .group_by(Session.patient_id)
+    ).all())
+
+    items = []
+    for pid, name, ext, affected, created, prescribed in patients:
+        last = last_session.get(pid)
+        flags = patient_flags(p, metric, now, points.get(pid, {}), affected, last, created, prescribed,
+                              sensor.get(pid, []), int(failed.get(pid, 0)))
+        if not flags:
+            continue
+        items.append({
+            "patient": {"id": pid, "display_name": name, "external_id": ext, "affected_leg": affected,
+                        "prescribed_sessions_per_week": prescribed},
+            "severity": flags[0]["severity"], "effect": flags[0].get("effect"), "flags": flags,
+            "last_session_at": as_utc(last) if last else None,
+        })
+    items.sort(key=lambda it: (-it["severity"], -(it["effect"] or 0.0), it["patient"]["id"]))
+    page = items[offset:offset + limit]
+    _render(page, now)
+    return {
+        "items": page, "next_cursor": str(offset + limit) if offset + limit < len(items) else None,
+        "n_flagged": len(items), "n_patients": len(patients), "generated_at": now.isoformat(),
+        "params": p.as_dict(), "rules": rules_block(p, metric),
+    }
