@@ -29,6 +29,7 @@ class AttentionParams:
     window_days: float = 14.0
     # declining / improving: one-sided t-test of the OLS slope of session means AND a fitted change beyond the MDC
     alpha: float = 0.01
+    level_free_test: bool = True  # absolute angles: test on the level-free companion (rules.LEVEL_FREE_COMPANION)
     min_trend_sessions: int = 4
     min_trend_span_days: float = 7.0
     # stalled: equivalence (TOST) of the slope within +-MDC per stalled_weeks, below the goal, enough weeks of data

@@ -128,40 +128,62 @@ def _one_sided_p(fit: SlopeTest, direction: int) -> float:
     return float(sps.t.sf(t, fit.df)) if math.isfinite(t) else (0.0 if t > 0 else 1.0)
 
 
-def change_flag(kind: str, p: AttentionParams, metric: Metric, leg: str,
-                points: Sequence[stats.Point]) -> dict[str, Any] | None:
-    """``declining`` or ``improving`` of one leg from its session points of the trend window (t in days, <= 0)."""
+# An absolute knee angle rests on each session's absolute reference (an assumed or measured standing flexion and
+# the accelerometer's inclination, Seel et al. 2014; Allseits et al. 2018 Sect. 2.4), which moves by a few degrees
+# from session to session; the stride's excursion does not. Its significance is therefore tested on the excursion
+# of the same strides (ROM = peak swing flexion - minimum flexion), which carries the same gain in knee motion
+# without that offset, while the size of the change (fitted change vs MDC) is judged on the metric itself.
+LEVEL_FREE_COMPANION: dict[str, str] = {"peak_swing_flexion_deg": "rom_deg"}
+
+
+def change_flag(kind: str, p: AttentionParams, metric: Metric, leg: str, points: Sequence[stats.Point],
+                test_points: Sequence[stats.Point] | None = None,
+                test_metric: str | None = None) -> dict[str, Any] | None:
+    """``declining`` or ``improving`` of one leg from its session points of the trend window (t in days, <= 0).
+
+    ``test_points`` (of ``test_metric``, the same sessions): the series the slope's significance is tested on
+    (see :data:`LEVEL_FREE_COMPANION`); default the metric's own points."""
     if metric.better == "none" or len(points) < max(p.min_trend_sessions, 3):
         return None
     fit = slope_test(points)
     if fit is None or fit.se is None or fit.span_days < p.min_trend_span_days:
         return None
+    tested = fit
+    if test_points is not None and len(test_points) >= max(p.min_trend_sessions, 3):
+        tested = slope_test(test_points) or fit
+    else:
+        test_metric = None
+    if tested.se is None:
+        return None
     direction = -_sign(metric) if kind == "declining" else _sign(metric)  # the slope sign the flag looks for
     base, late = _windows(points, p.window_days, -2.0 * p.window_days)
     mdc = _mdc(metric, base.mean if base.mean is not None else late.mean)
-    crit = stats.t_quantile(fit.df, 1.0 - p.alpha)
-    if not (direction * fit.t_stat() > crit and direction * fit.fitted_change >= mdc):
+    crit = stats.t_quantile(tested.df, 1.0 - p.alpha)
+    if not (direction * tested.t_stat() > crit and direction * fit.fitted_change >= mdc):
         return None
-    pval = _one_sided_p(fit, direction)
+    pval = _one_sided_p(tested, direction)
     delta = None if base.mean is None or late.mean is None else late.mean - base.mean
     change = fit.fitted_change
     verb = "fell" if change < 0 else "rose"
+    tested_on = (f"{test_metric} {7.0 * tested.slope_per_day:+.1f} {metric.unit}/week, " if test_metric else "")
     return {"kind": kind, "leg": leg, "metric": metric.name, "delta": finite_round(delta, 3),
             "mdc": finite_round(mdc, 3), "baseline": base, "latest": late, **_trend_fields(fit, pval),
+            "tested_on": test_metric or metric.name,
+            "tested_slope_per_week": finite_round(7.0 * tested.slope_per_day, 3),
             "effect": finite_round(abs(change) / mdc if mdc else math.inf, 3),
             "reason": (f"{metric.name} of the {leg} leg {verb} by {abs(change):.1f} {metric.unit} over "
-                       f"{fit.span_days:.0f} days ({7.0 * fit.slope_per_day:+.1f} {metric.unit}/week, one-sided "
-                       f"p = {pval:.2g}, {fit.n} sessions; MDC {mdc:g})")}
+                       f"{fit.span_days:.0f} days ({7.0 * fit.slope_per_day:+.1f} {metric.unit}/week; "
+                       f"{tested_on}one-sided p = {pval:.2g}, {fit.n} sessions; MDC {mdc:g})")}
 
 
-def stalled_flag(p: AttentionParams, metric: Metric, leg: str,
-                 points: Sequence[stats.Point]) -> dict[str, Any] | None:
+def stalled_flag(p: AttentionParams, metric: Metric, leg: str, points: Sequence[stats.Point],
+                 test_points: Sequence[stats.Point] | None = None) -> dict[str, Any] | None:
     """``stalled``: a plateau shown by equivalence of the slope with zero, below the goal (points of the last
-    ``stalled_weeks`` weeks)."""
+    ``stalled_weeks`` weeks; the slope from ``test_points``, the level-free companion, when given)."""
     goal = p.goal()
     if goal is None or metric.better == "none" or len(points) < max(p.min_trend_sessions, 3):
         return None
-    fit = slope_test(points)
+    fit = slope_test(test_points if test_points and len(test_points) == len(points) else points)
     if fit is None or fit.se is None or fit.span_days < p.stalled_min_span_days:
         return None
     _, late = _windows(points, p.window_days, -7.0 * p.stalled_weeks)

@@ -25,18 +25,20 @@ from server.trends.metrics import METRICS, MIN_STRIDES_PER_SESSION, Metric
 from server.trends.models import TrendMetricValues, TrendSessionLeg
 from server.utc import as_utc, utcnow
 
+_Raw = tuple[float, int, float, float | None]  # (t_days before now, n, mean, sd) of one session
 
-def _points(db: DbSession, owned: list[Any], metric: str, activity: str,
-            since: datetime, now: datetime) -> dict[str, dict[str, list[tuple[float, int, float, float | None]]]]:
-    """Session means per patient and leg since ``since``: {pid: {leg: [(t_days before now, n, mean, sd)]}}."""
+
+def _points(db: DbSession, owned: list[Any], metrics: list[str], activity: str,
+            since: datetime, now: datetime) -> dict[str, dict[str, dict[str, list[_Raw]]]]:
+    """Session means per patient, metric and leg since ``since``: {pid: {metric: {leg: [raw point]}}}."""
     m = TrendMetricValues
-    q = (select(m.patient_id, m.leg, m.started_at, m.n_included, m.mean, m.sd)
+    q = (select(m.patient_id, m.metric, m.leg, m.started_at, m.n_included, m.mean, m.sd)
          .join(Patient, Patient.id == m.patient_id)
-         .where(*owned, m.metric == metric, m.activity == activity, m.n_included >= MIN_STRIDES_PER_SESSION,
+         .where(*owned, m.metric.in_(metrics), m.activity == activity, m.n_included >= MIN_STRIDES_PER_SESSION,
                 m.started_at >= since, m.started_at <= now))
-    out: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
-    for pid, leg, t, n, mean, sd in db.execute(q):
-        out[pid][leg].append(((as_utc(t) - now).total_seconds() / 86400.0, n, mean, sd))
+    out: dict[str, dict[str, dict[str, list[_Raw]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
+    for pid, metric, leg, t, n, mean, sd in db.execute(q):
+        out[pid][metric][leg].append(((as_utc(t) - now).total_seconds() / 86400.0, n, mean, sd))
     return out
 
 
@@ -56,20 +58,29 @@ def _as_points(raw: list[tuple[float, int, float, float | None]], since_days: fl
     return [stats.Point(t, n, mean, sd) for t, n, mean, sd in raw if t >= since_days]
 
 
-def patient_flags(p: AttentionParams, metric: Metric, now: datetime, per_leg: dict[str, list],
+def patient_flags(p: AttentionParams, metric: Metric, now: datetime, series: dict[str, dict[str, list[_Raw]]],
                   affected: str | None, last: datetime | None, created: datetime, prescribed: float | None,
                   sensor_rows: list[rules.SessionLegEvidence], n_failed: int) -> list[dict[str, Any]]:
-    """Every flag of one patient. Assessed leg: the affected leg when it has data, otherwise every leg."""
+    """Every flag of one patient. Assessed leg: the affected leg when it has data, otherwise every leg.
+    ``series``: {metric: {leg: raw points}} of the metric and its level-free companion."""
     flags: list[dict[str, Any]] = []
     silent = rules.silent_flag(p, now, last, created, prescribed)
     if silent:
         flags.append(silent)
+    per_leg = series.get(metric.name, {})
+    companion = rules.LEVEL_FREE_COMPANION.get(metric.name) if p.level_free_test else None
     legs = [affected] if affected in per_leg else sorted(per_leg)
     for leg in legs:
         trend = _as_points(per_leg[leg], -2.0 * p.window_days)
-        leg_flag = (rules.change_flag("declining", p, metric, leg, trend)
-                    or rules.change_flag("improving", p, metric, leg, trend)
-                    or rules.stalled_flag(p, metric, leg, _as_points(per_leg[leg], -7.0 * p.stalled_weeks)))
+        other = series.get(companion, {}).get(leg, []) if companion else []
+        tested = _as_points(other, -2.0 * p.window_days) if companion else None
+        if tested is not None and len(tested) != len(trend):
+            tested = None  # the companion must describe the same sessions
+        plateau = _as_points(per_leg[leg], -7.0 * p.stalled_weeks)
+        leg_flag = (rules.change_flag("declining", p, metric, leg, trend, tested, companion)
+                    or rules.change_flag("improving", p, metric, leg, trend, tested, companion)
+                    or rules.stalled_flag(p, metric, leg, plateau,
+                                          _as_points(other, -7.0 * p.stalled_weeks) if companion else None))
         if leg_flag:
             flags.append(leg_flag)
     trouble = rules.sensor_flag(p, sensor_rows, n_failed)
@@ -95,13 +106,16 @@ def rules_block(p: AttentionParams, metric: Metric) -> dict[str, Any]:
     """What each flag means, with the thresholds of this response (the clinic's preset and overrides)."""
     trend_days = 2.0 * p.window_days
     goal = p.goal()
+    companion = rules.LEVEL_FREE_COMPANION.get(metric.name) if p.level_free_test else None
     return {
         "preset": p.preset, "metric": metric.name, "activity": str(p.activity),
         "declining": {
             "severity": rules.SEVERITY["declining"],
             "method": (f"OLS slope of session means of the last {trend_days:g} days (>= {p.min_trend_sessions} "
-                       f"sessions over >= {p.min_trend_span_days:g} days): one-sided t-test, alpha {p.alpha:g}, AND "
-                       f"fitted change beyond the MDC ({metric.mdc:g} {metric.unit})"),
+                       f"sessions over >= {p.min_trend_span_days:g} days): one-sided t-test, alpha {p.alpha:g}"
+                       + (f" (tested on {companion} of the same strides, free of the session's level offset)"
+                          if companion else "")
+                       + f", AND the metric's fitted change beyond the MDC ({metric.mdc:g} {metric.unit})"),
             "nominal_false_alarm_rate": p.alpha,
             "references": ["Montgomery & Runger, Applied Statistics, eq. 11-21", "Allseits et al. 2018 (MDC)"]},
         "improving": {"severity": rules.SEVERITY["improving"], "method": "the declining rule in the better direction",
@@ -142,7 +156,9 @@ def attention_list(db: DbSession, *, clinician_id: str | None, params: Attention
         .where(*owned).group_by(Session.patient_id)
     ).all())
     horizon_days = max(2.0 * p.window_days, 7.0 * p.stalled_weeks)
-    points = _points(db, owned, metric.name, p.activity, now - timedelta(days=horizon_days), now)
+    companion = rules.LEVEL_FREE_COMPANION.get(metric.name) if p.level_free_test else None
+    points = _points(db, owned, [metric.name, *([companion] if companion else [])], p.activity,
+                     now - timedelta(days=horizon_days), now)
     sensor_since = now - timedelta(days=p.window_days)
     sensor = _sensor_rows(db, owned, sensor_since)
     failed = dict(db.execute(
