@@ -4,7 +4,8 @@
     .venv/bin/python -m bench.cohort --split tune          # the seeds the thresholds were chosen on
     .venv/bin/python -m bench.cohort --per-group 2 --workers 2   # a quick look
 
-Every patient walks 8 sessions of ~40 s (60 s recordings, both legs, thigh + shank) dated over the last 27 days,
+Every patient walks 8 sessions of ~40 s (60 s recordings, thigh + shank of the affected left leg; ``--both-legs``
+for both) dated over the last 27 days,
 simulated by ``pipeline.simulate`` with the truth set per group, with 0-5 % bursty (Gilbert-Elliott) packet loss
 drawn per patient; half the patients have a prescribed schedule of 2 sessions/week, half none:
 
@@ -89,6 +90,8 @@ class PlannedSession:
     pattern: str
     packet_loss: float
     cut_left_shank: float | None  # fraction of the session after which the left shank sends nothing
+    duration_s: float = 60.0
+    legs: tuple[str, ...] = ("left", "right")
 
 
 @dataclass(frozen=True)
@@ -101,8 +104,8 @@ class PlannedPatient:
     prescribed: float | None
 
 
-def plan(split: str, per_group: int, groups: list[str] | None = None) -> tuple[list[PlannedPatient],
-                                                                             list[PlannedSession]]:
+def plan(split: str, per_group: int, groups: list[str] | None = None,
+         legs: tuple[str, ...] = ("left",)) -> tuple[list[PlannedPatient], list[PlannedSession]]:
     """Patients and sessions of one seed split (deterministic; a subset of groups keeps their seeds)."""
     base = SPLITS[split]
     patients, sessions = [], []
@@ -121,13 +124,14 @@ def plan(split: str, per_group: int, groups: list[str] | None = None) -> tuple[l
                 frac = k / (N_SESSIONS - 1)
                 cut = float(rng.uniform(0.35, 0.6)) if g.fall_off and k == N_SESSIONS - 1 else None
                 sessions.append(PlannedSession(i, k, seed * 10 + k, float(d),
-                                               g.start_deg + frac * (g.end_deg - g.start_deg), g.pattern, loss, cut))
+                                               g.start_deg + frac * (g.end_deg - g.start_deg), g.pattern, loss, cut,
+                                               legs=legs))
     return patients, sessions
 
 
 def _simulate(s: PlannedSession, now_iso: str) -> tuple[int, int, dict, list[dict]]:
     scale = (s.peak_deg - DEFAULT_MIN_DEG) / (DEFAULT_PEAK_DEG - DEFAULT_MIN_DEG)
-    cfg = SimConfig(pattern=s.pattern, seed=s.seed, duration_s=60.0, activities=("standing",),
+    cfg = SimConfig(pattern=s.pattern, seed=s.seed, duration_s=s.duration_s, activities=("standing",), legs=s.legs,
                     knee_scale=(scale, scale), packet_loss=s.packet_loss, loss_model="bursty")
     sim = simulate_session(cfg)
     if s.cut_left_shank is not None:
@@ -166,8 +170,8 @@ def _simulated(sessions: list[PlannedSession], now_iso: str, workers: int) -> It
         yield from pool.map(_simulate, sessions, [now_iso] * len(sessions), chunksize=2)
 
 
-def run_cohort(url: str, split: str, per_group: int, workers: int,
-               groups: list[str] | None = None) -> dict[str, Any]:
+def run_cohort(url: str, split: str, per_group: int, workers: int, groups: list[str] | None = None,
+               legs: tuple[str, ...] = ("left",)) -> dict[str, Any]:
     """Simulate, upload, process and read the attention list; returns the list and the plan."""
     from fastapi.testclient import TestClient
 
@@ -176,7 +180,7 @@ def run_cohort(url: str, split: str, per_group: int, workers: int,
     from server.config import Settings
     from server.migrate import upgrade_to_head
 
-    patients, sessions = plan(split, per_group, groups)
+    patients, sessions = plan(split, per_group, groups, legs)
     now = datetime.now(UTC).replace(microsecond=0)
     upgrade_to_head(url)
     app = create_app(Settings(database_url=url, job_runner="manual", data_dir=Path(tempfile.gettempdir())))
@@ -221,6 +225,7 @@ def run_cohort(url: str, split: str, per_group: int, workers: int,
         trends = {}
         for p in patients:
             r = client.get(f"/v1/patients/{ids[p.index]}/trends", params={"leg": "left"}, headers=_bearer(clin))
+            assert r.status_code == 200, r.text
             trends[p.index] = r.json()
     return {"patients": patients, "ids": ids, "attention": att.json(), "timings": timings, "trends": trends}
 
@@ -336,6 +341,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--db-url", default=None, help="database to use (default: a temporary SQLite file)")
     ap.add_argument("--verbose", action="store_true", help="print every flag's reason and each patient's trend")
     ap.add_argument("--groups", nargs="*", choices=sorted(GROUPS), help="only these groups (same seeds)")
+    ap.add_argument("--both-legs", action="store_true",
+                    help="instrument both legs (default: the affected left leg only, half the simulation time)")
     ap.add_argument("--evaluate-only", action="store_true",
                     help="read the list again from --db-url (a database an earlier run filled with the same split, "
                          "--per-group and --groups) without simulating")
@@ -350,7 +357,8 @@ def main(argv: list[str] | None = None) -> None:
         return
     with tempfile.TemporaryDirectory() as tmp:
         url = args.db_url or f"sqlite:///{Path(tmp) / 'cohort.sqlite'}"
-        out = run_cohort(url, args.split, args.per_group, args.workers, args.groups)
+        out = run_cohort(url, args.split, args.per_group, args.workers, args.groups,
+                         ("left", "right") if args.both_legs else ("left",))
         ev = evaluate(out["patients"], out["ids"], out["attention"])
     if args.verbose:
         reasons(out)

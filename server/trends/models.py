@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from sqlalchemy import DateTime, Float, ForeignKey, Index, Integer, LargeBinary, String
+from sqlalchemy import JSON, DateTime, Float, ForeignKey, Index, Integer, LargeBinary, String
 from sqlalchemy.orm import Mapped, mapped_column
 
 from server.db import Base
@@ -69,3 +69,18 @@ class TrendMetricValues(Base):
     p10: Mapped[float | None] = mapped_column(Float)
     p90: Mapped[float | None] = mapped_column(Float)
     values: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class AttentionEvidence(Base):
+    """The attention flags of one patient as of their latest processed session, for every preset (kept by
+    :func:`server.trends.attention.evidence.refresh_patient` whenever a session of the patient is processed).
+
+    ``flags`` = {"as_of", "legs": legs with data, "presets": {preset: {"legs": {leg: flag | null},
+    "sensor": flag | null}}}; ``silent`` depends on the clock and is always judged at request time.
+    """
+
+    __tablename__ = "attention_evidence"
+    patient_id: Mapped[str] = mapped_column(ForeignKey("patients.id", ondelete="CASCADE"), primary_key=True)
+    as_of: Mapped[datetime] = mapped_column(DateTime(timezone=True))
+    flags: Mapped[dict] = mapped_column(JSON)
+    refreshed_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)

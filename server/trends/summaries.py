@@ -19,6 +19,7 @@ from server.codec import encode_values
 from server.enums import SessionStatus, StrideActivity
 from server.results.models import Stride
 from server.sessions.models import Batch, Session, SessionSensor
+from server.trends.attention.evidence import patients_without_evidence, refresh_patient
 from server.trends.metrics import METRICS, MIN_QUALITY, STRIDE_METRICS
 from server.trends.models import TrendMetricValues, TrendSessionLeg
 from server.trends.stats import quantiles_sorted
@@ -118,6 +119,8 @@ def refresh_session(db: DbSession, session_id: str) -> int:
     sess = db.get(Session, session_id)
     if sess is None or sess.status != SessionStatus.done:
         db.flush()
+        if sess is not None:
+            refresh_patient(db, sess.patient_id)  # a failed run counts for sensor trouble
         return 0
     cols = [getattr(Stride, c) for c in _COLUMNS]
     rows = db.execute(
@@ -149,6 +152,7 @@ def refresh_session(db: DbSession, session_id: str) -> int:
         for mr in metric_rows:
             db.add(TrendMetricValues(**key, **mr))
     db.flush()
+    refresh_patient(db, sess.patient_id)
     return len(groups)
 
 
@@ -208,6 +212,10 @@ def backfill(factory: sessionmaker[DbSession], *, batch: int = 200) -> int:
             for sid in ids[start:start + batch]:
                 refresh_session(db, sid)
             db.commit()
+    with factory() as db:
+        for pid in patients_without_evidence(db):
+            refresh_patient(db, pid)
+        db.commit()
     if ids:
         log.info("trend summaries backfilled for %d sessions", len(ids))
     return len(ids)

@@ -28,7 +28,7 @@ class AttentionParams:
     activity: str = StrideActivity.walking  # declining/improving/stalled judge strides of this activity only
     window_days: float = 14.0
     # declining / improving: one-sided t-test of the OLS slope of session means AND a fitted change beyond the MDC
-    alpha: float = 0.01
+    alpha: float = 0.025  # = the slope's one-sided 97.5 % bound, i.e. its two-sided 95 % CI, beyond zero
     level_free_test: bool = True  # absolute angles: test on the level-free companion (rules.LEVEL_FREE_COMPANION)
     min_trend_sessions: int = 4
     min_trend_span_days: float = 7.0
@@ -66,7 +66,7 @@ PRESETS: dict[str, AttentionParams] = {
                                  max_lost_rate=0.3, max_low_quality_rate=0.2, max_fallback_rate=0.2,
                                  max_implausible_rate=0.05),
     # Fewer flags: a large caseload where only unmistakable changes should reach the clinician.
-    "conservative": AttentionParams(preset="conservative", alpha=0.001, silent_days=5.0, silent_missed_sessions=3.0,
+    "conservative": AttentionParams(preset="conservative", alpha=0.005, silent_days=5.0, silent_missed_sessions=3.0,
                                     max_lost_rate=0.5, max_low_quality_rate=0.35, max_fallback_rate=0.4,
                                     max_implausible_rate=0.15),
 }

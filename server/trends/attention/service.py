@@ -9,6 +9,7 @@ strides.
 from __future__ import annotations
 
 from collections import defaultdict
+from dataclasses import replace
 from datetime import datetime, timedelta
 from typing import Any
 
@@ -20,9 +21,9 @@ from server.patients.models import Patient
 from server.sessions.models import Session
 from server.trends import stats
 from server.trends.attention import rules
-from server.trends.attention.params import AttentionParams
+from server.trends.attention.params import PRESETS, AttentionParams
 from server.trends.metrics import METRICS, MIN_STRIDES_PER_SESSION, Metric
-from server.trends.models import TrendMetricValues, TrendSessionLeg
+from server.trends.models import AttentionEvidence, TrendMetricValues, TrendSessionLeg
 from server.utc import as_utc, utcnow
 
 _Raw = tuple[float, int, float, float | None]  # (t_days before now, n, mean, sd) of one session
@@ -58,38 +59,55 @@ def _as_points(raw: list[tuple[float, int, float, float | None]], since_days: fl
     return [stats.Point(t, n, mean, sd) for t, n, mean, sd in raw if t >= since_days]
 
 
-def patient_flags(p: AttentionParams, metric: Metric, now: datetime, series: dict[str, dict[str, list[_Raw]]],
-                  affected: str | None, last: datetime | None, created: datetime, prescribed: float | None,
-                  sensor_rows: list[rules.SessionLegEvidence], n_failed: int) -> list[dict[str, Any]]:
-    """Every flag of one patient. Assessed leg: the affected leg when it has data, otherwise every leg.
+def leg_flag(p: AttentionParams, metric: Metric, series: dict[str, dict[str, list[_Raw]]],
+             leg: str) -> dict[str, Any] | None:
+    """The trend flag of one leg (declining, else improving, else stalled), or None.
     ``series``: {metric: {leg: raw points}} of the metric and its level-free companion."""
-    flags: list[dict[str, Any]] = []
-    silent = rules.silent_flag(p, now, last, created, prescribed)
-    if silent:
-        flags.append(silent)
     per_leg = series.get(metric.name, {})
     companion = rules.LEVEL_FREE_COMPANION.get(metric.name) if p.level_free_test else None
-    legs = [affected] if affected in per_leg else sorted(per_leg)
-    for leg in legs:
-        trend = _as_points(per_leg[leg], -2.0 * p.window_days)
-        other = series.get(companion, {}).get(leg, []) if companion else []
-        tested = _as_points(other, -2.0 * p.window_days) if companion else None
-        if tested is not None and len(tested) != len(trend):
-            tested = None  # the companion must describe the same sessions
-        plateau = _as_points(per_leg[leg], -7.0 * p.stalled_weeks)
-        leg_flag = (rules.change_flag("declining", p, metric, leg, trend, tested, companion)
-                    or rules.change_flag("improving", p, metric, leg, trend, tested, companion)
-                    or rules.stalled_flag(p, metric, leg, plateau,
-                                          _as_points(other, -7.0 * p.stalled_weeks) if companion else None))
-        if leg_flag:
-            flags.append(leg_flag)
-    trouble = rules.sensor_flag(p, sensor_rows, n_failed)
-    if trouble:
-        flags.append(trouble)
+    trend = _as_points(per_leg.get(leg, []), -2.0 * p.window_days)
+    other = series.get(companion, {}).get(leg, []) if companion else []
+    tested = _as_points(other, -2.0 * p.window_days) if companion else None
+    if tested is not None and len(tested) != len(trend):
+        tested = None  # the companion must describe the same sessions
+    plateau = _as_points(per_leg.get(leg, []), -7.0 * p.stalled_weeks)
+    flag = (rules.change_flag("declining", p, metric, leg, trend, tested, companion)
+            or rules.change_flag("improving", p, metric, leg, trend, tested, companion)
+            or rules.stalled_flag(p, metric, leg, plateau,
+                                  _as_points(other, -7.0 * p.stalled_weeks) if companion else None))
+    if flag:
+        flag["severity"] = rules.SEVERITY[flag["kind"]]
+    return flag
+
+
+def assessed_legs(affected: str | None, legs_with_data: list[str]) -> list[str]:
+    """The affected leg when it has data, otherwise every leg with data."""
+    return [affected] if affected in legs_with_data else sorted(legs_with_data)
+
+
+def _ranked(flags: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for f in flags:
         f["severity"] = rules.SEVERITY[f["kind"]]
     flags.sort(key=lambda f: (-f["severity"], -(f.get("effect") or 0.0)))
     return flags
+
+
+def patient_flags(p: AttentionParams, metric: Metric, now: datetime, series: dict[str, dict[str, list[_Raw]]],
+                  affected: str | None, last: datetime | None, created: datetime, prescribed: float | None,
+                  sensor_rows: list[rules.SessionLegEvidence], n_failed: int) -> list[dict[str, Any]]:
+    """Every flag of one patient, most severe first (windows ending at ``now``)."""
+    flags: list[dict[str, Any]] = []
+    silent = rules.silent_flag(p, now, last, created, prescribed)
+    if silent:
+        flags.append(silent)
+    for leg in assessed_legs(affected, list(series.get(metric.name, {}))):
+        f = leg_flag(p, metric, series, leg)
+        if f:
+            flags.append(f)
+    trouble = rules.sensor_flag(p, sensor_rows, n_failed)
+    if trouble:
+        flags.append(trouble)
+    return _ranked(flags)
 
 
 def _render(page: list[dict[str, Any]], now: datetime) -> None:
@@ -141,8 +159,12 @@ def rules_block(p: AttentionParams, metric: Metric) -> dict[str, Any]:
 
 
 def attention_list(db: DbSession, *, clinician_id: str | None, params: AttentionParams | None = None,
-                   now: datetime | None = None, limit: int = 50, offset: int = 0) -> dict[str, Any]:
-    """Flagged patients, most severe first. ``clinician_id`` None = every patient (admin)."""
+                   now: datetime | None = None, limit: int = 50, offset: int = 0, live: bool = False) -> dict[str, Any]:
+    """Flagged patients, most severe first. ``clinician_id`` None = every patient (admin).
+
+    A preset's thresholds (``silent`` may be overridden) read the precomputed evidence: trend and sensor flags as of
+    each patient's latest processed session. Other parameters, or ``live``, compute every flag with windows ending
+    ``now``."""
     p = params or AttentionParams()
     metric = METRICS[p.metric]
     now = as_utc(now or utcnow())
@@ -155,6 +177,8 @@ def attention_list(db: DbSession, *, clinician_id: str | None, params: Attention
         select(Session.patient_id, func.max(Session.started_at)).join(Patient, Patient.id == Session.patient_id)
         .where(*owned).group_by(Session.patient_id)
     ).all())
+    if not live and precomputed_preset(p) is not None:
+        return _from_evidence(db, p, metric, now, owned, patients, last_session, limit, offset)
     horizon_days = max(2.0 * p.window_days, 7.0 * p.stalled_weeks)
     companion = rules.LEVEL_FREE_COMPANION.get(metric.name) if p.level_free_test else None
     points = _points(db, owned, [metric.name, *([companion] if companion else [])], p.activity,
@@ -172,19 +196,94 @@ def attention_list(db: DbSession, *, clinician_id: str | None, params: Attention
         last = last_session.get(pid)
         flags = patient_flags(p, metric, now, points.get(pid, {}), affected, last, created, prescribed,
                               sensor.get(pid, []), int(failed.get(pid, 0)))
-        if not flags:
-            continue
-        items.append({
-            "patient": {"id": pid, "display_name": name, "external_id": ext, "affected_leg": affected,
-                        "prescribed_sessions_per_week": prescribed},
-            "severity": flags[0]["severity"], "effect": flags[0].get("effect"), "flags": flags,
-            "last_session_at": as_utc(last) if last else None,
-        })
+        if flags:
+            items.append(_item(pid, name, ext, affected, prescribed, last, flags))
+    return _page(items, p, metric, now, len(patients), limit, offset)
+
+
+def _item(pid: str, name: str | None, ext: str | None, affected: str | None, prescribed: float | None,
+          last: datetime | None, flags: list[dict[str, Any]]) -> dict[str, Any]:
+    return {
+        "patient": {"id": pid, "display_name": name, "external_id": ext, "affected_leg": affected,
+                    "prescribed_sessions_per_week": prescribed},
+        "severity": flags[0]["severity"], "effect": flags[0].get("effect"), "flags": flags,
+        "last_session_at": as_utc(last) if last else None,
+    }
+
+
+def _page(items: list[dict[str, Any]], p: AttentionParams, metric: Metric, now: datetime, n_patients: int,
+          limit: int, offset: int) -> dict[str, Any]:
     items.sort(key=lambda it: (-it["severity"], -(it["effect"] or 0.0), it["patient"]["id"]))
     page = items[offset:offset + limit]
     _render(page, now)
     return {
         "items": page, "next_cursor": str(offset + limit) if offset + limit < len(items) else None,
-        "n_flagged": len(items), "n_patients": len(patients), "generated_at": now.isoformat(),
+        "n_flagged": len(items), "n_patients": n_patients, "generated_at": now.isoformat(),
         "params": p.as_dict(), "rules": rules_block(p, metric),
     }
+
+
+def precomputed_preset(p: AttentionParams) -> str | None:
+    """The preset whose precomputed evidence answers ``p`` (only the silent limits may differ), else None."""
+    preset = PRESETS.get(p.preset)
+    if preset is None:
+        return None
+    same = replace(p, silent_days=preset.silent_days, silent_missed_sessions=preset.silent_missed_sessions)
+    return p.preset if same == preset else None
+
+
+def _from_evidence(db: DbSession, p: AttentionParams, metric: Metric, now: datetime, owned: list[Any],
+                   patients: list[Any], last_session: dict[str, datetime], limit: int,
+                   offset: int) -> dict[str, Any]:
+    evidence = dict(db.execute(
+        select(AttentionEvidence.patient_id, AttentionEvidence.flags)
+        .join(Patient, Patient.id == AttentionEvidence.patient_id).where(*owned)
+    ).all())
+    items = []
+    for pid, name, ext, affected, created, prescribed in patients:
+        last = last_session.get(pid)
+        flags: list[dict[str, Any]] = []
+        silent = rules.silent_flag(p, now, last, created, prescribed)
+        if silent:
+            flags.append(silent)
+        doc = evidence.get(pid)
+        if doc:
+            mine = doc["presets"].get(p.preset) or {}
+            per_leg = mine.get("legs") or {}
+            flags += [per_leg[leg] for leg in assessed_legs(affected, doc.get("legs") or []) if per_leg.get(leg)]
+            if mine.get("sensor"):
+                flags.append(mine["sensor"])
+        if flags:
+            items.append(_item(pid, name, ext, affected, prescribed, last, _ranked(flags)))
+    return _page(items, p, metric, now, len(patients), limit, offset)
+
+
+def evidence_document(db: DbSession, patient_id: str) -> tuple[datetime, dict[str, Any]] | None:
+    """Every preset's trend and sensor flags of one patient with windows ending at their latest processed session
+    (None without one)."""
+    as_of = db.scalar(select(func.max(Session.started_at)).where(
+        Session.patient_id == patient_id, Session.status.in_([SessionStatus.done, SessionStatus.failed])))
+    if as_of is None:
+        return None
+    as_of = as_utc(as_of)
+    owned = [Patient.id == patient_id]
+    doc: dict[str, Any] = {"as_of": as_of.isoformat(), "legs": [], "presets": {}}
+    for name, p in PRESETS.items():
+        metric = METRICS[p.metric]
+        companion = rules.LEVEL_FREE_COMPANION.get(metric.name) if p.level_free_test else None
+        horizon = timedelta(days=max(2.0 * p.window_days, 7.0 * p.stalled_weeks))
+        series = _points(db, owned, [metric.name, *([companion] if companion else [])], p.activity,
+                         as_of - horizon, as_of).get(patient_id, {})
+        since = as_of - timedelta(days=p.window_days)
+        n_failed = db.scalar(select(func.count()).select_from(Session).where(
+            Session.patient_id == patient_id, Session.status == SessionStatus.failed, Session.started_at >= since))
+        legs = sorted(series.get(metric.name, {}))
+        doc["legs"] = legs
+        per_leg = {leg: leg_flag(p, metric, series, leg) for leg in legs}
+        sensor = rules.sensor_flag(p, _sensor_rows(db, owned, since).get(patient_id, []), int(n_failed or 0))
+        if sensor:
+            sensor["severity"] = rules.SEVERITY["sensor_trouble"]
+        rendered = [{"flags": [f for f in [*per_leg.values(), sensor] if f], "last_session_at": None}]
+        _render(rendered, as_of)
+        doc["presets"][name] = {"legs": per_leg, "sensor": sensor}
+    return as_of, doc
