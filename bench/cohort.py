@@ -46,7 +46,7 @@ from pipeline.simulate import SimConfig, simulate_session
 from server.simulate_cli import session_to_requests
 
 FLAGS = ("declining", "improving", "stalled", "silent", "sensor_trouble")
-SPLITS = {"tune": 1000, "report": 2000}  # seed bases: thresholds were chosen on "tune" only
+SPLITS = {"tune": 1000, "dev": 2000, "report": 3000}  # seed bases: thresholds chosen on "tune" and "dev" only
 LOSSES = (0.0, 0.01, 0.02, 0.03, 0.04, 0.05)
 N_SESSIONS = 8
 # The simulator's default gait: mean true peak swing flexion and minimum flexion of steady strides (seeds 0-9);
@@ -232,7 +232,8 @@ def run_cohort(url: str, split: str, per_group: int, workers: int, groups: list[
 
 def reread(url: str, split: str, per_group: int, groups: list[str] | None,
            params: Any = None) -> dict[str, Any]:
-    """The attention list of an already filled cohort database (service call, every patient), for tuning."""
+    """The attention list of an already filled cohort database (service call, live windows, every patient), for
+    tuning."""
     from sqlalchemy import select
 
     from server.db import make_engine, make_sessionmaker
@@ -245,7 +246,7 @@ def reread(url: str, split: str, per_group: int, groups: list[str] | None,
     with make_sessionmaker(engine)() as db:
         by_name = dict(db.execute(select(Patient.display_name, Patient.id)).all())
         ids = {p.index: by_name[f"{p.group}-{p.index}"] for p in patients}
-        att = attention_list(db, clinician_id=None, params=params, limit=1000)
+        att = attention_list(db, clinician_id=None, params=params, limit=1000, live=True)
         trends = {}
         for p in patients:
             pat = db.get(Patient, ids[p.index])

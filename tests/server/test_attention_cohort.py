@@ -64,5 +64,5 @@ def test_a_clear_decline_is_flagged_and_a_stable_patient_is_not(api: Api, simula
     assert body["rules"]["preset"] == "default" and "one-sided t-test" in body["rules"]["declining"]["method"]
     # The thresholds are the clinic's: a named preset, echoed back.
     strict = api.client.get("/v1/attention", params={"preset": "conservative"}, headers=bearer(clin)).json()
-    assert strict["params"]["preset"] == "conservative" and strict["params"]["alpha"] == 0.005
+    assert strict["params"]["preset"] == "conservative" and strict["params"]["alpha"] == 0.001
     assert api.client.get("/v1/attention", params={"preset": "nope"}, headers=bearer(clin)).status_code == 422

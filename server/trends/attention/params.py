@@ -28,7 +28,7 @@ class AttentionParams:
     activity: str = StrideActivity.walking  # declining/improving/stalled judge strides of this activity only
     window_days: float = 14.0
     # declining / improving: one-sided t-test of the OLS slope of session means AND a fitted change beyond the MDC
-    alpha: float = 0.025  # = the slope's one-sided 97.5 % bound, i.e. its two-sided 95 % CI, beyond zero
+    alpha: float = 0.01
     level_free_test: bool = True  # absolute angles: test on the level-free companion (rules.LEVEL_FREE_COMPANION)
     min_trend_sessions: int = 4
     min_trend_span_days: float = 7.0
@@ -41,7 +41,7 @@ class AttentionParams:
     silent_missed_sessions: float = 2.0
     # sensor_trouble: only data that cost strides or quality, judged after enough exposure
     min_strides_for_rates: int = 100  # expected strides of a leg in the window before any rate is judged
-    min_session_strides: int = 20  # expected strides of one session before a stopped sensor is judged
+    min_session_strides: int = 10  # expected strides of one session before a stopped sensor is judged
     max_lost_rate: float = 0.4  # strides the leg should have given but did not (the other leg gave them)
     max_low_quality_rate: float = 0.25  # strides the pipeline could not vouch for (saturation, drift, ...)
     max_fallback_rate: float = 0.3  # strides from the activity's fallback estimator
@@ -62,11 +62,11 @@ class AttentionParams:
 PRESETS: dict[str, AttentionParams] = {
     "default": AttentionParams(),
     # More flags, earlier: a clinic that prefers a phone call too many to a decline noticed late.
-    "sensitive": AttentionParams(preset="sensitive", alpha=0.05, silent_days=2.0, silent_missed_sessions=1.5,
+    "sensitive": AttentionParams(preset="sensitive", alpha=0.025, silent_days=2.0, silent_missed_sessions=1.5,
                                  max_lost_rate=0.3, max_low_quality_rate=0.2, max_fallback_rate=0.2,
                                  max_implausible_rate=0.05),
     # Fewer flags: a large caseload where only unmistakable changes should reach the clinician.
-    "conservative": AttentionParams(preset="conservative", alpha=0.005, silent_days=5.0, silent_missed_sessions=3.0,
+    "conservative": AttentionParams(preset="conservative", alpha=0.001, silent_days=5.0, silent_missed_sessions=3.0,
                                     max_lost_rate=0.5, max_low_quality_rate=0.35, max_fallback_rate=0.4,
                                     max_implausible_rate=0.15),
 }
