@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from sqlalchemy import JSON, DateTime, Float, ForeignKey, Index, Integer, LargeBinary, String
+from sqlalchemy import DateTime, Float, ForeignKey, Index, Integer, LargeBinary, String, Text
 from sqlalchemy.orm import Mapped, mapped_column
 
 from server.db import Base
@@ -75,12 +75,16 @@ class AttentionEvidence(Base):
     """The attention flags of one patient as of their latest processed session, for every preset (kept by
     :func:`server.trends.attention.evidence.refresh_patient` whenever a session of the patient is processed).
 
-    ``flags`` = {"as_of", "legs": legs with data, "presets": {preset: {"legs": {leg: flag | null},
-    "sensor": flag | null}}}; ``silent`` depends on the clock and is always judged at request time.
+    ``flags`` is the JSON text {preset: {"legs": {leg: flag | null}, "sensor": flag | null}}, decoded only for the
+    returned page; ``flag_index`` lists every flag as ``preset|leg|kind|severity|effect`` (leg ``*`` for the
+    patient-level sensor flag), ``;``-separated, so ranking a thousand patients parses short strings only;
+    ``legs``: the legs with data, comma-separated. ``silent`` depends on the clock and is judged per request.
     """
 
     __tablename__ = "attention_evidence"
     patient_id: Mapped[str] = mapped_column(ForeignKey("patients.id", ondelete="CASCADE"), primary_key=True)
     as_of: Mapped[datetime] = mapped_column(DateTime(timezone=True))
-    flags: Mapped[dict] = mapped_column(JSON)
+    legs: Mapped[str] = mapped_column(String(32))
+    flag_index: Mapped[str] = mapped_column(Text)
+    flags: Mapped[str] = mapped_column(Text)
     refreshed_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)

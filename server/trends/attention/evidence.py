@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 from sqlalchemy import delete, exists, select
 from sqlalchemy.orm import Session as DbSession
 
@@ -24,10 +26,16 @@ def refresh_patient(db: DbSession, patient_id: str) -> None:
         db.flush()
         return
     as_of, doc = found
+    index = ";".join(f"{preset}|{leg}|{f['kind']}|{f['severity']}|{f.get('effect') or 0.0}"
+                     for preset, per in doc["presets"].items()
+                     for leg, f in [*per["legs"].items(), ("*", per["sensor"])] if f)
+    fields = {"as_of": as_of, "legs": ",".join(doc["legs"]), "flag_index": index,
+              "flags": json.dumps(doc["presets"], allow_nan=False), "refreshed_at": utcnow()}
     if row is None:
-        db.add(AttentionEvidence(patient_id=patient_id, as_of=as_of, flags=doc, refreshed_at=utcnow()))
+        db.add(AttentionEvidence(patient_id=patient_id, **fields))
     else:
-        row.as_of, row.flags, row.refreshed_at = as_of, doc, utcnow()
+        for k, v in fields.items():
+            setattr(row, k, v)
     db.flush()
 
 

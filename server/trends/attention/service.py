@@ -8,6 +8,7 @@ strides.
 
 from __future__ import annotations
 
+import json
 from collections import defaultdict
 from dataclasses import replace
 from datetime import datetime, timedelta
@@ -235,27 +236,46 @@ def precomputed_preset(p: AttentionParams) -> str | None:
 def _from_evidence(db: DbSession, p: AttentionParams, metric: Metric, now: datetime, owned: list[Any],
                    patients: list[Any], last_session: dict[str, datetime], limit: int,
                    offset: int) -> dict[str, Any]:
-    evidence = dict(db.execute(
-        select(AttentionEvidence.patient_id, AttentionEvidence.flags)
-        .join(Patient, Patient.id == AttentionEvidence.patient_id).where(*owned)
-    ).all())
-    items = []
+    ev = {pid: (legs, index) for pid, legs, index in db.execute(
+        select(AttentionEvidence.patient_id, AttentionEvidence.legs, AttentionEvidence.flag_index)
+        .join(Patient, Patient.id == AttentionEvidence.patient_id).where(*owned))}
+    ranked = []  # (-severity, -effect, pid, silent flag, [(leg, kind)]) without decoding any flag
+    info = {}
     for pid, name, ext, affected, created, prescribed in patients:
         last = last_session.get(pid)
-        flags: list[dict[str, Any]] = []
         silent = rules.silent_flag(p, now, last, created, prescribed)
+        keys: list[tuple[str, int, float]] = []
+        legs, index = ev.get(pid, ("", ""))
+        if index:
+            assessed = set(assessed_legs(affected, legs.split(",") if legs else []))
+            for entry in index.split(";"):
+                preset, leg, _kind, sev, eff = entry.split("|")
+                if preset == p.preset and (leg == "*" or leg in assessed):
+                    keys.append((leg, int(sev), float(eff)))
+        if not keys and silent is None:
+            continue
+        tops = [(k[1], k[2]) for k in keys]
         if silent:
-            flags.append(silent)
-        doc = evidence.get(pid)
-        if doc:
-            mine = doc["presets"].get(p.preset) or {}
-            per_leg = mine.get("legs") or {}
-            flags += [per_leg[leg] for leg in assessed_legs(affected, doc.get("legs") or []) if per_leg.get(leg)]
-            if mine.get("sensor"):
-                flags.append(mine["sensor"])
-        if flags:
-            items.append(_item(pid, name, ext, affected, prescribed, last, _ranked(flags)))
-    return _page(items, p, metric, now, len(patients), limit, offset)
+            silent["severity"] = rules.SEVERITY["silent"]
+            tops.append((silent["severity"], silent["effect"] or 0.0))
+        sev, eff = max(tops)
+        ranked.append((-sev, -eff, pid))
+        info[pid] = (name, ext, affected, prescribed, last, silent, [k[0] for k in keys])
+    ranked.sort()
+    page_ids = [pid for _, _, pid in ranked[offset:offset + limit]]
+    docs = dict(db.execute(select(AttentionEvidence.patient_id, AttentionEvidence.flags)
+                           .where(AttentionEvidence.patient_id.in_(page_ids))).all()) if page_ids else {}
+    items = []
+    for pid in page_ids:
+        name, ext, affected, prescribed, last, silent, legs = info[pid]
+        mine = json.loads(docs[pid]).get(p.preset, {}) if pid in docs else {}
+        flags = [silent] if silent else []
+        flags += [mine["sensor"] if leg == "*" else mine["legs"][leg] for leg in legs]
+        items.append(_item(pid, name, ext, affected, prescribed, last, _ranked(flags)))
+    out = _page(items, p, metric, now, len(patients), limit, 0)
+    out["n_flagged"] = len(ranked)
+    out["next_cursor"] = str(offset + limit) if offset + limit < len(ranked) else None
+    return out
 
 
 def evidence_document(db: DbSession, patient_id: str) -> tuple[datetime, dict[str, Any]] | None:
