@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from sqlalchemy import DateTime, ForeignKey, String
+from sqlalchemy import DateTime, Float, ForeignKey, String
 from sqlalchemy.orm import Mapped, mapped_column
 
 from server.db import Base, new_id
@@ -22,3 +22,5 @@ class Patient(Base):
     affected_leg: Mapped[str | None] = mapped_column(String(5))
     timezone: Mapped[str] = mapped_column(String(64), default="UTC")
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    # The monitoring schedule the clinician prescribed; the attention list's ``silent`` flag follows it when set.
+    prescribed_sessions_per_week: Mapped[float | None] = mapped_column(Float)

@@ -45,7 +45,8 @@ def create_patient(body: PatientIn, db: Db, caller: Caller) -> PatientOut:
         if owner is not None and db.get(Clinician, owner) is None:
             raise invalid("clinician_id", "no such clinician")
     patient = Patient(clinician_id=owner, external_id=body.external_id, display_name=body.display_name,
-                      affected_leg=body.affected_leg, timezone=body.timezone)
+                      affected_leg=body.affected_leg, timezone=body.timezone,
+                      prescribed_sessions_per_week=body.prescribed_sessions_per_week)
     db.add(patient)
     db.commit()
     log.info("patient %s created by token %s", patient.id, caller.token_id)

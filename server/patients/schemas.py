@@ -31,6 +31,7 @@ class PatientIn(StrictIn):
     display_name: Annotated[str, Field(max_length=200)] | None = None
     affected_leg: Leg | None = None
     timezone: Annotated[str, Field(max_length=64)] = "UTC"
+    prescribed_sessions_per_week: Annotated[float, Field(gt=0, le=28)] | None = None
     clinician_id: str | None = Field(None, description="Admin only: the clinician who owns the patient.")
 
     @field_validator("timezone")
@@ -48,6 +49,7 @@ class PatientPatch(StrictIn):
     display_name: Annotated[str, Field(max_length=200)] | None = None
     affected_leg: Leg | None = None
     timezone: Annotated[str, Field(max_length=64)] | None = None
+    prescribed_sessions_per_week: Annotated[float, Field(gt=0, le=28)] | None = None
 
     @field_validator("timezone")
     @classmethod
@@ -71,6 +73,7 @@ class PatientOut(OrmOut):
     display_name: str | None
     affected_leg: Leg | None
     timezone: str
+    prescribed_sessions_per_week: float | None = None
     created_at: UtcDatetime
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from sqlalchemy import DateTime, Float, ForeignKey, Index, Integer, LargeBinary, String
+from sqlalchemy import DateTime, Float, ForeignKey, Index, Integer, LargeBinary, String, Text
 from sqlalchemy.orm import Mapped, mapped_column
 
 from server.db import Base
@@ -31,6 +31,13 @@ class TrendSessionLeg(Base):
     n_fallback: Mapped[int] = mapped_column(Integer)  # strides whose angle came from a fallback estimator
     n_gaps: Mapped[int] = mapped_column(Integer)
     walking_s: Mapped[float] = mapped_column(Float)
+    # Quality-passing strides with a knee angle outside its plausibility limits (any angle metric).
+    n_implausible: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    # Strides the leg should have given: the most strides any leg of the session gave in this activity (both legs
+    # walk the same cycles), or, for a lone leg whose sensors stopped early, its strides scaled up to full coverage.
+    n_expected: Mapped[int | None] = mapped_column(Integer)
+    # Share of the session's recording span that both sensors of this leg delivered data for (None: unknown).
+    coverage: Mapped[float | None] = mapped_column(Float)
     algorithm_version: Mapped[str | None] = mapped_column(String(32))
     refreshed_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
@@ -62,3 +69,22 @@ class TrendMetricValues(Base):
     p10: Mapped[float | None] = mapped_column(Float)
     p90: Mapped[float | None] = mapped_column(Float)
     values: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class AttentionEvidence(Base):
+    """The attention flags of one patient as of their latest processed session, for every preset (kept by
+    :func:`server.trends.attention.evidence.refresh_patient` whenever a session of the patient is processed).
+
+    ``flags`` is the JSON text {preset: {"legs": {leg: flag | null}, "sensor": flag | null}}, decoded only for the
+    returned page; ``flag_index`` lists every flag as ``preset|leg|kind|severity|effect`` (leg ``*`` for the
+    patient-level sensor flag), ``;``-separated, so ranking a thousand patients parses short strings only;
+    ``legs``: the legs with data, comma-separated. ``silent`` depends on the clock and is judged per request.
+    """
+
+    __tablename__ = "attention_evidence"
+    patient_id: Mapped[str] = mapped_column(ForeignKey("patients.id", ondelete="CASCADE"), primary_key=True)
+    as_of: Mapped[datetime] = mapped_column(DateTime(timezone=True))
+    legs: Mapped[str] = mapped_column(String(32))
+    flag_index: Mapped[str] = mapped_column(Text)
+    flags: Mapped[str] = mapped_column(Text)
+    refreshed_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)

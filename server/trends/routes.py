@@ -17,7 +17,7 @@ from server.enums import Role, StrideActivity
 from server.errors import invalid
 from server.patients.models import Patient
 from server.trends import exports, service
-from server.trends.attention import AttentionParams, attention_list
+from server.trends.attention import PRESETS, attention_list, params_for
 from server.trends.metrics import METRICS
 from server.trends.schemas import AttentionOut, CompletenessOut, FhirBundleOut, SymmetryOut, TrendsOut
 from server.trends.timeutil import parse_bound, zone
@@ -39,6 +39,7 @@ MetricName = Enum("MetricName", {name: name for name in METRICS}, type=str)  # t
 LegName = Literal["left", "right"]
 BucketName = Literal["day", "week"]
 SlopeMethodName = Literal["ols", "theil_sen"]
+PresetName = Enum("PresetName", {name: name for name in PRESETS}, type=str)  # type: ignore[misc]
 
 FromQ = Annotated[str | None, Query(alias="from", description="Local date YYYY-MM-DD of the patient or ISO 8601 "
                                                                "date-time (inclusive)")]
@@ -109,18 +110,21 @@ def get_completeness(patient_id: str, db: Db, caller: Caller,
             summary="Patients who need attention (declining, stalled, silent, sensor trouble)")
 def get_attention(db: Db, caller: Caller, limit: Annotated[int, Query(ge=1, le=200)] = 50,
                   cursor: str | None = None, metric: MetricName = MetricName.peak_swing_flexion_deg,
-                  silent_days: Annotated[float, Query(gt=0, le=365)] = 3.0,
-                  stalled_weeks: Annotated[int, Query(ge=1, le=52)] = 4,
-                  window_days: Annotated[float, Query(ge=1, le=90)] = 14.0) -> JSONResponse:
-    """Patients who need attention, most severe first."""
+                  silent_days: Annotated[float | None, Query(gt=0, le=365)] = None,
+                  stalled_weeks: Annotated[int | None, Query(ge=1, le=52)] = None,
+                  window_days: Annotated[float | None, Query(ge=1, le=90)] = None,
+                  preset: Annotated[PresetName, Query(description="the clinic's thresholds: named presets, "
+                                                                  "echoed with every rule in `rules`")
+                                    ] = PresetName.default) -> JSONResponse:
+    """Patients who need attention, most severe first (the preset's thresholds unless overridden)."""
     require_role(caller, Role.admin, Role.clinician, action="see the attention list")
     offset = 0
     if cursor:
         if not cursor.isdigit():
             raise invalid("cursor", "not a cursor returned by this API", status=400)
         offset = int(cursor)
-    params = AttentionParams(metric=metric.value, silent_days=silent_days, stalled_weeks=stalled_weeks,
-                             window_days=window_days)
+    params = params_for(preset.value, metric=metric.value, silent_days=silent_days, stalled_weeks=stalled_weeks,
+                        window_days=window_days)
     return JSONResponse(attention_list(db, clinician_id=None if caller.is_admin else caller.clinician_id,
                                        params=params, limit=limit, offset=offset))
 

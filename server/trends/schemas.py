@@ -125,6 +125,7 @@ class AttentionOut(_Doc):
     n_patients: int
     generated_at: str
     params: dict[str, Any]
+    rules: dict[str, Any] = Field(description="what each flag means, its method and the thresholds used")
 
 
 class FhirBundleOut(_Doc):

@@ -117,9 +117,9 @@ def describe_segments(values: np.ndarray, lengths: np.ndarray, presorted: np.nda
 
 
 @lru_cache(maxsize=4096)
-def t_quantile(df: int) -> float:
-    """t(0.975, df), cached: scipy's ppf costs ~0.3 ms a call and the attention list needs thousands."""
-    return float(sps.t.ppf(0.975, df))
+def t_quantile(df: int, q: float = 0.975) -> float:
+    """t(q, df), cached: scipy's ppf costs ~0.3 ms a call and the attention list needs thousands."""
+    return float(sps.t.ppf(q, df))
 
 
 @dataclass(frozen=True)
@@ -146,24 +146,36 @@ def ols_slope(t_days: np.ndarray, y: np.ndarray) -> Slope:
     (any regression textbook, e.g. Montgomery & Runger, Applied Statistics, eq. 11-21). Two points give a slope but no
     CI (zero residual degrees of freedom); one point or identical times give neither.
     """
-    t = np.asarray(t_days, dtype=np.float64)
-    v = np.asarray(y, dtype=np.float64)
-    n = int(t.size)
-    if n < 2:
+    t = [float(x) for x in np.asarray(t_days, dtype=np.float64)]
+    n = len(t)
+    fit = ols_fit(t, [float(x) for x in np.asarray(y, dtype=np.float64)])
+    if fit is None:
         return Slope("ols", n, None, None, None)
-    tm, ym = t.mean(), v.mean()
-    sxx = float(((t - tm) ** 2).sum())
-    if sxx <= 0.0:
-        return Slope("ols", n, None, None, None)
-    b = float(((t - tm) * (v - ym)).sum() / sxx)
-    a = float(ym - b * tm)
-    if n < 3:
+    b, a, se = fit
+    if se is None:
         return Slope("ols", n, b, a, None)
-    sse = float(((v - (a + b * t)) ** 2).sum())
-    se = math.sqrt(sse / (n - 2) / sxx)
     tq = t_quantile(n - 2)
     p = float(2.0 * sps.t.sf(abs(b) / se, n - 2)) if se > 0 else 0.0
     return Slope("ols", n, b, a, (b - tq * se, b + tq * se), p)
+
+
+def ols_fit(t: Sequence[float], y: Sequence[float]) -> tuple[float, float, float | None] | None:
+    """Least squares y = a + b t in plain Python (a few points cost microseconds, numpy's call overhead would
+    dominate): (b, a, se(b)) with se None for two points; None for fewer points or identical times."""
+    n = len(t)
+    if n < 2:
+        return None
+    tm = sum(t) / n
+    ym = sum(y) / n
+    sxx = sum((x - tm) ** 2 for x in t)
+    if sxx <= 0.0:
+        return None
+    b = sum((x - tm) * (v - ym) for x, v in zip(t, y, strict=True)) / sxx
+    a = ym - b * tm
+    if n < 3:
+        return b, a, None
+    sse = sum((v - (a + b * x)) ** 2 for x, v in zip(t, y, strict=True))
+    return b, a, math.sqrt(sse / (n - 2) / sxx)
 
 
 def theil_sen_slope(t_days: np.ndarray, y: np.ndarray) -> Slope:

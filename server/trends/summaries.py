@@ -18,7 +18,8 @@ from sqlalchemy.orm import sessionmaker
 from server.codec import encode_values
 from server.enums import SessionStatus, StrideActivity
 from server.results.models import Stride
-from server.sessions.models import Session, SessionSensor
+from server.sessions.models import Batch, Session, SessionSensor
+from server.trends.attention.evidence import patients_without_evidence, refresh_patient
 from server.trends.metrics import METRICS, MIN_QUALITY, STRIDE_METRICS
 from server.trends.models import TrendMetricValues, TrendSessionLeg
 from server.trends.stats import quantiles_sorted
@@ -52,10 +53,13 @@ def summarise_leg(columns: dict[str, np.ndarray], quality: np.ndarray, fallback:
         "walking_s": float(walking_s) if walking_s is not None else float(np.nansum(durations)),
     }
     metric_rows = []
+    implausible = np.zeros(int(ok.sum()), dtype=bool)
     for name in STRIDE_METRICS:
         metric = METRICS[name]
         vals = metric.values(np.asarray(columns[metric.column], dtype=np.float64)[ok])
         keep = metric.plausible(vals)
+        if metric.unit == "deg":
+            implausible |= ~keep
         inc = np.sort(vals[keep])  # ascending: bucket quantiles of one session need no sort at query time
         metric_rows.append({
             "metric": name, "n_included": int(inc.size), "n_implausible": int((~keep).sum()),
@@ -64,7 +68,42 @@ def summarise_leg(columns: dict[str, np.ndarray], quality: np.ndarray, fallback:
             **_quantiles(inc),
             "values": encode_values(inc),
         })
+    leg_row["n_implausible"] = int(implausible.sum())
     return leg_row, metric_rows
+
+
+def sensor_coverage(spans: dict[str, tuple[float, float]], sensor_legs: dict[str, str]) -> dict[str, float]:
+    """Per leg: the share of the session's recording span (first to last sample of any sensor) that the leg's
+    sensors delivered data for, the shorter of its sensors' spans. A sensor that stops (or starts) mid-session
+    shows as coverage well below 1; lost packets inside the span do not lower it (they are judged by the strides
+    they cost)."""
+    if not spans:
+        return {}
+    t0 = min(a for a, _ in spans.values())
+    t1 = max(b for _, b in spans.values())
+    if t1 <= t0:
+        return {}
+    out: dict[str, float] = {}
+    for sensor, (a, b) in spans.items():
+        leg = sensor_legs.get(sensor)
+        if leg is not None:
+            out[leg] = min(out.get(leg, 1.0), max(0.0, (b - a) / (t1 - t0)))
+    return out
+
+
+def expected_strides(n_strides: dict[tuple[str, str], int], coverage: dict[str, float]) -> dict[tuple[str, str], int]:
+    """Strides each (leg, activity) should have given: both legs walk the same cycles, so the most any leg gave in
+    that activity; a lone leg whose sensors stopped early is scaled up to full coverage (walking assumed evenly
+    spread over the session)."""
+    out = {}
+    for (leg, activity), n in n_strides.items():
+        others = [m for (g, a), m in n_strides.items() if a == activity and g != leg]
+        if others:
+            out[(leg, activity)] = max(n, *others)
+        else:
+            cov = coverage.get(leg)
+            out[(leg, activity)] = int(round(n / cov)) if cov and cov > 0.05 else n
+    return out
 
 
 def refresh_session(db: DbSession, session_id: str) -> int:
@@ -80,6 +119,8 @@ def refresh_session(db: DbSession, session_id: str) -> int:
     sess = db.get(Session, session_id)
     if sess is None or sess.status != SessionStatus.done:
         db.flush()
+        if sess is not None:
+            refresh_patient(db, sess.patient_id)  # a failed run counts for sensor trouble
         return 0
     cols = [getattr(Stride, c) for c in _COLUMNS]
     rows = db.execute(
@@ -91,6 +132,8 @@ def refresh_session(db: DbSession, session_id: str) -> int:
         select(SessionSensor.leg).where(SessionSensor.session_id == session_id).distinct()
     ).scalars().all()
     groups = _leg_activities(rows, [*sensor_legs, *legs_summary], legs_summary, sess.activity)
+    coverage = sensor_coverage(*_sensor_spans(db, session_id))
+    expected = expected_strides({g: sum(1 for r in rows if (r.leg, r.activity) == g) for g in groups}, coverage)
     now = utcnow()
     for leg, activity in groups:
         group = [r for r in rows if r.leg == leg and r.activity == activity]
@@ -104,11 +147,23 @@ def refresh_session(db: DbSession, session_id: str) -> int:
             walking_s=info.get("walking_s") if own else None, n_gaps=int(info.get("gaps") or 0) if own else 0)
         key = {"session_id": session_id, "leg": leg, "activity": activity, "patient_id": sess.patient_id,
                "started_at": sess.started_at}
-        db.add(TrendSessionLeg(**key, **leg_row, algorithm_version=sess.algorithm_version, refreshed_at=now))
+        db.add(TrendSessionLeg(**key, **leg_row, n_expected=expected[(leg, activity)], coverage=coverage.get(leg),
+                               algorithm_version=sess.algorithm_version, refreshed_at=now))
         for mr in metric_rows:
             db.add(TrendMetricValues(**key, **mr))
     db.flush()
+    refresh_patient(db, sess.patient_id)
     return len(groups)
+
+
+def _sensor_spans(db: DbSession, session_id: str) -> tuple[dict[str, tuple[float, float]], dict[str, str]]:
+    """First and last sample time [ms] of every sensor that sent data, and each sensor's leg."""
+    spans = {sid: (float(a), float(b)) for sid, a, b in db.execute(
+        select(Batch.sensor_id, func.min(Batch.t_first_ms), func.max(Batch.t_last_ms))
+        .where(Batch.session_id == session_id).group_by(Batch.sensor_id))}
+    legs = dict(db.execute(select(SessionSensor.sensor_id, SessionSensor.leg)
+                           .where(SessionSensor.session_id == session_id)).all())
+    return spans, legs
 
 
 def _leg_activity(info: dict[str, Any], stride_activities: set[str], session_activity: str | None) -> str:
@@ -157,6 +212,10 @@ def backfill(factory: sessionmaker[DbSession], *, batch: int = 200) -> int:
             for sid in ids[start:start + batch]:
                 refresh_session(db, sid)
             db.commit()
+    with factory() as db:
+        for pid in patients_without_evidence(db):
+            refresh_patient(db, pid)
+        db.commit()
     if ids:
         log.info("trend summaries backfilled for %d sessions", len(ids))
     return len(ids)

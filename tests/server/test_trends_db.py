@@ -254,7 +254,7 @@ def _sessions(db: DbSession, p: Patient, days_ago: list[float], peak: float | li
                     {"left": {"n": n, "peak_swing_flexion_deg": _alternating(v - 1, v + 1, n), **extra}})
 
 
-def test_attention_flags_declining_stalled_silent_and_sensor_trouble(factory) -> None:
+def test_attention_flags_declining_stalled_improving_silent_and_sensor_trouble(factory) -> None:
     with factory() as db:
         c = Clinician(name="Dr. A")
         other = Clinician(name="Dr. B")
@@ -283,7 +283,7 @@ def test_attention_flags_declining_stalled_silent_and_sensor_trouble(factory) ->
     kinds = {it["patient"]["id"]: [f["kind"] for f in it["flags"]] for it in out["items"]}
     assert kinds[declining.id] == ["declining"]
     assert kinds[stalled.id] == ["stalled"]
-    assert improving.id not in kinds
+    assert kinds[improving.id] == ["improving"]
     assert kinds[silent.id] == ["silent"]
     assert kinds[troubled.id] == ["sensor_trouble"]
     assert foreign.id not in kinds and out["n_patients"] == 5
@@ -293,6 +293,11 @@ def test_attention_flags_declining_stalled_silent_and_sensor_trouble(factory) ->
     flag = out["items"][0]["flags"][0]
     assert flag["delta"] == pytest.approx(-15.0) and flag["mdc"] == 5.0
     assert flag["baseline"]["mean"] == pytest.approx(60.0) and flag["latest"]["mean"] == pytest.approx(45.0)
+    assert flag["slope_per_week"] < 0 and flag["p_value"] < 0.01 and flag["fitted_change"] < -5.0
+    assert flag["ci95_per_week"][1] < 0 and flag["n_sessions"] == 6
+    # Good news comes last: improving is the least severe item.
+    assert out["items"][-1]["patient"]["id"] == improving.id and out["items"][-1]["severity"] == 0
+    assert set(out["rules"]) >= {"declining", "improving", "stalled", "silent", "sensor_trouble"}
     trouble = next(it for it in out["items"] if it["patient"]["id"] == troubled.id)["flags"][0]
     assert trouble["fallback_rate"] == pytest.approx(80 / 120, abs=1e-3)
     silent_flag = next(it for it in out["items"] if it["patient"]["id"] == silent.id)["flags"][0]
@@ -319,3 +324,37 @@ def test_summaries_without_stored_quantiles_fall_back_to_the_value_arrays(factor
                                           start=None, end=None)["buckets"][0]
     assert (stored["p10"], stored["median"], stored["p90"]) == (42.0, 50.0, 58.0)
     assert (fallback["p10"], fallback["median"], fallback["p90"]) == (42.0, 50.0, 58.0)
+
+
+def test_the_precomputed_attention_evidence_matches_the_live_computation(factory) -> None:
+    """Flags read from the evidence kept at processing time equal those computed live (windows ending at the
+    latest session), and a patient's evidence follows their new sessions."""
+    with factory() as db:
+        c = Clinician(name="Dr. E")
+        db.add(c)
+        db.flush()
+        declining = _patient(db, clinician=c.id)
+        _sessions(db, declining, [27, 24, 21, 12, 8, 1], [60, 61, 59, 45, 46, 44])
+        improving = _patient(db, clinician=c.id)
+        _sessions(db, improving, [27, 24, 21, 12, 8, 1], [40, 41, 39, 55, 56, 54])
+        troubled = _patient(db, clinician=c.id)
+        _sessions(db, troubled, [2, 1], [50, 50], n=60, fallback=[False] * 20 + [True] * 40)
+        db.commit()
+        last = NOW - timedelta(days=1)
+        cached = attention_list(db, clinician_id=c.id, now=NOW)
+        live = attention_list(db, clinician_id=c.id, now=last, live=True)
+
+        def kinds(out: dict) -> dict[str, list[str]]:
+            return {it["patient"]["id"]: [f["kind"] for f in it["flags"] if f["kind"] != "silent"]
+                    for it in out["items"]}
+
+        assert kinds(cached) == kinds(live) == {declining.id: ["declining"], improving.id: ["improving"],
+                                                troubled.id: ["sensor_trouble"]}
+        d_cached = next(it for it in cached["items"] if it["patient"]["id"] == declining.id)["flags"][0]
+        d_live = next(it for it in live["items"] if it["patient"]["id"] == declining.id)["flags"][0]
+        assert d_cached["p_value"] == d_live["p_value"] and d_cached["fitted_change"] == d_live["fitted_change"]
+        # Two more sessions back at the old level: the decline is gone from the evidence.
+        _sessions(db, declining, [0.5, 0.2], [60, 61])
+        db.commit()
+        after = attention_list(db, clinician_id=c.id, now=NOW)
+    assert declining.id not in kinds(after) or "declining" not in kinds(after)[declining.id]
