@@ -281,6 +281,12 @@ class QualityParams:
     trend threshold."""
     untrusted_cap: float = 0.3
     """Quality ceiling of a stride with an untrusted reason."""
+    unmeasured_level: tuple[str, ...] = ("assumed_level",)
+    """Reasons that leave the stride's absolute level an assumption (no calibration): its shape and ROM are
+    measured, its peak and minimum flexion carry the unknown standing flexion (0-15 deg in patients), so it may
+    enter trends (a constant offset does not move a slope) but is never scored as vouched for."""
+    unmeasured_level_cap: float = 0.75
+    """Quality ceiling of a stride whose level is assumed: below the 0.8 that means "accurate to a few degrees"."""
 
     def penalty(self, reason: str) -> float:
         """Quality lost for ``reason``."""

@@ -2,8 +2,10 @@
 
 A stride's quality is 1 minus the penalties of its reasons (:class:`pipeline.params.QualityParams`), floored at 0.
 A reason in ``QualityParams.untrusted`` caps it below the trend threshold (``server.trends.metrics.MIN_QUALITY`` =
-0.5): its peak or minimum was not measured, or it is not a gait stride. The estimators' reasons come from
-:mod:`pipeline.policy`; the data's reasons from here:
+0.5): its peak or minimum was not measured, or it is not a gait stride. A level that rests on the assumed standing
+flexion (``assumed_level``: no calibration) caps it at 0.75: such a stride may enter trends, but only a calibrated
+stride scores >= 0.8, the band the robustness sweep shows to be within ~3 deg of the truth. The estimators'
+reasons come from :mod:`pipeline.policy`; the data's reasons from here:
 
 - ``bridged_gap``: the stride holds a hole filled from the neighbouring strides
   (:func:`pipeline.prepare.periodic_fill`);
@@ -27,6 +29,8 @@ def stride_quality(reasons: Sequence[str], params: QualityParams = WALKING.quali
     q = max(0.0, 1.0 - sum(params.penalty(r) for r in reasons))
     if any(r in params.untrusted for r in reasons):
         q = min(q, params.untrusted_cap)
+    if any(r in params.unmeasured_level for r in reasons):
+        q = min(q, params.unmeasured_level_cap)
     return round(q, 3)
 
 

@@ -11,6 +11,10 @@ def test_untrusted_reasons_stay_below_the_trend_threshold() -> None:
     assert stride_quality(()) == 1.0
     assert stride_quality(("bridged_gap",)) == 0.9
     assert stride_quality(("bridged_gap", "peak_in_gap")) < 0.5
+    # an assumed level may enter trends (>= 0.5) but is never scored as vouched for (>= 0.8)
+    assert 0.5 <= stride_quality(("assumed_level",)) < 0.8
+    worse = ("assumed_level", "bridged_gap", "no_absolute_reference")
+    assert stride_quality(worse) < stride_quality(("assumed_level",))
 
 
 def test_gap_reasons_say_what_fell_in_the_hole() -> None:
