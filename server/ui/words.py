@@ -101,36 +101,12 @@ def local_date(dt: datetime | str | None, tz: ZoneInfo) -> str:
 
 
 def flag(f: dict[str, Any], tz: ZoneInfo) -> str:
-    """One attention flag (server.trends.attention) as a sentence."""
-    kind = f["kind"]
-    if kind == "silent":
+    """One attention flag (server.trends.attention) as a sentence: the flag's own reason, which states the numbers
+    behind it; a silent patient's last session in the patient's time zone."""
+    if f["kind"] == "silent" and f.get("last_session_at"):
         days = f.get("days_without_data") or 0
-        if f.get("last_session_at"):
-            return f"No session for {days:.0f} days (last on {local_date(f['last_session_at'], tz)})."
-        return f"No session since enrolment {days:.0f} days ago."
-    name = METRIC_SHORT.get(f.get("metric", ""), f.get("metric", ""))
-    if kind == "declining":
-        b, la = f.get("baseline") or {}, f.get("latest") or {}
-        return (f"{name} of the {f['leg']} leg fell by {abs(f['delta']):.1f}\u00b0 over the last two weeks "
-                f"(from {b.get('mean', 0):.1f}\u00b0 to {la.get('mean', 0):.1f}\u00b0); more than the "
-                f"{f.get('mdc') or 0:g}\u00b0 measurement error.")
-    if kind == "stalled":
-        delta = f.get("delta")
-        change = f"change {delta:+.1f}\u00b0".replace("-", "\u2212") if delta is not None else "no comparable data"
-        return (f"{name} of the {f['leg']} leg has not improved measurably over {f['weeks']} weeks "
-                f"({change}; an improvement counts beyond {f.get('mdc') or 0:g}\u00b0 with clearly separated two-week "
-                f"windows).")
-    if kind == "sensor_trouble":
-        parts = []
-        if f.get("fallback_rate") is not None and f["fallback_rate"] > 0:
-            parts.append(f"{100 * f['fallback_rate']:.0f} % of strides needed the fallback estimator")
-        if f.get("gaps_per_walking_hour"):
-            parts.append(f"{f['gaps_per_walking_hour']:.1f} data gaps per walking hour")
-        if f.get("failed_sessions"):
-            parts.append(f"{f['failed_sessions']} session(s) failed to process")
-        return "Sensor trouble in the last two weeks: " + ("; ".join(parts) or f.get("reason", "")) + \
-            ". Check sensor placement and charging."
-    return str(f.get("reason", kind))
+        return f"No session for {days:.0f} days (last on {local_date(f['last_session_at'], tz)})."
+    return str(f.get("reason") or f["kind"].replace("_", " "))
 
 
-SEVERITY = {3: "Act now", 2: "Check", 1: "Review"}
+SEVERITY = {3: "Act now", 2: "Check", 1: "Review", 0: "Good news"}

@@ -177,13 +177,14 @@ def test_unencodable_text_and_odd_ids_are_problems_not_500(api: Api) -> None:
         r = c.post(url(pid), content=raw, headers=headers)
         assert r.status_code == 422, (raw, r.text)
         assert r.headers["content-type"].startswith("application/problem+json")
-    for odd in ("%00", "x" * 300, "%F0%9F%A6%B5"):
+    for odd in ("x" * 300, "%F0%9F%A6%B5"):
         assert c.get(url(pid, odd), headers=bearer(clin)).status_code == 404
         assert c.delete(url(pid, odd), headers=bearer(clin)).status_code == 404
-    # PostgreSQL text cannot hold NUL: such a patient or session id is not found, it does not fail the query
-    assert c.get(url("%00"), headers=bearer(clin)).status_code == 404
-    assert c.post(url("%00"), json=body(), headers=bearer(clin)).status_code == 404
-    assert c.get("/v1/sessions/%00", headers=bearer(clin)).status_code == 404
+    # PostgreSQL text cannot hold NUL: a NUL anywhere in the path is refused before any query (422 problem)
+    for r in (c.get(url(pid, "%00"), headers=bearer(clin)), c.delete(url(pid, "%00"), headers=bearer(clin)),
+              c.get(url("%00"), headers=bearer(clin)), c.post(url("%00"), json=body(), headers=bearer(clin))):
+        assert r.status_code == 422 and r.headers["content-type"].startswith("application/problem+json")
+    assert c.get("/v1/sessions/%00", headers=bearer(clin)).status_code == 422
     assert c.get(url(pid), headers=bearer(clin)).json()["items"] == []
 
 
