@@ -8,7 +8,6 @@ reprocess would now give another calibration (:mod:`server.calibrations.service`
 from __future__ import annotations
 
 import logging
-from datetime import UTC
 
 from fastapi import APIRouter, Query, Response
 from sqlalchemy import and_, or_, select
@@ -22,7 +21,7 @@ from server.calibrations.schemas import (
     CalibrationOut,
     CalibrationPage,
 )
-from server.calibrations.service import affected_sessions
+from server.calibrations.service import affected_sessions, record
 from server.db import storable_key
 from server.deps import Caller, Db
 from server.enums import Leg, Role
@@ -43,13 +42,7 @@ def create_calibration(patient_id: str, body: CalibrationIn, db: Db, caller: Cal
     """Record a calibration; sessions already processed keep their results until they are reprocessed."""
     require_role(caller, Role.admin, Role.clinician, action="record calibrations")
     patient = get_patient_for(db, caller, patient_id)
-    # Stored in UTC: SQLite drops the offset of an aware datetime instead of converting it.
-    cal = KneeCalibration(patient_id=patient.id, leg=body.leg, standing_knee_deg=body.standing_knee_deg,
-                          measured_at=body.measured_at.astimezone(UTC), method=body.method, note=body.note,
-                          recorded_by_token_id=caller.token_id)
-    db.add(cal)
-    db.flush()
-    affected = affected_sessions(db, patient.id, body.leg, cal.measured_at)
+    cal, affected = record(db, patient.id, body, caller.token_id)
     db.commit()
     log.info("calibration %s (%s leg, %.1f deg) for patient %s recorded by token %s; %d session(s) affected",
              cal.id, cal.leg, cal.standing_knee_deg, patient.id, caller.token_id, len(affected))

@@ -10,7 +10,7 @@ differ on a reprocess, and the clinician reprocesses those (``POST /v1/sessions/
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from datetime import datetime
+from datetime import UTC, datetime
 from typing import Any
 
 from sqlalchemy import select
@@ -18,7 +18,7 @@ from sqlalchemy.orm import Session as DbSession
 
 from pipeline.types import KneeCalibration as PipelineCalibration
 from server.calibrations.models import KneeCalibration
-from server.calibrations.schemas import CalibrationUsed
+from server.calibrations.schemas import CalibrationIn, CalibrationUsed
 from server.enums import Leg, SessionStatus
 from server.sessions.models import Session
 from server.utc import as_utc
@@ -90,3 +90,14 @@ def affected_sessions(db: DbSession, patient_id: str, leg: str, since: datetime)
         if (now.id if now is not None else None) != _used_id(summary, leg):
             out.append(sid)
     return out
+
+
+def record(db: DbSession, patient_id: str, body: CalibrationIn, token_id: str) -> tuple[KneeCalibration, list[str]]:
+    """Store a calibration (measured_at in UTC: SQLite drops the offset of an aware datetime instead of converting
+    it) and list the processed sessions of that leg a reprocess would change. Flushes; the caller commits."""
+    cal = KneeCalibration(patient_id=patient_id, leg=body.leg, standing_knee_deg=body.standing_knee_deg,
+                          measured_at=body.measured_at.astimezone(UTC), method=body.method, note=body.note,
+                          recorded_by_token_id=token_id)
+    db.add(cal)
+    db.flush()
+    return cal, affected_sessions(db, patient_id, body.leg, cal.measured_at)

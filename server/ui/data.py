@@ -22,6 +22,9 @@ from sqlalchemy.orm import sessionmaker
 
 from server.auth import service as auth_service
 from server.auth.service import Principal, get_patient_for, get_session_for
+from server.calibrations import service as calibration_service
+from server.calibrations.models import KneeCalibration as KneeCalibrationRow
+from server.calibrations.schemas import CalibrationIn
 from server.codec import decode_trace
 from server.patients.models import Patient
 from server.results import compare as compare_service
@@ -346,3 +349,16 @@ def fhir_bundle(db: DbSession, patient: Patient, identifier_system: str) -> dict
 def local_today(patient: Patient) -> date:
     """Today in the patient's time zone."""
     return datetime.now(UTC).astimezone(zone(patient.timezone)).date()
+
+
+def calibrations(db: DbSession, patient: Patient) -> list[KneeCalibrationRow]:
+    """The patient's knee calibrations, newest measurement first."""
+    return list(db.scalars(select(KneeCalibrationRow).where(KneeCalibrationRow.patient_id == patient.id)
+                           .order_by(KneeCalibrationRow.measured_at.desc(), KneeCalibrationRow.id.desc())))
+
+
+def record_calibration(db: DbSession, principal: Principal, patient: Patient, body: CalibrationIn) -> int:
+    """Record a calibration exactly as the API does; returns how many processed sessions a reprocess would change."""
+    _, affected = calibration_service.record(db, patient.id, body, principal.token_id)
+    db.commit()
+    return len(affected)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Callable, Coroutine
+from datetime import date, datetime, time
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -18,11 +19,15 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, RedirectResponse, StreamingResponse
 from fastapi.routing import APIRoute
 from fastapi.templating import Jinja2Templates
+from pydantic import ValidationError
 from sqlalchemy.orm import Session as DbSession
 
+from server.calibrations.schemas import CalibrationIn
 from server.content_disposition import attachment
 from server.deps import AppSettings, get_db
+from server.enums import Role
 from server.errors import ProblemError
+from server.trends.timeutil import zone
 from server.ui import data, signin, views
 from server.ui.signin import CsrfRejected, DeviceToken, SignInRequired, UiUser
 
@@ -156,11 +161,37 @@ def patients(request: Request, db: Db, user: User, q: Annotated[str, Query(max_l
 
 @router.get("/patients/{patient_id}", response_class=HTMLResponse)
 def patient(request: Request, patient_id: str, db: Db, user: User, bucket: str | None = None,
-            sessions_page: Annotated[int, Query(ge=1, le=100_000)] = 1) -> HTMLResponse:
-    """One patient's trends per leg, symmetry, calendar and sessions."""
+            sessions_page: Annotated[int, Query(ge=1, le=100_000)] = 1,
+            calibrated: Annotated[int | None, Query(ge=0, le=1_000_000)] = None) -> HTMLResponse:
+    """One patient's trends per leg, symmetry, calendar, calibrations and sessions."""
     p = data.patient_for(db, user.principal, patient_id)
-    return page(request, "patient.html", user, **views.patient_page(db, p, bucket=bucket,
-                                                                    session_page=sessions_page))
+    return page(request, "patient.html", user, calibrated=calibrated,
+                **views.patient_page(db, p, bucket=bucket, session_page=sessions_page))
+
+
+@router.post("/patients/{patient_id}/calibrations")
+def patient_calibration(request: Request, patient_id: str, db: Db, user: User,
+                        csrf: Annotated[str, Form()] = "", leg: Annotated[str, Form()] = "",
+                        standing_knee_deg: Annotated[str, Form()] = "", measured_on: Annotated[str, Form()] = "",
+                        method: Annotated[str, Form()] = "goniometer") -> Response:
+    """Record a knee calibration from the patient page (measured on a local date, noon in the patient's zone); the
+    same validation and storage as ``POST /v1/patients/{id}/calibrations``."""
+    signin.check_csrf(user, csrf)
+    p = data.patient_for(db, user.principal, patient_id)
+    if user.principal.role not in (Role.admin, Role.clinician):
+        raise ProblemError(403, "Only clinicians and admins record calibrations", title="Not allowed")
+    try:
+        day = date.fromisoformat(measured_on)
+        body = CalibrationIn.model_validate({
+            "leg": leg, "standing_knee_deg": float(standing_knee_deg), "method": method,
+            "measured_at": datetime.combine(day, time(12), tzinfo=zone(p.timezone)).isoformat()})
+    except (ValueError, ValidationError):
+        raise ProblemError(422, "Give the leg, the standing knee flexion in degrees (-20 to 60) and the date it was "
+                                "measured.", title="Calibration not recorded") from None
+    affected = data.record_calibration(db, user.principal, p, body)
+    log.info("ui calibration for patient %s (%s leg) by token %s; %d session(s) to reprocess", p.id, body.leg,
+             user.principal.token_id, affected)
+    return RedirectResponse(f"/ui/patients/{p.id}?calibrated={affected}#cal-entry", status_code=303)
 
 
 @router.get("/patients/{patient_id}/strides.csv")

@@ -219,6 +219,9 @@ def patient_page(db: DbSession, patient: Patient, *, bucket: str | None, session
             "session_page": session_page, "n_session_pages": max(1, math.ceil(n_sessions / SESSIONS_PER_PAGE)),
             "days_with_data_30": comp30["days_with_data"], "strides_30": comp30["strides_total"],
             "walking_min_30": comp30["walking_min_total"],
+            "calibrations": [{"leg": leg_name(patient, c.leg), "value": f"{c.standing_knee_deg:.1f}\u00b0",
+                              "method": c.method.replace("_", " "), "when": words.local_time(c.measured_at, tz)}
+                             for c in data.calibrations(db, patient)],
             "last_session": words.local_time(datetime_or_none(comp["last_session_at"]), tz)}
 
 

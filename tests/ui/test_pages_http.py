@@ -169,3 +169,28 @@ def test_pages_of_a_new_patient_and_an_unfinished_session(api: Api) -> None:
     assert r.status_code == 409 and "still receiving" in r.text
     listing = api.client.get("/ui/patients").text
     assert "NEW-1" in listing and "No session since enrolment" not in listing  # enrolled just now
+
+
+def test_calibration_entry_records_through_the_api_rule(api: Api) -> None:
+    """The patient page's calibration form stores what the API stores (noon of the local day), needs the page's CSRF
+    token, refuses impossible values, and stays inside the clinician's own patients."""
+    clin_a, clin_b, pa, pb = seeded(api)
+    c = api.client
+    csrf = sign_in(api, clin_a)
+    form = {"csrf": csrf, "leg": "left", "standing_knee_deg": "11.5", "measured_on": "2026-11-02",
+            "method": "goniometer"}
+    r = c.post(f"/ui/patients/{pa['id']}/calibrations", data=form, follow_redirects=False)
+    # the four seeded sessions started after the measurement: a reprocess would change them
+    assert r.status_code == 303 and "calibrated=4" in r.headers["location"]
+    items = c.get(f"/v1/patients/{pa['id']}/calibrations", headers={"Authorization": f"Bearer {clin_a}"}
+                  ).json()["items"]
+    assert [(i["leg"], i["standing_knee_deg"], i["method"]) for i in items] == [("left", 11.5, "goniometer")]
+    assert items[0]["measured_at"].startswith("2026-11-02T11:00:00")  # noon in Europe/Berlin, stored in UTC
+    page = c.get(r.headers["location"])
+    assert "11.5\u00b0" in page.text and "Calibration recorded. 4 processed" in page.text
+    assert c.post(f"/ui/patients/{pa['id']}/calibrations", data={**form, "csrf": "forged"}).status_code == 403
+    assert c.post(f"/ui/patients/{pa['id']}/calibrations", data={**form, "standing_knee_deg": "95"}).status_code == 422
+    assert c.post(f"/ui/patients/{pb['id']}/calibrations", data=form).status_code == 404
+    items = c.get(f"/v1/patients/{pa['id']}/calibrations", headers={"Authorization": f"Bearer {clin_a}"}
+                  ).json()["items"]
+    assert len(items) == 1
