@@ -30,15 +30,14 @@ from bench.trends import NOW, log, seed_cohort, timeit
 from pipeline.simulate import SimConfig, simulate_session
 from server.app import create_app
 from server.auth.service import create_clinician
-from server.codec import content_sha256, encode_samples
 from server.config import Settings
 from server.db import make_engine, make_sessionmaker
 from server.migrate import upgrade_to_head
 from server.patients.models import Patient
 from server.processing.jobs import process_one
-from server.sessions.models import Batch, Session, SessionSensor
+from server.sessions.models import Session
 from server.ui import data as ui_data
-from tests.support.seed import add_session
+from tests.support.seed import add_session, add_stream_batches
 
 
 def seed_year_both_legs(factory, clinician_id: str, days: int, strides: int) -> str:  # noqa: ANN001
@@ -74,15 +73,7 @@ def add_recording(factory, patient_id: str, minutes: float) -> str:  # noqa: ANN
                        activity="walking", status="queued", completed_at=NOW)
         db.add(sess)
         db.flush()
-        for s in sim.streams:
-            db.add(SessionSensor(session_id=sess.id, sensor_id=s.sensor_id, leg=s.leg, segment=s.segment,
-                                 sample_rate_hz=s.fs_hz, gyro_unit=s.gyro_unit, acc_unit=s.acc_unit))
-            for seq, part in enumerate(np.array_split(np.arange(len(s.t_s)), 20)):
-                t_ms, g, a = s.t_s[part] * 1000.0, s.gyr[part], s.acc[part]
-                tb, gb, ab = encode_samples(t_ms, g, a)
-                db.add(Batch(session_id=sess.id, sensor_id=s.sensor_id, seq=seq, t0_ms=float(t_ms[0]),
-                             n_samples=len(part), t_first_ms=float(t_ms[0]), t_last_ms=float(t_ms[-1]),
-                             content_sha256=content_sha256(t_ms, g, a), t_ms=tb, gyro=gb, acc=ab))
+        add_stream_batches(db, sess.id, sim.streams, 20)
         db.commit()
         sid = sess.id
     assert process_one(factory, sid) == "done"

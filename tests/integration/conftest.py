@@ -51,13 +51,11 @@ def insert_simulated_session(url: str, *, n_strides: int = 16, seed: int = 4) ->
     """
     from datetime import UTC, datetime
 
-    import numpy as np
-
     from pipeline.simulate import SimConfig, simulate_session
-    from server.codec import content_sha256, encode_samples
     from server.db import make_engine, make_sessionmaker
     from server.patients.models import Patient
-    from server.sessions.models import Batch, Session, SessionSensor
+    from server.sessions.models import Session
+    from tests.support.seed import add_stream_batches
 
     sim = simulate_session(SimConfig(n_strides=n_strides, seed=seed))
     engine = make_engine(url)
@@ -69,15 +67,7 @@ def insert_simulated_session(url: str, *, n_strides: int = 16, seed: int = 4) ->
                        activity="walking", status="queued", completed_at=datetime.now(UTC))
         db.add(sess)
         db.flush()
-        for s in sim.streams:
-            db.add(SessionSensor(session_id=sess.id, sensor_id=s.sensor_id, leg=s.leg, segment=s.segment,
-                                 sample_rate_hz=s.fs_hz, gyro_unit=s.gyro_unit, acc_unit=s.acc_unit))
-            for seq, part in enumerate(np.array_split(np.arange(len(s.t_s)), 8)):
-                t_ms, g, a = s.t_s[part] * 1000.0, s.gyr[part], s.acc[part]
-                tb, gb, ab = encode_samples(t_ms, g, a)
-                db.add(Batch(session_id=sess.id, sensor_id=s.sensor_id, seq=seq, t0_ms=float(t_ms[0]),
-                             n_samples=len(part), t_first_ms=float(t_ms[0]), t_last_ms=float(t_ms[-1]),
-                             content_sha256=content_sha256(t_ms, g, a), t_ms=tb, gyro=gb, acc=ab))
+        add_stream_batches(db, sess.id, sim.streams, 8)
         db.commit()
         sid = sess.id
     engine.dispose()

@@ -14,9 +14,11 @@ import numpy as np
 from sqlalchemy import insert
 from sqlalchemy.orm import Session as DbSession
 
+from pipeline.types import RawSensorStream
+from server.codec import content_sha256, encode_samples
 from server.db import new_id
 from server.results.models import Stride
-from server.sessions.models import Session
+from server.sessions.models import Batch, Session, SessionSensor
 from server.trends.summaries import refresh_session
 from server.utc import utcnow
 
@@ -78,3 +80,17 @@ def add_session(db: DbSession, patient_id: str, started_at: datetime, legs: dict
     if refresh:
         refresh_session(db, sid)
     return sid
+
+
+def add_stream_batches(db: DbSession, session_id: str, streams: list[RawSensorStream], n_batches: int) -> None:
+    """Declare each stream's sensor on the session and store its samples as ``n_batches`` raw batches, exactly as
+    the upload path stores them (so the job runner processes them like uploaded data)."""
+    for s in streams:
+        db.add(SessionSensor(session_id=session_id, sensor_id=s.sensor_id, leg=s.leg, segment=s.segment,
+                             sample_rate_hz=s.fs_hz, gyro_unit=s.gyro_unit, acc_unit=s.acc_unit))
+        for seq, part in enumerate(np.array_split(np.arange(len(s.t_s)), n_batches)):
+            t_ms, g, a = s.t_s[part] * 1000.0, s.gyr[part], s.acc[part]
+            tb, gb, ab = encode_samples(t_ms, g, a)
+            db.add(Batch(session_id=session_id, sensor_id=s.sensor_id, seq=seq, t0_ms=float(t_ms[0]),
+                         n_samples=len(part), t_first_ms=float(t_ms[0]), t_last_ms=float(t_ms[-1]),
+                         content_sha256=content_sha256(t_ms, g, a), t_ms=tb, gyro=gb, acc=ab))
