@@ -3,20 +3,18 @@
 from __future__ import annotations
 
 from functools import partial
+from typing import Any
 
 import numpy as np
 from fastapi import APIRouter, Query, Request
 from fastapi.concurrency import run_in_threadpool
-from sqlalchemy import select
 
 from server.auth.service import get_session_for
-from server.codec import decode_trace
 from server.deps import Caller, Db
 from server.enums import Leg, SessionStatus
 from server.errors import ProblemError, invalid, not_found
 from server.numbers import finite_round
-from server.results import compare
-from server.results.models import KneeAngleTrace, Stride
+from server.results import compare, service
 from server.results.schemas import CompareOut, KneeAngleOut, StrideOut, StridesOut
 from server.results.stride_record import STORED_FLOATS
 from server.sessions.models import Session
@@ -40,45 +38,17 @@ def get_strides(session_id: str, db: Db, caller: Caller, leg: Leg | None = Query
     """Every stride of a processed session (optionally one leg)."""
     session = get_session_for(db, caller, session_id)
     _require_done(session)
-    stmt = select(Stride).where(Stride.session_id == session.id)
-    if leg is not None:
-        stmt = stmt.where(Stride.leg == leg)
-    rows = db.scalars(stmt.order_by(Stride.leg, Stride.index)).all()
+    rows = service.strides(db, session.id, leg)
     return StridesOut(session_id=session.id, strides=[stride_out(r) for r in rows])
 
 
-def stride_out(r: Stride) -> StrideOut:
-    """The response form of a stored stride (the value fields of :mod:`server.results.stride_record`)."""
+def stride_out(r: Any) -> StrideOut:
+    """The response form of a stored stride row (:func:`server.results.service.strides`): the value fields of
+    :mod:`server.results.stride_record`."""
     values = {name: finite_round(getattr(r, name), None) for name in STORED_FLOATS}
     return StrideOut(leg=r.leg, index=r.index, started_at=r.started_at, estimator=r.estimator,
                      activity=r.activity, fallback=r.fallback, quality_reasons=list(r.quality_reasons or []),
                      **values)
-
-
-def minmax_indices(angle_deg: np.ndarray, max_points: int) -> np.ndarray:
-    """Indices of a min/max-preserving down-sample to at most ``max_points`` samples.
-
-    The trace is cut into ``max_points // 2`` equal buckets; each keeps its smallest and largest finite sample in
-    time order, so peak swing flexion and full extension survive any zoom level (plain striding would drop them).
-    A bucket with no finite sample keeps its first sample (null), so a gap longer than a bucket still breaks
-    the plotted line; a gap shorter than a bucket is bridged.
-    """
-    n = len(angle_deg)
-    if n <= max_points:
-        return np.arange(n)
-    n_buckets = max(1, max_points // 2)
-    k = -(-n // n_buckets)
-    rows = -(-n // k)
-    padded = np.full(rows * k, np.nan)
-    padded[:n] = angle_deg
-    grid = padded.reshape(rows, k)
-    empty = np.all(np.isnan(grid), axis=1)
-    lo = np.argmin(np.where(np.isnan(grid), np.inf, grid), axis=1)
-    hi = np.argmax(np.where(np.isnan(grid), -np.inf, grid), axis=1)
-    lo[empty] = 0
-    hi[empty] = 0
-    base = np.arange(rows) * k
-    return np.unique(np.concatenate([base + lo, base + hi]))
 
 
 @router.get("/{session_id}/knee-angle", response_model=KneeAngleOut,
@@ -92,36 +62,28 @@ def get_knee_angle(session_id: str, db: Db, caller: Caller,
     """The continuous knee angle of one leg, min/max down-sampled to at most ``max_points``."""
     session = get_session_for(db, caller, session_id)
     _require_done(session)
-    traces = db.scalars(select(KneeAngleTrace).where(KneeAngleTrace.session_id == session.id)).all()
+    traces = service.traces(db, session.id)
     if leg is None:
         if len(traces) > 1:
             raise invalid("leg", "this session has both legs; choose leg=left or leg=right")
         if not traces:
             raise not_found("Knee angle trace")
-        trace = traces[0]
+        trace = next(iter(traces.values()))
     else:
-        trace = next((tr for tr in traces if tr.leg == leg), None)
+        trace = traces.get(leg)
         if trace is None:
             raise not_found(f"Knee angle of the {leg} leg")
     if start_s is not None and end_s is not None and end_s <= start_s:
         raise invalid("end_s", "end_s must be after start_s")
-    t, angle, est = decode_trace(trace.t0_s, trace.fs_hz, trace.n, trace.angle_deg, trace.estimator_codes,
-                                 trace.estimator_names)
-    keep = np.ones(len(t), dtype=bool)
-    if start_s is not None:
-        keep &= t >= start_s
-    if end_s is not None:
-        keep &= t <= end_s
-    t, angle, est = t[keep], angle[keep], est[keep]
-    idx = minmax_indices(angle, max_points)
-    finite = np.isfinite(angle[idx])
-    angles = np.round(angle[idx], 3)
+    w = service.trace_window(trace, start_s=start_s, end_s=end_s, max_points=max_points)
+    finite = np.isfinite(w.angle_deg)
+    angles = np.round(w.angle_deg, 3)
     return KneeAngleOut(
-        session_id=session.id, leg=Leg(trace.leg), fs_hz=trace.fs_hz,
-        n_total=len(t), downsampling="minmax" if len(idx) < len(t) else "none",
-        t_s=np.round(t[idx], 4).tolist(),
+        session_id=session.id, leg=Leg(w.leg), fs_hz=w.fs_hz,
+        n_total=w.n_total, downsampling="minmax" if w.downsampled else "none",
+        t_s=np.round(w.t_s, 4).tolist(),
         angle_deg=[float(a) if f else None for a, f in zip(angles.tolist(), finite.tolist(), strict=True)],
-        estimator=[str(e) if (e and f) else None for e, f in zip(est[idx].tolist(), finite.tolist(), strict=True)],
+        estimator=[str(e) if (e and f) else None for e, f in zip(w.estimator.tolist(), finite.tolist(), strict=True)],
     )
 
 

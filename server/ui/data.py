@@ -1,14 +1,13 @@
 """Everything the clinician pages read, through the service layer the API uses (one import point for the pages).
 
-Functions that only wrap a service are thin on purpose. The few queries written here exist only inside API route
-functions today (patient list with search, session list, strides of a session, the knee-angle trace rows, the
-latest per-leg values and the gait-cycle normalisation); they are marked "query lives here" and belong in the
-patients/sessions/results services.
+Functions that only wrap a service are thin on purpose. Strides, knee-angle windows and gait cycles come from
+:mod:`server.results.service`, which the API's result routes use too. The few queries still written here (marked
+"query lives here": patient search with offset paging, sessions with offset paging, the latest per-leg values,
+per-session peaks and the first processed session) have no API route yet.
 """
 
 from __future__ import annotations
 
-import math
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -25,12 +24,11 @@ from server.auth.service import Principal, get_patient_for, get_session_for
 from server.calibrations import service as calibration_service
 from server.calibrations.models import KneeCalibration as KneeCalibrationRow
 from server.calibrations.schemas import CalibrationIn
-from server.codec import decode_trace
 from server.patients.models import Patient
 from server.results import compare as compare_service
-from server.results.models import KneeAngleTrace, Stride
-from server.results.routes import minmax_indices
+from server.results import service as results_service
 from server.results.schemas import CompareOut
+from server.results.service import Cycle, TraceWindow
 from server.sessions.models import Session
 from server.trends import exports, service
 from server.trends.attention import AttentionParams, attention_list
@@ -42,7 +40,6 @@ from server.utc import as_utc
 # The metrics of the patient page, in the order a physiotherapist reads them.
 TREND_METRICS = ("peak_swing_flexion_deg", "rom_deg", "min_flexion_deg", "strides_per_day")
 OVERVIEW_METRICS = ("peak_swing_flexion_deg", "rom_deg")
-CYCLE_POINTS = 101  # 0, 1, ..., 100 % of the gait cycle
 
 
 def principal_for_token(db: DbSession, token: str) -> Principal | None:
@@ -196,10 +193,8 @@ def first_done_session(db: DbSession, patient: Patient) -> Session | None:
 
 
 def strides(db: DbSession, session: Session) -> list[Any]:
-    """Every stored stride of the session by leg and index, as rows with the Stride columns as attributes.
-    Query lives here (inline in the API route); core rows because a long session has thousands of strides."""
-    return list(db.execute(select(*Stride.__table__.c).where(Stride.session_id == session.id)
-                           .order_by(Stride.leg, Stride.index)).all())
+    """Every stored stride of the session by leg and index (the results service's core rows)."""
+    return results_service.strides(db, session.id)
 
 
 def exclusions(rows: list[Any]) -> list[list[str]]:
@@ -228,100 +223,26 @@ def exclusions(rows: list[Any]) -> list[list[str]]:
     return out
 
 
-@dataclass(frozen=True)
-class Trace:
-    """A leg's knee-angle trace, decoded, for one page view."""
-
-    leg: str
-    t_s: np.ndarray
-    angle_deg: np.ndarray
-    n_total: int
-    t_first_s: float
-    t_last_s: float
-
-
-def _traces(db: DbSession, session: Session) -> dict[str, KneeAngleTrace]:
-    rows = db.scalars(select(KneeAngleTrace).where(KneeAngleTrace.session_id == session.id)).all()
-    return {r.leg: r for r in rows}
-
-
 def knee_angle(db: DbSession, session: Session, *, start_s: float | None = None, end_s: float | None = None,
-               max_points: int = 1600) -> list[Trace]:
+               max_points: int = 1600) -> list[TraceWindow]:
     """The continuous knee angle of each leg in [start_s, end_s], min/max down-sampled as the API does."""
     out = []
-    for leg, row in sorted(_traces(db, session).items()):
-        t, angle, _ = decode_trace(row.t0_s, row.fs_hz, row.n, row.angle_deg, row.estimator_codes,
-                                   row.estimator_names)
-        if not len(t):
-            continue
-        keep = np.ones(len(t), dtype=bool)
-        if start_s is not None:
-            keep &= t >= start_s
-        if end_s is not None:
-            keep &= t <= end_s
-        tw, aw = t[keep], angle[keep]
-        idx = minmax_indices(aw, max_points)
-        out.append(Trace(leg, tw[idx], aw[idx], int(len(tw)), float(t[0]), float(t[-1])))
+    for _, row in sorted(results_service.traces(db, session.id).items()):
+        if row.n:
+            out.append(results_service.trace_window(row, start_s=start_s, end_s=end_s, max_points=max_points))
     return out
-
-
-@dataclass(frozen=True)
-class Cycle:
-    """Knee angle over the gait cycle (0-100 %, heel strike to heel strike) of the included strides of one leg."""
-
-    leg: str
-    n_strides: int
-    mean_deg: list[float | None]
-    sd_deg: list[float | None]
-    toe_off_pct: float | None  # mean stance phase of these strides: where swing starts
 
 
 def gait_cycles(db: DbSession, session: Session, rows: list[Any] | None = None,
                 excluded: list[list[str]] | None = None) -> dict[str, Cycle]:
-    """Per leg: each included stride's stored angle trace resampled to 0..100 % between its heel strikes, then
-    mean and SD across strides at every percent. Strides that do not count in the trends (low quality,
-    implausible values) or cross a gap in the trace are left out. ``rows``/``excluded``: the session's
-    :func:`strides` and :func:`exclusions` when the caller has them. Computation lives here (a results service)."""
-    traces = _traces(db, session)
-    if not traces:
-        return {}
+    """Per leg, the knee angle over the gait cycle of the strides that count in the trends (the results
+    service's computation). ``rows``/``excluded``: the session's :func:`strides` and :func:`exclusions` when the
+    caller has them."""
     if rows is None:
         rows = strides(db, session)
     if excluded is None:
         excluded = exclusions(rows)
-    by_leg: dict[str, list[Any]] = {}
-    for s, why in zip(rows, excluded, strict=True):
-        if not why:
-            by_leg.setdefault(s.leg, []).append(s)
-    pct = np.linspace(0.0, 1.0, CYCLE_POINTS)
-    out: dict[str, Cycle] = {}
-    for leg, leg_rows in sorted(by_leg.items()):
-        tr = traces.get(leg)
-        if tr is None:
-            continue
-        t, angle, _ = decode_trace(tr.t0_s, tr.fs_hz, tr.n, tr.angle_deg, tr.estimator_codes, tr.estimator_names)
-        curves, stance = [], []
-        for s in leg_rows:
-            i0 = int(np.searchsorted(t, s.t_start_s - 0.5 / tr.fs_hz))
-            i1 = int(np.searchsorted(t, s.t_end_s + 0.5 / tr.fs_hz))
-            seg_t, seg_a = t[i0:i1], angle[i0:i1]
-            if seg_t.size < 10 or not np.all(np.isfinite(seg_a)):
-                continue
-            curves.append(np.interp(s.t_start_s + pct * (s.t_end_s - s.t_start_s), seg_t, seg_a))
-            stance.append(s.stance_pct)
-        if not curves:
-            continue
-        arr = np.vstack(curves)
-        mean = arr.mean(axis=0)
-        sd = arr.std(axis=0, ddof=1) if len(curves) > 1 else np.full(CYCLE_POINTS, np.nan)
-        toe_off = float(np.nanmean(np.asarray(stance, dtype=np.float64))) if stance else None
-        out[leg] = Cycle(leg, len(curves), [_num(v) for v in mean], [_num(v) for v in sd],
-                         toe_off if toe_off is not None and math.isfinite(toe_off) else None)
-    return out
-
-
-def _num(v: float) -> float | None:
-    return float(v) if math.isfinite(v) else None
+    return results_service.gait_cycles(db, session.id, rows, excluded)
 
 
 def compare(factory: sessionmaker[DbSession], principal: Principal, session: Session) -> CompareOut:

@@ -11,6 +11,7 @@ from sqlalchemy.orm import sessionmaker
 
 from server.auth.service import Principal
 from server.patients.models import Patient
+from server.results.service import CYCLE_POINTS
 from server.sessions.models import Session
 from server.trends.metrics import METRICS
 from server.trends.timeutil import zone
@@ -235,7 +236,7 @@ def datetime_or_none(s: str | None) -> datetime | None:
 def cycle_chart(patient: Patient, leg: str, this: data.Cycle | None, first: data.Cycle | None,
                 first_when: str, is_first: bool) -> str:
     """SVG of the knee angle over the gait cycle, this session against the first."""
-    pct = [float(i) for i in range(data.CYCLE_POINTS)]
+    pct = [float(i) for i in range(CYCLE_POINTS)]
     series, bands, ys = [], [], []
 
     def add(c: data.Cycle, label: str, color: str, dash: str | None) -> None:
@@ -260,7 +261,7 @@ def cycle_chart(patient: Patient, leg: str, this: data.Cycle | None, first: data
                        subtitle="Stance from heel strike to toe-off, then swing with the flexion peak.")
 
 
-def trace_chart(traces: list[data.Trace], patient: Patient, start: float, end: float) -> str:
+def trace_chart(traces: list[data.TraceWindow], patient: Patient, start: float, end: float) -> str:
     """SVG of the continuous knee angle of both legs in a time window."""
     series, ys = [], [0.0]
     for tr, color, dash in zip(traces, (AFFECTED, OTHER), (None, "5 3"), strict=False):

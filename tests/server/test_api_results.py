@@ -10,7 +10,7 @@ import pytest
 from pipeline.simulate import SimConfig, simulate_session
 from server.config import Settings
 from server.processing.jobs import run_queued
-from server.results.routes import minmax_indices
+from server.results.service import minmax_indices
 from server.simulate_cli import arrange_batches, session_to_requests
 from tests.server.helpers import Api, bearer, count_rows, open_api
 
