@@ -10,7 +10,7 @@ import hashlib
 import secrets
 from dataclasses import dataclass
 
-from sqlalchemy import ColumnElement, exists, false, select, true
+from sqlalchemy import BindParameter, ColumnElement, String, bindparam, exists, false, select, true
 from sqlalchemy.orm import Session as DbSession
 
 from server.auth.models import Clinician, Token
@@ -129,13 +129,31 @@ def principal_for_token_hash(db: DbSession, token_hash: str) -> Principal | None
                      patient_id=row.patient_id)
 
 
-def token_is_live(token_id: str) -> ColumnElement[bool]:
+def token_is_live(token_id: str | BindParameter[str]) -> ColumnElement[bool]:
     """SQL: the token still exists and is not revoked (checked inside the statement that relies on it)."""
     return exists().where(Token.id == token_id, Token.revoked_at.is_(None))
 
 
+def session_visible_to_role(role: str) -> ColumnElement[bool]:
+    """SQL on ``sessions``: a caller of this role may see the session (the rule of :func:`get_session_for`), the
+    caller bound as ``:visible_patient_id`` / ``:visible_clinician_id`` (:func:`visibility_params`)."""
+    if role == Role.admin:
+        return true()
+    if role == Role.clinician:
+        return Session.patient_id.in_(
+            select(Patient.id).where(Patient.clinician_id == bindparam("visible_clinician_id", type_=String)))
+    if role == Role.device:
+        return Session.patient_id == bindparam("visible_patient_id", type_=String)
+    return false()
+
+
+def visibility_params(principal: Principal) -> dict[str, str | None]:
+    """The values :func:`session_visible_to_role` binds."""
+    return {"visible_patient_id": principal.patient_id, "visible_clinician_id": principal.clinician_id}
+
+
 def session_visible_to(principal: Principal) -> ColumnElement[bool]:
-    """SQL on ``sessions``: the caller may see the session (the rule of :func:`get_session_for`)."""
+    """SQL on ``sessions``: the caller may see the session, with the caller's ids as values."""
     if principal.role == Role.admin:
         return true()
     if principal.role == Role.clinician and principal.clinician_id is not None:

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from sqlalchemy import ColumnElement, Executable, literal, select, update
+from sqlalchemy import ColumnElement, Connection, Executable, bindparam, select, update
 from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 from sqlalchemy.orm import Session as DbSession
@@ -122,22 +122,18 @@ def prepare_batch(rates_hz: dict[str, float], body: BatchIn, *, max_samples: int
                          content_sha256=content_sha256(t_ms, gyro, acc), t_ms=t_b, gyro=g_b, acc=a_b)
 
 
-_INSERTED_COLUMNS = ("session_id", "sensor_id", "seq", "t0_ms", "n_samples", "t_first_ms", "t_last_ms",
-                     "content_sha256", "t_ms", "gyro", "acc", "created_at")
+_INSERTED_COLUMNS = ("sensor_id", "seq", "t0_ms", "n_samples", "t_first_ms", "t_last_ms", "content_sha256", "t_ms",
+                     "gyro", "acc", "created_at")
 
 
-def _guarded_insert(dialect: str, session_id: str, p: PreparedBatch,
-                    guards: Sequence[ColumnElement[bool]]) -> Executable:
-    """``INSERT INTO batches SELECT <values> FROM sessions WHERE <receiving, guards> [FOR SHARE] ON CONFLICT DO
-    NOTHING RETURNING id``: the status check, the access check and the store in one statement."""
+def guarded_insert(dialect: str, guards: Sequence[ColumnElement[bool]] = ()) -> Executable:
+    """``INSERT INTO batches SELECT <values> FROM sessions WHERE id = :b_session_id AND status = 'receiving' AND
+    <guards> [FOR SHARE] ON CONFLICT DO NOTHING RETURNING id``: the status check, the caller's checks and the
+    store in one statement. Values are bound by name (:func:`insert_params`), so the statement is built once."""
     cols = Batch.__table__.c
-    values = (Session.id, literal(p.sensor_id, cols.sensor_id.type), literal(p.seq, cols.seq.type),
-              literal(p.t0_ms, cols.t0_ms.type), literal(p.n_samples, cols.n_samples.type),
-              literal(p.t_first_ms, cols.t_first_ms.type), literal(p.t_last_ms, cols.t_last_ms.type),
-              literal(p.content_sha256, cols.content_sha256.type), literal(p.t_ms, cols.t_ms.type),
-              literal(p.gyro, cols.gyro.type), literal(p.acc, cols.acc.type),
-              literal(utcnow(), cols.created_at.type))
-    source = select(*values).where(Session.id == session_id, Session.status == SessionStatus.receiving, *guards)
+    values = [Session.id, *(bindparam(f"b_{c}", type_=cols[c].type) for c in _INSERTED_COLUMNS)]
+    source = select(*values).where(Session.id == bindparam("b_session_id"),
+                                   Session.status == SessionStatus.receiving, *guards)
     if dialect == "postgresql":
         # A share lock for the instant of the insert: a /complete (FOR UPDATE, then its status write) either
         # committed before, and the re-checked row is no longer "receiving" (nothing inserted), or waits for this
@@ -147,24 +143,26 @@ def _guarded_insert(dialect: str, session_id: str, p: PreparedBatch,
     else:
         # SQLite takes the database write lock when the INSERT starts, before it reads the session row.
         insert = sqlite_insert
-    return (insert(Batch).from_select([cols[c] for c in _INSERTED_COLUMNS], source)
+    return (insert(Batch).from_select([cols.session_id, *(cols[c] for c in _INSERTED_COLUMNS)], source)
             .on_conflict_do_nothing(index_elements=[cols.session_id, cols.sensor_id, cols.seq])
             .returning(cols.id))
 
 
-def insert_batch(db: DbSession, session_id: str, p: PreparedBatch,
-                 guards: Sequence[ColumnElement[bool]] = ()) -> bool:
-    """Store the batch if its session is receiving, every guard holds, and (sensor, seq) is new; committed.
+def insert_params(session_id: str, p: PreparedBatch) -> dict[str, object]:
+    """The values :func:`guarded_insert` binds."""
+    return {"b_session_id": session_id, "b_sensor_id": p.sensor_id, "b_seq": p.seq, "b_t0_ms": p.t0_ms,
+            "b_n_samples": p.n_samples, "b_t_first_ms": p.t_first_ms, "b_t_last_ms": p.t_last_ms,
+            "b_content_sha256": p.content_sha256, "b_t_ms": p.t_ms, "b_gyro": p.gyro, "b_acc": p.acc,
+            "b_created_at": utcnow()}
 
-    False (and the transaction ended) when nothing was stored: :func:`explain_refusal` says why.
-    """
-    stmt = _guarded_insert(db.get_bind().dialect.name, session_id, p, guards)
-    stored = db.execute(stmt).first() is not None
-    if stored:
-        db.commit()
-    else:
-        db.rollback()
-    return stored
+
+_UNGUARDED: dict[str, Executable] = {}
+
+
+def insert_batch(conn: Connection, stmt: Executable, params: dict[str, object]) -> bool:
+    """Run a :func:`guarded_insert`; True when it stored the batch. The caller commits, or runs it on an
+    autocommit connection (then the 201 it allows is durable when this returns)."""
+    return bool(conn.execute(stmt, params).all())
 
 
 def _find_batch(db: DbSession, session_id: str, sensor_id: str, seq: int) -> tuple[str, int] | None:
@@ -193,14 +191,6 @@ def explain_refusal(db: DbSession, session_id: str, p: PreparedBatch) -> IngestO
     return None
 
 
-def store_prepared(db: DbSession, session_id: str, p: PreparedBatch,
-                   guards: Sequence[ColumnElement[bool]] = ()) -> IngestOutcome | None:
-    """Insert, and only when nothing was inserted look for the reason. None: a guard refused the batch."""
-    if insert_batch(db, session_id, p, guards):
-        return IngestOutcome(created=True, sensor_id=p.sensor_id, seq=p.seq, samples=p.n_samples)
-    return explain_refusal(db, session_id, p)
-
-
 def ingest_batch(db: DbSession, session: Session, body: BatchIn, *, max_samples: int) -> IngestOutcome:
     """Validate and store one batch of a session the caller may write to, committed before returning (the 201
     means the data is durable). A rejected batch raises :class:`ProblemError` and changes nothing.
@@ -209,7 +199,15 @@ def ingest_batch(db: DbSession, session: Session, body: BatchIn, *, max_samples:
     concurrent /complete committed.
     """
     p = prepare_batch(sensor_rates(session), body, max_samples=max_samples)
-    outcome = store_prepared(db, session.id, p)
+    dialect = db.get_bind().dialect.name
+    stmt = _UNGUARDED.get(dialect)
+    if stmt is None:
+        stmt = _UNGUARDED[dialect] = guarded_insert(dialect)
+    if insert_batch(db.connection(), stmt, insert_params(session.id, p)):
+        db.commit()
+        return IngestOutcome(created=True, sensor_id=p.sensor_id, seq=p.seq, samples=p.n_samples)
+    db.rollback()
+    outcome = explain_refusal(db, session.id, p)
     if outcome is None:
         raise not_found("Session")  # deleted between the read of ``session`` and the insert
     return outcome

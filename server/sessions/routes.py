@@ -9,7 +9,7 @@ import anyio
 from fastapi import APIRouter, Request, Response
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
-from sqlalchemy import func, select
+from sqlalchemy import Engine, Executable, String, bindparam, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
@@ -20,7 +20,9 @@ from server.auth.service import (
     get_session_for,
     require_role,
     session_visible_to,
+    session_visible_to_role,
     token_is_live,
+    visibility_params,
 )
 from server.config import Settings
 from server.db import storable_key
@@ -32,8 +34,10 @@ from server.processing.queue import enqueue
 from server.sessions.bounds import session_span_problem
 from server.sessions.ingest import (
     IngestOutcome,
+    guarded_insert,
     ingest_batch,
     insert_batch,
+    insert_params,
     prepare_batch,
     received_summary,
     still_in_status,
@@ -160,8 +164,8 @@ async def upload_batch(session_id: str, request: Request, response: Response, ca
     raw = await request.body()
     rates = app_cache(request, "session_sensor_rates", SENSOR_RATES_TTL_S)
     # Parse, validate and store in one thread hop; the connection is back in the pool before the answer.
-    outcome = await anyio.to_thread.run_sync(_upload, request.app.state.sessionmaker, rates, caller, session_id,
-                                             raw, settings.max_samples_per_batch)
+    outcome = await anyio.to_thread.run_sync(_upload, request.app.state.sessionmaker, _autocommit(request), rates,
+                                             caller, session_id, raw, settings.max_samples_per_batch)
     response.status_code = 201 if outcome.created else 200
     ops_metrics.batch_ingested(outcome.samples, stored=outcome.created)
     log.info("batch session=%s sensor=%s seq=%d samples=%d -> %s", session_id, outcome.sensor_id, outcome.seq,
@@ -180,40 +184,67 @@ def _visible_sensor_rates(db: DbSession, caller: Principal, session_id: str) -> 
     rows = db.execute(select(SessionSensor.sensor_id, SessionSensor.sample_rate_hz)
                       .join(Session, Session.id == SessionSensor.session_id)
                       .where(Session.id == session_id, session_visible_to(caller))).all()
+    db.rollback()
     return {r.sensor_id: r.sample_rate_hz for r in rows}
 
 
-def _upload(sm: sessionmaker[DbSession], rates_cache: TtlCache, caller: Principal, session_id: str, raw: bytes,
-            max_samples: int) -> IngestOutcome:
+def _autocommit(request: Request) -> Engine:
+    # The guarded insert is one statement: run alone it needs no BEGIN/COMMIT round trips.
+    engine = getattr(request.app.state, "autocommit_engine", None)
+    if engine is None:
+        engine = request.app.state.engine.execution_options(isolation_level="AUTOCOMMIT")
+        request.app.state.autocommit_engine = engine
+    return engine
+
+
+_UPLOAD_INSERTS: dict[tuple[str, str], Executable] = {}
+
+
+def _upload_insert(dialect: str, role: str) -> Executable:
+    """The upload's guarded insert for a caller role, built once: the token must be live and the session
+    visible to the caller, checked by the INSERT itself."""
+    stmt = _UPLOAD_INSERTS.get((dialect, role))
+    if stmt is None:
+        stmt = guarded_insert(dialect, (token_is_live(bindparam("live_token_id", type_=String)),
+                                        session_visible_to_role(role)))
+        _UPLOAD_INSERTS[(dialect, role)] = stmt
+    return stmt
+
+
+def _upload(sm: sessionmaker[DbSession], autocommit: Engine, rates_cache: TtlCache, caller: Principal,
+            session_id: str, raw: bytes, max_samples: int) -> IngestOutcome:
     body = parse_batch(raw, max_samples)
     try:
-        with sm() as db:
-            return _store(db, rates_cache, caller, session_id, body, max_samples)
+        return _store(sm, autocommit, rates_cache, caller, session_id, body, max_samples)
     except ProblemError as exc:
         log.info("batch session=%s sensor=%s seq=%d rejected %d: %s", session_id, body.sensor_id, body.seq,
                  exc.status, exc.detail)
         raise
 
 
-def _store(db: DbSession, rates_cache: TtlCache, caller: Principal, session_id: str, body: BatchIn,
-           max_samples: int) -> IngestOutcome:
+def _store(sm: sessionmaker[DbSession], autocommit: Engine, rates_cache: TtlCache, caller: Principal,
+           session_id: str, body: BatchIn, max_samples: int) -> IngestOutcome:
     """The hot path is one INSERT whose WHERE checks the token, the caller's access and the session's status;
     anything it refuses (replay, completed, revoked, unknown sensor or session) goes through the full checks."""
     key = (caller.token_id, session_id)
     rates = rates_cache.get(key)
     if rates is None:
-        rates = _visible_sensor_rates(db, caller, session_id)
+        with sm() as db:
+            rates = _visible_sensor_rates(db, caller, session_id)
         if rates:
             rates_cache.put(key, rates)
     if body.sensor_id in rates:
         prepared = prepare_batch(rates, body, max_samples=max_samples)
-        if insert_batch(db, session_id, prepared, (token_is_live(caller.token_id), session_visible_to(caller))):
-            return IngestOutcome(created=True, sensor_id=prepared.sensor_id, seq=prepared.seq,
-                                 samples=prepared.n_samples)
-    if not db.scalar(select(token_is_live(caller.token_id))):
-        raise unauthorized_token()
-    session = get_session_for(db, caller, session_id)
-    return ingest_batch(db, session, body, max_samples=max_samples)
+        params = {**insert_params(session_id, prepared), **visibility_params(caller), "live_token_id": caller.token_id}
+        with autocommit.connect() as conn:
+            if insert_batch(conn, _upload_insert(conn.dialect.name, caller.role), params):
+                return IngestOutcome(created=True, sensor_id=prepared.sensor_id, seq=prepared.seq,
+                                     samples=prepared.n_samples)
+    with sm() as db:
+        if not db.scalar(select(token_is_live(caller.token_id))):
+            raise unauthorized_token()
+        session = get_session_for(db, caller, session_id)
+        return ingest_batch(db, session, body, max_samples=max_samples)
 
 
 @router.post("/{session_id}/complete", status_code=202, response_model=SessionOut,
