@@ -439,3 +439,57 @@ def test_procrastinate_recovery_requeues_and_frees_dead_jobs(pg_settings: Settin
         assert get(sm, stalled).status == "done" and get(sm, orphan).status == "done"
     finally:
         sm.kw["bind"].dispose()
+
+
+def _rows_naming(db, value: str) -> dict[str, int]:  # noqa: ANN001
+    """Per table, the rows in which ``value`` appears in any column (every table of the database)."""
+    from sqlalchemy import inspect, text
+
+    found = {}
+    for table in inspect(db.get_bind()).get_table_names():
+        rows = db.execute(text(f'SELECT * FROM "{table}"')).all()
+        hits = sum(1 for r in rows if value in repr(tuple(r)))
+        if hits:
+            found[table] = hits
+    return found
+
+
+def test_deleting_a_patient_leaves_no_row_naming_their_sessions(settings: Settings, sm) -> None:  # noqa: ANN001
+    """Sessions, raw data, results and, on PostgreSQL, procrastinate's job rows (waiting, failed, running) of a
+    deleted patient are gone or anonymised; another patient's job rows stay."""
+    from sqlalchemy import text
+
+    from server.patients import service as patients
+    from server.processing import worker
+
+    pg = settings.resolved_database_url.startswith("postgresql")
+    gone, kept = make_session(sm, seed=1), make_session(sm, seed=2)
+    jobs.run_queued(sm, processor=data_processor())
+    assert n_strides(sm, gone) == 5
+    if pg:
+        url = settings.resolved_database_url
+        worker.apply_schema(url)
+        try:
+            app = worker._api_app(url)
+            for sid in (gone, gone, gone, kept):
+                app.configure_task(worker.PROCESS_TASK).defer(session_id=sid)
+        finally:
+            worker.close_api_apps()
+        with sm() as db:
+            ids = db.execute(text("SELECT id FROM procrastinate_jobs WHERE args->>'session_id' = :s ORDER BY id"),
+                             {"s": gone}).scalars().all()
+            db.execute(text("UPDATE procrastinate_jobs SET status = 'failed' WHERE id = :i"), {"i": ids[0]})
+            db.execute(text("UPDATE procrastinate_jobs SET status = 'doing' WHERE id = :i"), {"i": ids[1]})
+            db.commit()
+    with sm() as db:
+        assert _rows_naming(db, gone)
+        patient_id = db.get(Session, gone).patient_id
+        patients.delete_patient(db, patient_id)
+        db.commit()
+    with sm() as db:
+        assert _rows_naming(db, gone) == {}
+        assert _rows_naming(db, patient_id) == {}
+        assert db.get(Session, kept) is not None and n_strides(sm, kept) == 5
+        if pg:
+            statuses = db.execute(text("SELECT status, args->>'session_id' FROM procrastinate_jobs ORDER BY id")).all()
+            assert sorted(tuple(r) for r in statuses) == [("doing", ""), ("todo", kept)]
