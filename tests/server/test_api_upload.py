@@ -324,6 +324,44 @@ def test_upload_waiting_for_a_completing_session_is_refused_not_stored(api: Api)
     assert _batches(api) == 1
 
 
+def test_uploads_racing_complete_never_add_a_batch_after_it(api: Api) -> None:
+    """Four sensors' uploads in flight while /complete runs: once its 202 is back, the stored batches never change,
+    and every stored batch was acknowledged 201 (none refused yet stored)."""
+    clin, _, _ = api.setup_device_session()
+    patient = api.patient(clin)
+    dev = api.device(clin, patient["id"])
+    sensors = [{"sensor_id": f"S{i}", "leg": leg, "segment": seg, "sample_rate_hz": 100.0}
+               for i, (leg, seg) in enumerate([("left", "thigh"), ("left", "shank"), ("right", "thigh"),
+                                                ("right", "shank")])]
+    sid = api.session(dev, patient["id"], sensors=sensors)["id"]
+    for s in sensors:  # warms the caches so the race is with the one-statement path
+        assert api.upload(dev, sid, batch_body(s["sensor_id"], 0, n=20)).status_code == 201
+    acked: dict[str, set[int]] = {s["sensor_id"]: {0} for s in sensors}
+
+    def sender(sensor_id: str) -> None:
+        for seq in range(1, 40):
+            code = api.upload(dev, sid, batch_body(sensor_id, seq, n=20)).status_code
+            assert code in (201, 409)
+            if code == 201:
+                acked[sensor_id].add(seq)
+            else:
+                return
+
+    with ThreadPoolExecutor(5) as pool:
+        senders = [pool.submit(sender, s["sensor_id"]) for s in sensors]
+        time.sleep(0.2)
+        r = api.client.post(f"/v1/sessions/{sid}/complete", headers=bearer(dev))
+        assert r.status_code == 202
+        at_complete = _batches(api)
+        for f in senders:
+            f.result(timeout=60)
+    assert _batches(api) == at_complete
+    with api.engine.connect() as conn:
+        stored = conn.execute(select(Batch.sensor_id, Batch.seq).where(Batch.session_id == sid)).all()
+    assert {(a, b) for a, b in stored} == {(k, q) for k, seqs in acked.items() for q in seqs}
+    assert sum(r.json()["received"][k]["batches"] for k in acked) == at_complete
+
+
 def test_concurrent_replays_store_once(api: Api) -> None:
     """Eight simultaneous sends of one batch (and of a session create): one is stored, the others are replays."""
     _, dev, sess = api.setup_device_session()
