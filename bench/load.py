@@ -121,8 +121,10 @@ class Server:
     """The API (uvicorn, N processes) and on PostgreSQL one worker, each in a process group of its own."""
 
     def __init__(self, env: dict[str, str], port: int, workers: int, postgres: bool, log_path: Path,
-                 app: str = "server.app:create_app") -> None:
+                 app: str = "server.app:create_app", cwd: Path = REPO) -> None:
         self.env, self.port, self.workers, self.postgres, self.app = env, port, workers, postgres, app
+        # ``python -m uvicorn`` puts its working directory first on sys.path: it decides which code is served.
+        self.cwd = cwd
         self.log = log_path.open("ab")
         self.api: subprocess.Popen | None = None
         self.worker: subprocess.Popen | None = None
@@ -131,10 +133,10 @@ class Server:
         cmd = [sys.executable, "-m", "uvicorn", self.app, "--factory", "--host", "127.0.0.1", "--port",
                str(self.port), "--workers", str(self.workers), "--no-access-log", "--log-level", "warning"]
         self.api = subprocess.Popen(cmd, env=self.env, stdout=self.log, stderr=subprocess.STDOUT,
-                                    start_new_session=True, cwd=REPO)
+                                    start_new_session=True, cwd=self.cwd)
         if self.postgres and self.app.startswith("server."):
             self.worker = subprocess.Popen(_gaitmon() + ["worker"], env=self.env, stdout=self.log,
-                                           stderr=subprocess.STDOUT, start_new_session=True, cwd=REPO)
+                                           stderr=subprocess.STDOUT, start_new_session=True, cwd=self.cwd)
 
     def kill9(self) -> None:
         for p in (self.api, self.worker):
@@ -447,7 +449,8 @@ def run(args: argparse.Namespace) -> dict:
     env, url = _env(tmp, args)
     port = _free_port()
     base = f"http://127.0.0.1:{port}"
-    server = Server(env, port, args.api_workers, args.postgres, tmp / "server.log")
+    server = Server(env, port, args.api_workers, args.postgres, tmp / "server.log",
+                    cwd=(args.server_repo or REPO).resolve())
     out: dict = {}
     try:
         subprocess.run(_gaitmon() + ["migrate"], env=env, check=True, capture_output=True, timeout=180, cwd=REPO)

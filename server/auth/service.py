@@ -10,7 +10,7 @@ import hashlib
 import secrets
 from dataclasses import dataclass
 
-from sqlalchemy import select
+from sqlalchemy import BindParameter, ColumnElement, String, bindparam, exists, false, select, true
 from sqlalchemy.orm import Session as DbSession
 
 from server.auth.models import Clinician, Token
@@ -116,8 +116,48 @@ def get_session_for(db: DbSession, principal: Principal, session_id: str, *, for
 
 def principal_for_token(db: DbSession, plaintext: str) -> Principal | None:
     """The identity behind a bearer token's plaintext, or None when it is unknown or revoked."""
-    token = db.scalar(select(Token).where(Token.token_hash == hash_token(plaintext.strip())))
-    if token is None or token.revoked_at is not None:
+    return principal_for_token_hash(db, hash_token(plaintext.strip()))
+
+
+def principal_for_token_hash(db: DbSession, token_hash: str) -> Principal | None:
+    """The identity behind a token's SHA-256, or None when it is unknown or revoked."""
+    row = db.execute(select(Token.id, Token.role, Token.name, Token.clinician_id, Token.patient_id, Token.revoked_at)
+                     .where(Token.token_hash == token_hash)).first()
+    if row is None or row.revoked_at is not None:
         return None
-    return Principal(token_id=token.id, role=token.role, name=token.name, clinician_id=token.clinician_id,
-                     patient_id=token.patient_id)
+    return Principal(token_id=row.id, role=row.role, name=row.name, clinician_id=row.clinician_id,
+                     patient_id=row.patient_id)
+
+
+def token_is_live(token_id: str | BindParameter[str]) -> ColumnElement[bool]:
+    """SQL: the token still exists and is not revoked (checked inside the statement that relies on it)."""
+    return exists().where(Token.id == token_id, Token.revoked_at.is_(None))
+
+
+def session_visible_to_role(role: str) -> ColumnElement[bool]:
+    """SQL on ``sessions``: a caller of this role may see the session (the rule of :func:`get_session_for`), the
+    caller bound as ``:visible_patient_id`` / ``:visible_clinician_id`` (:func:`visibility_params`)."""
+    if role == Role.admin:
+        return true()
+    if role == Role.clinician:
+        return Session.patient_id.in_(
+            select(Patient.id).where(Patient.clinician_id == bindparam("visible_clinician_id", type_=String)))
+    if role == Role.device:
+        return Session.patient_id == bindparam("visible_patient_id", type_=String)
+    return false()
+
+
+def visibility_params(principal: Principal) -> dict[str, str | None]:
+    """The values :func:`session_visible_to_role` binds."""
+    return {"visible_patient_id": principal.patient_id, "visible_clinician_id": principal.clinician_id}
+
+
+def session_visible_to(principal: Principal) -> ColumnElement[bool]:
+    """SQL on ``sessions``: the caller may see the session, with the caller's ids as values."""
+    if principal.role == Role.admin:
+        return true()
+    if principal.role == Role.clinician and principal.clinician_id is not None:
+        return Session.patient_id.in_(select(Patient.id).where(Patient.clinician_id == principal.clinician_id))
+    if principal.role == Role.device and principal.patient_id is not None:
+        return Session.patient_id == principal.patient_id
+    return false()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 
 from fastapi import APIRouter, Query, Response
-from sqlalchemy import and_, delete, or_, select
+from sqlalchemy import and_, or_, select
 
 from server.auth.models import Clinician, Token
 from server.auth.routes import token_out
@@ -15,10 +15,10 @@ from server.deps import Caller, Db
 from server.enums import Role
 from server.errors import invalid
 from server.pagination import after_cursor, decode_cursor, encode_cursor
+from server.patients import service as patient_service
 from server.patients.models import Patient
 from server.patients.schemas import PatientIn, PatientOut, PatientPage, PatientPatch
-from server.results.models import KneeAngleTrace, Stride
-from server.sessions.models import Batch, Session, SessionSensor
+from server.sessions.models import Session
 from server.sessions.schemas import SessionListItem, SessionPage
 
 log = logging.getLogger("gaitmon.api")
@@ -96,14 +96,7 @@ def delete_patient(patient_id: str, db: Db, caller: Caller) -> Response:
     """Delete a patient with every session, result and token."""
     require_role(caller, Role.admin, Role.clinician, action="delete patients")
     patient = get_patient_for(db, caller, patient_id)
-    session_ids = select(Session.id).where(Session.patient_id == patient.id).scalar_subquery()
-    # Explicit deletes of the core tables (children first) so nothing depends on the database enforcing
-    # ON DELETE CASCADE; tables of other modules reference sessions/patients with ON DELETE CASCADE.
-    for model in (Batch, Stride, KneeAngleTrace, SessionSensor):
-        db.execute(delete(model).where(model.session_id.in_(session_ids)))
-    db.execute(delete(Session).where(Session.patient_id == patient.id))
-    db.execute(delete(Token).where(Token.patient_id == patient.id))
-    db.execute(delete(Patient).where(Patient.id == patient.id))
+    patient_service.delete_patient(db, patient.id)
     db.commit()
     log.info("patient %s and all its data deleted by token %s", patient_id, caller.token_id)
     return Response(status_code=204)

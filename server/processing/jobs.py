@@ -20,6 +20,8 @@ from collections.abc import Callable
 from datetime import datetime, timedelta
 
 from sqlalchemy import delete, or_, select, update
+from sqlalchemy.exc import InterfaceError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
 
@@ -37,10 +39,19 @@ from server.utc import as_utc, utcnow
 
 log = logging.getLogger("gaitmon.jobs")
 
-# A session whose processing was interrupted (worker crash, OOM kill) this many times is marked failed instead of
-# being queued again, so one poisonous recording cannot crash-loop the workers.
-MAX_ATTEMPTS = 3
+# Two kinds of ending without a result, counted apart:
+# - an error raised while processing (the pipeline refusing the data, a bug) is final at once: the same data and
+#   code raise it again, so the session is "failed" with that error;
+# - an interruption (the worker killed or frozen mid-session and its claim recovered, or the database away while
+#   processing) says nothing about the data: the session is queued again, up to this many interruptions, so a
+#   deploy or two kill -9 never fail an intact recording while a recording that kills every worker (out of
+#   memory) still cannot crash-loop them forever.
+# Only a claim moves "queued" to "processing" and only reprocess resets ``attempts``, so at a recovery the claims
+# so far (``attempts``) are the interruptions so far: every earlier claim ended in one (an error is final).
+MAX_INTERRUPTIONS = 10
 DEFAULT_HEARTBEAT_S = 10.0
+# The database went away (connection lost, pool exhausted): says nothing about the session's data.
+DB_UNAVAILABLE = (OperationalError, InterfaceError, PoolTimeoutError)
 MAX_ERROR_CHARS = 500
 
 
@@ -161,7 +172,8 @@ Processor = Callable[..., object]
 def process_claimed(sm: sessionmaker[DbSession], session_id: str, token: str, *,
                     heartbeat_s: float = DEFAULT_HEARTBEAT_S, processor: Processor | None = None,
                     max_session_s: float | None = None) -> str:
-    """Process a session this runner has claimed. Returns "done", "failed" or "lost" (claim taken over).
+    """Process a session this runner has claimed. Returns "done", "failed", "interrupted" (queued again: the
+    database was unavailable) or "lost" (claim taken over).
 
     A session whose batches would ask for an absurd processing grid (:mod:`server.sessions.bounds`) fails with
     the reason before any sample is decoded.
@@ -212,12 +224,41 @@ def process_claimed(sm: sessionmaker[DbSession], session_id: str, token: str, *,
                 _update(db, session_id, summary=json_safe(summary))
                 _refresh_trends(db, session_id)
                 db.commit()
+        except DB_UNAVAILABLE as exc:
+            # The data are intact and the pipeline did not object: an interruption, not a failure.
+            log.warning("session %s: database unavailable while processing (%s); queued again", session_id,
+                        readable_error(exc))
+            return _release(sm, session_id, token)
         except Exception as exc:  # noqa: BLE001 - any failure of one session must end as "failed", never crash
             log.error("session %s failed: %s\n%s", session_id, readable_error(exc), traceback.format_exc())
             return _mark_failed(sm, session_id, token, readable_error(exc))
     log.info("session %s done: %d sensors, %d samples, %d strides, %.2f s (%s)", session_id, len(streams),
              n_samples, n_strides, time.perf_counter() - t_start, token)
     return "done"
+
+
+def interrupted_error(times: int) -> str:
+    """The error of a session failed after :data:`MAX_INTERRUPTIONS` interruptions."""
+    return (f"processing was interrupted {times} times (worker killed, frozen or out of memory, or the database "
+            "unavailable) without the pipeline reporting an error; the raw data are intact: reprocess to try again")
+
+
+def _release(sm: sessionmaker[DbSession], session_id: str, token: str) -> str:
+    """Give an interrupted claim back (status "queued"), or fail the session at the interruption cap; "lost" when
+    the claim was no longer ours. If the database is still away the claim stays and the stall recovery releases
+    it later (the same kind of interruption)."""
+    mine = (Session.worker_id == token, Session.status == SessionStatus.processing)
+    try:
+        with sm() as db:
+            changed = _update(db, session_id, *mine, Session.attempts < MAX_INTERRUPTIONS,
+                              status=SessionStatus.queued, worker_id=None, heartbeat_at=None)
+            db.commit()
+        if changed == 1:
+            return "interrupted"
+        return _mark_failed(sm, session_id, token, interrupted_error(MAX_INTERRUPTIONS))
+    except DB_UNAVAILABLE:
+        log.warning("session %s: claim %s left to the stall recovery", session_id, token)
+        return "interrupted"
 
 
 def _mark_failed(sm: sessionmaker[DbSession], session_id: str, token: str, error: str) -> str:
@@ -236,7 +277,8 @@ def _mark_failed(sm: sessionmaker[DbSession], session_id: str, token: str, error
 
 def process_one(sm: sessionmaker[DbSession], session_id: str, *, worker_id: str = "inline",
                 heartbeat_s: float = DEFAULT_HEARTBEAT_S, processor: Processor | None = None) -> str:
-    """Claim and process one session. Returns "done", "failed", "lost" or "skipped" (not queued / claimed)."""
+    """Claim and process one session. Returns "done", "failed", "interrupted", "lost" or "skipped" (not queued /
+    claimed)."""
     token = claim(sm, session_id, worker_id)
     if token is None:
         log.info("session %s not claimable (not queued or taken by another worker); skipped", session_id)
@@ -260,12 +302,18 @@ def run_queued(sm: sessionmaker[DbSession], *, worker_id: str = "inline", proces
                should_stop: Callable[[], bool] | None = None, heartbeat_s: float = DEFAULT_HEARTBEAT_S) -> int:
     """Claim and process every queued session synchronously; returns how many this call processed."""
     count = 0
+    interrupted: set[str] = set()  # queued again by this call: left to the next one (the database may be away)
     while True:
         progressed = False
         for sid in queued_ids(sm):
             if should_stop is not None and should_stop():
                 return count
-            if process_one(sm, sid, worker_id=worker_id, processor=processor, heartbeat_s=heartbeat_s) != "skipped":
+            if sid in interrupted:
+                continue
+            outcome = process_one(sm, sid, worker_id=worker_id, processor=processor, heartbeat_s=heartbeat_s)
+            if outcome == "interrupted":
+                interrupted.add(sid)
+            if outcome != "skipped":
                 count += 1
                 progressed = True
         if not progressed:
@@ -277,8 +325,8 @@ def recover_stalled(sm: sessionmaker[DbSession], *, stall_seconds: float, everyt
     """Put sessions stuck in "processing" back to "queued"; returns their ids (the caller enqueues them).
 
     Stuck means: heartbeat older than ``stall_seconds`` (its worker died), a claim token that ``orphaned`` says
-    belongs to a worker known to be gone, or, with ``everything``, any processing session. A session that
-    was already interrupted ``MAX_ATTEMPTS`` times is marked failed instead.
+    belongs to a worker known to be gone, or, with ``everything``, any processing session. A session
+    interrupted :data:`MAX_INTERRUPTIONS` times is marked failed instead, with the reason.
     """
     cutoff = utcnow() - timedelta(seconds=stall_seconds)
     stale = [Session.status == SessionStatus.processing]
@@ -295,9 +343,8 @@ def recover_stalled(sm: sessionmaker[DbSession], *, stall_seconds: float, everyt
         for sid, attempts, old_worker in rows:
             # Conditioned on the same claim so a worker that heart-beats right now keeps its session.
             same_claim = [Session.status == SessionStatus.processing, Session.worker_id == old_worker]
-            if (attempts or 0) >= MAX_ATTEMPTS:
-                err = (f"processing was interrupted {attempts} times (worker crash or timeout); "
-                       "reprocess to try again")
+            if (attempts or 0) >= MAX_INTERRUPTIONS:
+                err = interrupted_error(attempts)
                 if _update(db, sid, *same_claim, status=SessionStatus.failed, error=err, worker_id=None,
                            heartbeat_at=None):
                     log.error("session %s: %s", sid, err)

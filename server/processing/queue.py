@@ -10,6 +10,9 @@ from __future__ import annotations
 import logging
 import threading
 
+from sqlalchemy import text
+from sqlalchemy.orm import Session as DbSession
+
 from server.config import Settings
 
 log = logging.getLogger("gaitmon.jobs")
@@ -46,3 +49,25 @@ def enqueue(settings: Settings, session_id: str) -> None:
     else:
         wake()
     log.info("session %s enqueued (%s)", session_id, settings.resolved_job_runner)
+
+
+def forget_sessions(db: DbSession, session_ids: list[str]) -> None:
+    """Remove what the queue keeps about sessions being deleted, in the deleting transaction.
+
+    Embedded and manual runners keep nothing but the session row. Procrastinate keeps a job row per deferral
+    (failed ones for good) holding the session id in ``args`` and ``queueing_lock``: those rows are deleted with
+    their events, except the job a worker is running right now, whose row procrastinate still has to finish; it
+    is anonymised (the worker finds the session gone and stores nothing).
+    """
+    if not session_ids or db.get_bind().dialect.name != "postgresql":
+        return
+    if db.execute(text("SELECT to_regclass('procrastinate_jobs')")).scalar() is None:
+        return
+    from server.processing.worker import PROCESS_TASK
+
+    mine = "task_name = :task AND args->>'session_id' = ANY(:ids)"
+    params = {"task": PROCESS_TASK, "ids": list(session_ids)}
+    # Delete first: a job fetched meanwhile is "doing" when the DELETE gets its row, and the UPDATE catches it.
+    db.execute(text(f"DELETE FROM procrastinate_jobs WHERE {mine} AND status <> 'doing'"), params)
+    db.execute(text(f"UPDATE procrastinate_jobs SET args = jsonb_build_object('session_id', ''), "
+                    f"queueing_lock = NULL WHERE {mine}"), params)

@@ -2,24 +2,30 @@
 
 Idempotency key: (session, sensor_id, seq). The content is compared by :func:`server.codec.content_sha256` of
 the parsed values, so a replay that differs only in JSON formatting or compression is the same batch.
+
+The hot path is one statement (:func:`insert_batch`): the session's status, the caller's access and the unique key
+are checked by the INSERT itself; the stored batch is read back only when nothing was inserted.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from sqlalchemy import select, update
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy import ColumnElement, Connection, Executable, bindparam, select, update
+from sqlalchemy.dialects.postgresql import insert as pg_insert
+from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 from sqlalchemy.orm import Session as DbSession
 
 from pipeline.params import WALKING
 from server.codec import content_sha256, encode_samples
 from server.enums import SessionStatus
-from server.errors import conflict, invalid
+from server.errors import conflict, invalid, not_found
 from server.sessions.models import Batch, Session, SessionSensor
 from server.sessions.schemas import BatchIn
+from server.utc import utcnow
 
 log = logging.getLogger("gaitmon.ingest")
 
@@ -76,70 +82,135 @@ def still_in_status(db: DbSession, session_id: str, statuses: tuple[str, ...]) -
     return result.rowcount == 1
 
 
-def _find_batch(db: DbSession, session_id: str, sensor_id: str, seq: int) -> Batch | None:
-    return db.scalar(select(Batch).where(Batch.session_id == session_id, Batch.sensor_id == sensor_id,
-                                         Batch.seq == seq))
+@dataclass(frozen=True)
+class PreparedBatch:
+    """A validated batch in its stored form (what the INSERT writes)."""
+
+    sensor_id: str
+    seq: int
+    t0_ms: float
+    n_samples: int
+    t_first_ms: float
+    t_last_ms: float
+    content_sha256: str
+    t_ms: bytes
+    gyro: bytes
+    acc: bytes
 
 
-def _replay_outcome(existing: Batch, digest: str) -> IngestOutcome:
-    if existing.content_sha256 != digest:
-        raise conflict(f"Batch seq {existing.seq} of sensor {existing.sensor_id!r} was already received with "
-                       f"different content", slug="batch-conflict")
-    return IngestOutcome(created=False, sensor_id=existing.sensor_id, seq=existing.seq, samples=existing.n_samples)
+def sensor_rates(session: Session) -> dict[str, float]:
+    """The declared sensors of a session and their sample rates (Hz)."""
+    return {s.sensor_id: s.sample_rate_hz for s in session.sensors}
 
 
-def ingest_batch(db: DbSession, session: Session, body: BatchIn, *, max_samples: int) -> IngestOutcome:
-    """Validate and store one batch, committed before returning (the 201 means the data is durable).
-
-    ``session`` should be read with a row lock so a concurrent /complete cannot slip in between the status
-    check and the insert. A rejected batch raises :class:`ProblemError` and changes nothing.
-    """
-    sensor = next((s for s in session.sensors if s.sensor_id == body.sensor_id), None)
-    if sensor is None:
-        declared = ", ".join(s.sensor_id for s in session.sensors)
+def prepare_batch(rates_hz: dict[str, float], body: BatchIn, *, max_samples: int) -> PreparedBatch:
+    """Validate a batch against its session's declared sensors (422 problems) and encode it for storage."""
+    rate_hz = rates_hz.get(body.sensor_id)
+    if rate_hz is None:
+        declared = ", ".join(sorted(rates_hz))
         raise invalid("sensor_id", f"sensor {body.sensor_id!r} is not declared for this session ({declared})")
     n = len(body.gyro)
     if n > max_samples:
         raise invalid("gyro", f"{n} samples exceed the limit of {max_samples} per batch")
-    t_ms = sample_times_ms(body, sensor.sample_rate_hz)
-    validate_times(t_ms, body.t0_ms, sensor.sample_rate_hz)
+    t_ms = sample_times_ms(body, rate_hz)
+    validate_times(t_ms, body.t0_ms, rate_hz)
     gyro = np.asarray(body.gyro, dtype=np.float64)
     acc = np.asarray(body.acc, dtype=np.float64)
-    digest = content_sha256(t_ms, gyro, acc)
+    t_b, g_b, a_b = encode_samples(t_ms, gyro, acc)
+    return PreparedBatch(sensor_id=body.sensor_id, seq=body.seq, t0_ms=body.t0_ms, n_samples=n,
+                         t_first_ms=float(t_ms[0]), t_last_ms=float(t_ms[-1]),
+                         content_sha256=content_sha256(t_ms, gyro, acc), t_ms=t_b, gyro=g_b, acc=a_b)
+
+
+_INSERTED_COLUMNS = ("sensor_id", "seq", "t0_ms", "n_samples", "t_first_ms", "t_last_ms", "content_sha256", "t_ms",
+                     "gyro", "acc", "created_at")
+
+
+def guarded_insert(dialect: str, guards: Sequence[ColumnElement[bool]] = ()) -> Executable:
+    """``INSERT INTO batches SELECT <values> FROM sessions WHERE id = :b_session_id AND status = 'receiving' AND
+    <guards> [FOR SHARE] ON CONFLICT DO NOTHING RETURNING id``: the status check, the caller's checks and the
+    store in one statement. Values are bound by name (:func:`insert_params`), so the statement is built once."""
+    cols = Batch.__table__.c
+    values = [Session.id, *(bindparam(f"b_{c}", type_=cols[c].type) for c in _INSERTED_COLUMNS)]
+    source = select(*values).where(Session.id == bindparam("b_session_id"),
+                                   Session.status == SessionStatus.receiving, *guards)
+    if dialect == "postgresql":
+        # A share lock for the instant of the insert: a /complete (FOR UPDATE, then its status write) either
+        # committed before, and the re-checked row is no longer "receiving" (nothing inserted), or waits for this
+        # commit and counts the batch. Uploads of the session's other sensors share the lock.
+        source = source.with_for_update(read=True, of=Session)
+        insert = pg_insert
+    else:
+        # SQLite takes the database write lock when the INSERT starts, before it reads the session row.
+        insert = sqlite_insert
+    return (insert(Batch).from_select([cols.session_id, *(cols[c] for c in _INSERTED_COLUMNS)], source)
+            .on_conflict_do_nothing(index_elements=[cols.session_id, cols.sensor_id, cols.seq])
+            .returning(cols.id))
+
+
+def insert_params(session_id: str, p: PreparedBatch) -> dict[str, object]:
+    """The values :func:`guarded_insert` binds."""
+    return {"b_session_id": session_id, "b_sensor_id": p.sensor_id, "b_seq": p.seq, "b_t0_ms": p.t0_ms,
+            "b_n_samples": p.n_samples, "b_t_first_ms": p.t_first_ms, "b_t_last_ms": p.t_last_ms,
+            "b_content_sha256": p.content_sha256, "b_t_ms": p.t_ms, "b_gyro": p.gyro, "b_acc": p.acc,
+            "b_created_at": utcnow()}
+
+
+_UNGUARDED: dict[str, Executable] = {}
+
+
+def insert_batch(conn: Connection, stmt: Executable, params: dict[str, object]) -> bool:
+    """Run a :func:`guarded_insert`; True when it stored the batch. The caller commits, or runs it on an
+    autocommit connection (then the 201 it allows is durable when this returns)."""
+    return bool(conn.execute(stmt, params).all())
+
+
+def _find_batch(db: DbSession, session_id: str, sensor_id: str, seq: int) -> tuple[str, int] | None:
+    row = db.execute(select(Batch.content_sha256, Batch.n_samples).where(
+        Batch.session_id == session_id, Batch.sensor_id == sensor_id, Batch.seq == seq)).first()
+    return None if row is None else (row[0], row[1])
+
+
+def explain_refusal(db: DbSession, session_id: str, p: PreparedBatch) -> IngestOutcome | None:
+    """Why a guarded insert stored nothing: an identical replay (outcome), other content or a session that is not
+    receiving (409); None when neither holds (a guard failed, or the conflicting row was gone again)."""
     # A retry of a batch whose answer was lost stays a 200 (or 409 for other content) even after /complete, so
     # the app never mistakes a stored batch for a lost one; only NEW batches need a receiving session.
-    existing = _find_batch(db, session.id, sensor.sensor_id, body.seq)
-    if existing is not None:
-        return _replay_outcome(existing, digest)
-    if session.status != SessionStatus.receiving:
-        raise conflict(f"Session is {session.status}; uploads are accepted only while it is receiving",
-                       slug="session-not-receiving")
-
-    # Re-check the status with a write in this transaction: on SQLite this takes the write lock (a SELECT does
-    # not), on PostgreSQL the row lock, so a /complete either commits before (-> 409) or waits for this batch.
-    if not still_in_status(db, session.id, (SessionStatus.receiving,)):
-        db.rollback()
-        raise conflict("Session was completed; uploads are accepted only while it is receiving",
-                       slug="session-not-receiving")
-    existing = _find_batch(db, session.id, sensor.sensor_id, body.seq)
+    existing = _find_batch(db, session_id, p.sensor_id, p.seq)
     if existing is not None:
         db.rollback()
-        return _replay_outcome(existing, digest)
+        if existing[0] != p.content_sha256:
+            raise conflict(f"Batch seq {p.seq} of sensor {p.sensor_id!r} was already received with "
+                           f"different content", slug="batch-conflict")
+        return IngestOutcome(created=False, sensor_id=p.sensor_id, seq=p.seq, samples=existing[1])
+    status = db.scalar(select(Session.status).where(Session.id == session_id))
+    db.rollback()
+    if status is not None and status != SessionStatus.receiving:
+        raise conflict(f"Session is {status}; uploads are accepted only while it is receiving",
+                       slug="session-not-receiving")
+    return None
 
-    t_b, g_b, a_b = encode_samples(t_ms, gyro, acc)
-    db.add(Batch(session_id=session.id, sensor_id=sensor.sensor_id, seq=body.seq, t0_ms=body.t0_ms, n_samples=n,
-                 t_first_ms=float(t_ms[0]), t_last_ms=float(t_ms[-1]), content_sha256=digest,
-                 t_ms=t_b, gyro=g_b, acc=a_b))
-    try:
+
+def ingest_batch(db: DbSession, session: Session, body: BatchIn, *, max_samples: int) -> IngestOutcome:
+    """Validate and store one batch of a session the caller may write to, committed before returning (the 201
+    means the data is durable). A rejected batch raises :class:`ProblemError` and changes nothing.
+
+    The status is checked by the insert itself, so a stale ``session`` object cannot let a batch in after a
+    concurrent /complete committed.
+    """
+    p = prepare_batch(sensor_rates(session), body, max_samples=max_samples)
+    dialect = db.get_bind().dialect.name
+    stmt = _UNGUARDED.get(dialect)
+    if stmt is None:
+        stmt = _UNGUARDED[dialect] = guarded_insert(dialect)
+    if insert_batch(db.connection(), stmt, insert_params(session.id, p)):
         db.commit()
-    except IntegrityError:
-        # The same (sensor, seq) was inserted concurrently: answer as for a replay.
-        db.rollback()
-        existing = _find_batch(db, session.id, sensor.sensor_id, body.seq)
-        if existing is None:
-            raise
-        return _replay_outcome(existing, digest)
-    return IngestOutcome(created=True, sensor_id=sensor.sensor_id, seq=body.seq, samples=n)
+        return IngestOutcome(created=True, sensor_id=p.sensor_id, seq=p.seq, samples=p.n_samples)
+    db.rollback()
+    outcome = explain_refusal(db, session.id, p)
+    if outcome is None:
+        raise not_found("Session")  # deleted between the read of ``session`` and the insert
+    return outcome
 
 
 def _sensor_received(rows: list, fs_hz: float) -> dict:

@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import gzip
 import json
+import time
 import zlib
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
-from sqlalchemy import func, select
+from sqlalchemy import event, func, select, update
 
 from server.body_limit import _GzipInflater, _Reject
 from server.config import Settings
@@ -228,24 +230,61 @@ def test_upload_after_complete_is_409_and_complete_is_idempotent(api: Api) -> No
     assert _batches(api) == 1
 
 
-def test_concurrent_identical_insert_rereads(api: Api, monkeypatch: pytest.MonkeyPatch) -> None:
-    """The unique key decides a race: the loser's IntegrityError becomes 200 (same) or 409 (different)."""
+@contextmanager
+def _statements(api: Api) -> Iterator[list[str]]:
+    seen: list[str] = []
+
+    def record(_conn, _cursor, statement, _params, _context, _many) -> None:  # noqa: ANN001
+        seen.append(" ".join(statement.split()).upper())
+
+    event.listen(api.engine, "before_cursor_execute", record)
+    try:
+        yield seen
+    finally:
+        event.remove(api.engine, "before_cursor_execute", record)
+
+
+def test_new_batch_is_one_statement_and_replay_checks_only_after_the_insert(api: Api) -> None:
+    """A new batch from a known token costs one INSERT (status, access, revocation and the key checked by it);
+    the stored batch is read back only when that INSERT stored nothing."""
     _, dev, sess = api.setup_device_session()
-    body = batch_body("L-thigh", 0, n=10)
-    assert api.upload(dev, sess["id"], body).status_code == 201
-    real = ingest._find_batch
-    calls = {"n": 0}
+    assert api.upload(dev, sess["id"], batch_body("L-thigh", 0, n=10)).status_code == 201  # warms the caches
+    with _statements(api) as seen:
+        r = api.upload(dev, sess["id"], batch_body("L-thigh", 1, n=10))
+    assert r.status_code == 201, r.text
+    queries = [q for q in seen if not q.startswith(("SELECT 1", "BEGIN", "COMMIT", "ROLLBACK"))]
+    assert len(queries) == 1 and queries[0].startswith("INSERT INTO BATCHES"), seen
+    with _statements(api) as seen:
+        r = api.upload(dev, sess["id"], batch_body("L-thigh", 1, n=10))
+    assert r.status_code == 200 and r.json()["duplicate"] is True
+    assert seen.index(next(q for q in seen if q.startswith("INSERT INTO BATCHES"))) < seen.index(
+        next(q for q in seen if q.startswith("SELECT BATCHES.CONTENT_SHA256")))
+    assert api.upload(dev, sess["id"], batch_body("L-thigh", 1, n=10, seed=3)).status_code == 409
+    assert _batches(api) == 2
 
-    def miss_first(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202 - both pre-checks "miss" the other insert
-        calls["n"] += 1
-        return None if calls["n"] <= 2 else real(*args, **kwargs)
 
-    monkeypatch.setattr(ingest, "_find_batch", miss_first)
-    r = api.upload(dev, sess["id"], body)
-    assert r.status_code == 200 and r.json()["duplicate"] is True and calls["n"] == 3
-    calls["n"] = 0
-    changed = dict(body, acc=[[0.0, 0.0, 0.0]] * 10)
-    assert api.upload(dev, sess["id"], changed).status_code == 409 and calls["n"] == 3
+def test_revoked_token_is_refused_at_once_even_with_its_identity_cached(api: Api) -> None:
+    """The token's identity is remembered per process, its revocation is not: the next upload is 401, a replay
+    of a stored batch too, and nothing is stored."""
+    clin, dev, sess = api.setup_device_session()
+    assert api.upload(dev, sess["id"], batch_body("L-thigh", 0)).status_code == 201
+    me = api.client.get("/v1/me", headers=bearer(dev)).json()
+    r = api.client.delete(f"/v1/tokens/{me['token_id']}", headers=bearer(clin))
+    assert r.status_code == 204, r.text
+    for seq in (1, 0):
+        r = api.upload(dev, sess["id"], batch_body("L-thigh", seq))
+        assert r.status_code == 401 and r.headers["content-type"].startswith("application/problem+json")
+    assert _batches(api) == 1
+
+
+def test_other_patients_device_cannot_upload_into_a_session(api: Api) -> None:
+    """Access is part of the INSERT: another patient's device gets 404 and stores nothing."""
+    clin, dev, sess = api.setup_device_session()
+    other = api.patient(clin, display_name="other")
+    tok = api.client.post(f"/v1/patients/{other['id']}/device-tokens", headers=bearer(clin)).json()["token"]
+    assert api.upload(tok, sess["id"], batch_body("L-thigh", 0)).status_code == 404
+    assert api.upload(dev, sess["id"], batch_body("L-thigh", 0)).status_code == 201
+    assert api.upload(tok, sess["id"], batch_body("L-thigh", 1)).status_code == 404
     assert _batches(api) == 1
 
 
@@ -265,6 +304,62 @@ def test_batch_racing_complete_is_refused_not_stored(api: Api) -> None:
             ingest.ingest_batch(db, stale, BatchIn(**batch_body("L-thigh", 1)), max_samples=1000)
     assert exc.value.status == 409
     assert _batches(api) == 1
+
+
+def test_upload_waiting_for_a_completing_session_is_refused_not_stored(api: Api) -> None:
+    """An upload arriving while /complete holds the session (row lock on PostgreSQL, write lock on SQLite) waits,
+    then sees the new status: 409, and the completed session gains no sample."""
+    _, dev, sess = api.setup_device_session()
+    assert api.upload(dev, sess["id"], batch_body("L-thigh", 0)).status_code == 201
+    sm = api.client.app.state.sessionmaker  # type: ignore[attr-defined]
+    with sm() as db, ThreadPoolExecutor(1) as pool:
+        assert ingest.still_in_status(db, sess["id"], ("receiving",))
+        pending = pool.submit(api.upload, dev, sess["id"], batch_body("L-thigh", 1))
+        time.sleep(0.5)
+        assert not pending.done()
+        db.execute(update(Session).where(Session.id == sess["id"]).values(status="queued"))
+        db.commit()
+        r = pending.result(timeout=30)
+    assert r.status_code == 409 and r.json()["type"].endswith("session-not-receiving")
+    assert _batches(api) == 1
+
+
+def test_uploads_racing_complete_never_add_a_batch_after_it(api: Api) -> None:
+    """Four sensors' uploads in flight while /complete runs: once its 202 is back, the stored batches never change,
+    and every stored batch was acknowledged 201 (none refused yet stored)."""
+    clin, _, _ = api.setup_device_session()
+    patient = api.patient(clin)
+    dev = api.device(clin, patient["id"])
+    sensors = [{"sensor_id": f"S{i}", "leg": leg, "segment": seg, "sample_rate_hz": 100.0}
+               for i, (leg, seg) in enumerate([("left", "thigh"), ("left", "shank"), ("right", "thigh"),
+                                                ("right", "shank")])]
+    sid = api.session(dev, patient["id"], sensors=sensors)["id"]
+    for s in sensors:  # warms the caches so the race is with the one-statement path
+        assert api.upload(dev, sid, batch_body(s["sensor_id"], 0, n=20)).status_code == 201
+    acked: dict[str, set[int]] = {s["sensor_id"]: {0} for s in sensors}
+
+    def sender(sensor_id: str) -> None:
+        for seq in range(1, 40):
+            code = api.upload(dev, sid, batch_body(sensor_id, seq, n=20)).status_code
+            assert code in (201, 409)
+            if code == 201:
+                acked[sensor_id].add(seq)
+            else:
+                return
+
+    with ThreadPoolExecutor(5) as pool:
+        senders = [pool.submit(sender, s["sensor_id"]) for s in sensors]
+        time.sleep(0.2)
+        r = api.client.post(f"/v1/sessions/{sid}/complete", headers=bearer(dev))
+        assert r.status_code == 202
+        at_complete = _batches(api)
+        for f in senders:
+            f.result(timeout=60)
+    assert _batches(api) == at_complete
+    with api.engine.connect() as conn:
+        stored = conn.execute(select(Batch.sensor_id, Batch.seq).where(Batch.session_id == sid)).all()
+    assert {(a, b) for a, b in stored} == {(k, q) for k, seqs in acked.items() for q in seqs}
+    assert sum(r.json()["received"][k]["batches"] for k in acked) == at_complete
 
 
 def test_concurrent_replays_store_once(api: Api) -> None:

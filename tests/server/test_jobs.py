@@ -15,6 +15,7 @@ from datetime import UTC, datetime, timedelta
 import numpy as np
 import pytest
 from sqlalchemy import func, select, update
+from sqlalchemy.exc import OperationalError
 
 from pipeline.types import LegResult, SessionResult, StrideMetrics
 from server.codec import content_sha256, decode_trace, encode_samples, encode_trace
@@ -256,13 +257,50 @@ def test_stalled_processing_is_recovered(sm) -> None:  # noqa: ANN001
     assert jobs.recover_stalled(sm, stall_seconds=300, everything=True) == [live]
 
 
-def test_crash_loop_ends_failed(sm) -> None:  # noqa: ANN001
+def test_interrupted_three_times_is_still_processed(sm) -> None:  # noqa: ANN001
+    """Workers killed mid-session three times (the old cap) and more: the intact data are processed."""
     sid = make_session(sm)
-    for _ in range(jobs.MAX_ATTEMPTS):
-        assert jobs.claim(sm, sid, "crashing")
-        assert jobs.recover_stalled(sm, stall_seconds=0, everything=True) in ([sid], [])
+    for _ in range(4):
+        assert jobs.claim(sm, sid, "killed")
+        assert jobs.recover_stalled(sm, stall_seconds=0, everything=True) == [sid]
+    assert get(sm, sid).status == "queued"
+    assert jobs.run_queued(sm, processor=data_processor()) == 1
     row = get(sm, sid)
-    assert row.status == "failed" and "interrupted 3 times" in row.error
+    assert (row.status, row.error, row.attempts) == ("done", None, 5) and n_strides(sm, sid) == 5
+
+
+def test_crash_loop_ends_failed_saying_why(sm) -> None:  # noqa: ANN001
+    sid = make_session(sm)
+    for i in range(jobs.MAX_INTERRUPTIONS):
+        assert jobs.claim(sm, sid, "crashing")
+        expected = [sid] if i < jobs.MAX_INTERRUPTIONS - 1 else []
+        assert jobs.recover_stalled(sm, stall_seconds=0, everything=True) == expected
+    row = get(sm, sid)
+    assert row.status == "failed" and row.error == jobs.interrupted_error(jobs.MAX_INTERRUPTIONS)
+    assert f"interrupted {jobs.MAX_INTERRUPTIONS} times" in row.error and "intact" in row.error
+
+
+def _database_away(streams, activity: str, calibration=None) -> SessionResult:  # noqa: ANN001
+    raise OperationalError("SELECT 1", {}, Exception("connection to server was lost"))
+
+
+def test_database_errors_interrupt_and_pipeline_errors_fail(sm) -> None:  # noqa: ANN001
+    """An unavailable database is an interruption (queued again, up to the cap); a pipeline error is final."""
+    sid = make_session(sm)
+    assert jobs.process_one(sm, sid, processor=_database_away) == "interrupted"
+    assert (get(sm, sid).status, get(sm, sid).worker_id) == ("queued", None)
+    # run_queued leaves a session it saw interrupted to its next call instead of spinning on it.
+    assert jobs.run_queued(sm, processor=_database_away) == 1
+    assert get(sm, sid).status == "queued" and get(sm, sid).attempts == 2
+    assert jobs.run_queued(sm, processor=data_processor()) == 1
+    assert get(sm, sid).status == "done" and n_strides(sm, sid) == 5
+    capped = make_session(sm, seed=3)
+    outcomes = [jobs.process_one(sm, capped, processor=_database_away) for _ in range(jobs.MAX_INTERRUPTIONS)]
+    assert outcomes == ["interrupted"] * (jobs.MAX_INTERRUPTIONS - 1) + ["failed"]
+    assert get(sm, capped).error == jobs.interrupted_error(jobs.MAX_INTERRUPTIONS)
+    broken = make_session(sm, seed=4)
+    assert jobs.process_one(sm, broken, processor=failing_processor) == "failed"
+    assert get(sm, broken).attempts == 1 and "sensor placement" in get(sm, broken).error
 
 
 def test_worker_that_lost_its_claim_stores_nothing(sm) -> None:  # noqa: ANN001
@@ -401,3 +439,57 @@ def test_procrastinate_recovery_requeues_and_frees_dead_jobs(pg_settings: Settin
         assert get(sm, stalled).status == "done" and get(sm, orphan).status == "done"
     finally:
         sm.kw["bind"].dispose()
+
+
+def _rows_naming(db, value: str) -> dict[str, int]:  # noqa: ANN001
+    """Per table, the rows in which ``value`` appears in any column (every table of the database)."""
+    from sqlalchemy import inspect, text
+
+    found = {}
+    for table in inspect(db.get_bind()).get_table_names():
+        rows = db.execute(text(f'SELECT * FROM "{table}"')).all()
+        hits = sum(1 for r in rows if value in repr(tuple(r)))
+        if hits:
+            found[table] = hits
+    return found
+
+
+def test_deleting_a_patient_leaves_no_row_naming_their_sessions(settings: Settings, sm) -> None:  # noqa: ANN001
+    """Sessions, raw data, results and, on PostgreSQL, procrastinate's job rows (waiting, failed, running) of a
+    deleted patient are gone or anonymised; another patient's job rows stay."""
+    from sqlalchemy import text
+
+    from server.patients import service as patients
+    from server.processing import worker
+
+    pg = settings.resolved_database_url.startswith("postgresql")
+    gone, kept = make_session(sm, seed=1), make_session(sm, seed=2)
+    jobs.run_queued(sm, processor=data_processor())
+    assert n_strides(sm, gone) == 5
+    if pg:
+        url = settings.resolved_database_url
+        worker.apply_schema(url)
+        try:
+            app = worker._api_app(url)
+            for sid in (gone, gone, gone, kept):
+                app.configure_task(worker.PROCESS_TASK).defer(session_id=sid)
+        finally:
+            worker.close_api_apps()
+        with sm() as db:
+            ids = db.execute(text("SELECT id FROM procrastinate_jobs WHERE args->>'session_id' = :s ORDER BY id"),
+                             {"s": gone}).scalars().all()
+            db.execute(text("UPDATE procrastinate_jobs SET status = 'failed' WHERE id = :i"), {"i": ids[0]})
+            db.execute(text("UPDATE procrastinate_jobs SET status = 'doing' WHERE id = :i"), {"i": ids[1]})
+            db.commit()
+    with sm() as db:
+        assert _rows_naming(db, gone)
+        patient_id = db.get(Session, gone).patient_id
+        patients.delete_patient(db, patient_id)
+        db.commit()
+    with sm() as db:
+        assert _rows_naming(db, gone) == {}
+        assert _rows_naming(db, patient_id) == {}
+        assert db.get(Session, kept) is not None and n_strides(sm, kept) == 5
+        if pg:
+            statuses = db.execute(text("SELECT status, args->>'session_id' FROM procrastinate_jobs ORDER BY id")).all()
+            assert sorted(tuple(r) for r in statuses) == [("doing", ""), ("todo", kept)]
