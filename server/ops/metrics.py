@@ -4,7 +4,7 @@
   the route is the template (``/v1/sessions/{session_id}/batches``), never the raw path, so ids do not multiply
   the series; paths no route matches count as ``<unmatched>``.
 - ``gaitmon_batches_total{result=stored|duplicate}``, ``gaitmon_samples_ingested_total``.
-- ``gaitmon_jobs_total{outcome=done|failed|lost}``, ``gaitmon_job_duration_seconds{outcome}``: counted by the
+- ``gaitmon_jobs_total{outcome=done|failed|interrupted|lost}``, ``gaitmon_job_duration_seconds{outcome}``: counted by the
   process that runs the job (the API process with the embedded runner, else each ``gaitmon worker``).
 - ``gaitmon_sessions_in_queue{status=queued|processing}``: read from the database at every scrape, so it is the
   same whichever process answers.
@@ -70,7 +70,7 @@ def batch_ingested(samples: int, *, stored: bool) -> None:
 
 
 def job_finished(outcome: str, seconds: float) -> None:
-    """Count one processing job that ran (outcome "done", "failed" or "lost")."""
+    """Count one processing job that ran (outcome "done", "failed", "interrupted" or "lost")."""
     JOBS.labels(outcome=outcome).inc()
     JOB_DURATION.labels(outcome=outcome).observe(seconds)
 
