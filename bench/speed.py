@@ -87,6 +87,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--profile-top", type=int, default=15, help="0: no profile")
     ap.add_argument("--lengths", help="session lengths for the scaling table, e.g. 10m,1h,12h")
     ap.add_argument("--pool", type=int, default=1, help="--lengths: distinct 10-minute pieces, repeated")
+    ap.add_argument("--repeat", type=int, default=3, help="--lengths: runs per length and program (median CPU)")
     ap.add_argument("--chunk-s", type=float, help="--lengths: gaitmon's chunk length [s] (default: the parameter tree)")
     ap.add_argument("--child", choices=("gaitmon", "reference"), help=argparse.SUPPRESS)
     ap.add_argument("--data", help=argparse.SUPPRESS)
@@ -145,15 +146,16 @@ def write_session(path: Path, length_s: float, fs: float, seed: int, pool: int) 
     ``<id>.gyr`` / ``<id>.acc`` float32 (N, 3). Pieces are simulated with aligned mountings and no clock error,
     then given one random mounting and timestamp offset per sensor, so the session looks like one recording."""
     rng = np.random.default_rng([seed, 99])
-    n_pieces = max(1, int(np.ceil(length_s / PIECE_S - 1e-9)))
-    meta: dict = {"length_s": n_pieces * PIECE_S, "pieces": n_pieces, "sensors": {}}
+    piece_s = min(PIECE_S, length_s)
+    n_pieces = max(1, int(np.ceil(length_s / piece_s - 1e-9)))
+    meta: dict = {"length_s": n_pieces * piece_s, "pieces": n_pieces, "sensors": {}}
     rot: dict[str, np.ndarray] = {}
     offset: dict[str, float] = {}
     sims: dict[int, list] = {}
     for k in range(n_pieces):
         if k % pool not in sims:
             sims[k % pool] = simulate_session(SimConfig(
-                pattern="normal", fs_hz=fs, seed=seed + k % pool, duration_s=PIECE_S, activities=("standing",),
+                pattern="normal", fs_hz=fs, seed=seed + k % pool, duration_s=piece_s, activities=("standing",),
                 bout_strides=40, mounting="aligned", sync_offset_ms=0.0, clock_drift_ppm=0.0)).streams
         for s in sims[k % pool]:
             if s.sensor_id not in rot:
@@ -163,8 +165,8 @@ def write_session(path: Path, length_s: float, fs: float, seed: int, pool: int) 
                 meta["sensors"][s.sensor_id] = {"leg": s.leg, "segment": s.segment, "fs_hz": s.fs_hz,
                                                 "gyro_unit": s.gyro_unit, "acc_unit": s.acc_unit, "n": 0}
             r = rot[s.sensor_id]
-            t = s.t_s + k * PIECE_S + offset[s.sensor_id]
-            t = t[t > k * PIECE_S]  # strictly after the previous piece's last sample
+            t = s.t_s + k * piece_s + offset[s.sensor_id]
+            t = t[t > k * piece_s]  # strictly after the previous piece's last sample
             m = t.size
             with open(path / f"{s.sensor_id}.t", "ab") as f:
                 f.write(t.astype(np.float64).tobytes())
@@ -268,6 +270,16 @@ def _child(which: str, path: Path, estimator: str, chunk_s: float | None) -> dic
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def _repeated(which: str, path: Path, estimator: str, chunk_s: float | None, repeat: int) -> dict:
+    """``repeat`` child runs: median CPU time (a shared machine's noise), largest peak RSS."""
+    runs = [_child(which, path, estimator, chunk_s) for _ in range(max(1, repeat))]
+    bad = [r for r in runs if "error" in r]
+    if bad:
+        return bad[0]
+    return {"cpu_s": float(np.median([r["cpu_s"] for r in runs])), "rss_mb": max(r["rss_mb"] for r in runs),
+            "strides": runs[0]["strides"], "runs": len(runs)}
+
+
 def scaling(args: argparse.Namespace) -> int:
     """The per-length table: gaitmon and the reference on the same files, one subprocess per run."""
     rows = []
@@ -276,7 +288,8 @@ def scaling(args: argparse.Namespace) -> int:
             _log(f"{text}: writing the session")
             meta = write_session(Path(tmp), parse_length(text), args.fs, args.seed, args.pool)
             minutes = meta["length_s"] / 60.0
-            runs = {w: _child(w, Path(tmp), args.estimator, args.chunk_s) for w in ("gaitmon", "reference")}
+            runs = {w: _repeated(w, Path(tmp), args.estimator, args.chunk_s, args.repeat)
+                    for w in ("gaitmon", "reference")}
         _log(f"{text}: {runs}")
         rows.append((text, minutes, meta["pieces"], runs))
     load = os.getloadavg()
@@ -287,7 +300,8 @@ def scaling(args: argparse.Namespace) -> int:
           f"seed(s), repeated); gaitmon chunk {chunk:g} s. gaitmon reads the files window by window "
           "(`pipeline.long_sessions`); the reference "
           "(`bench/reference_go_seel.py`: Seel 2014 axes by Gauss-Newton on every sample, Allseits 2018 GO) "
-          "holds the whole session in memory. CPU s: the processing call; peak RSS: the subprocess.\n")
+          "holds the whole session in memory. CPU s: the processing call, median of "
+          f"{args.repeat} subprocess runs; peak RSS: the largest of those runs.\n")
     print("| length | gaitmon CPU s | gaitmon CPU s/min | gaitmon peak RSS MB | reference CPU s | "
           "reference CPU s/min | reference peak RSS MB | CPU gaitmon/reference | strides gaitmon / reference |")
     print("|---|---|---|---|---|---|---|---|---|")
@@ -299,7 +313,7 @@ def scaling(args: argparse.Namespace) -> int:
             continue
         per_min = g["cpu_s"] / minutes
         base = per_min if base is None else base
-        print(f"| {text} | {g['cpu_s']:.2f} | {per_min:.4f} | {g['rss_mb']:.0f} | {r['cpu_s']:.2f} | "
+        print(f"| {text} | {g['cpu_s']:.3f} | {per_min:.4f} | {g['rss_mb']:.0f} | {r['cpu_s']:.3f} | "
               f"{r['cpu_s'] / minutes:.4f} | {r['rss_mb']:.0f} | {g['cpu_s'] / r['cpu_s']:.2f} | "
               f"{g['strides']} / {r['strides']} |")
     if base is not None and len(rows) > 1:

@@ -89,9 +89,10 @@ def process_source(source: StreamSource, activity: str = "walking", estimator: s
     """:func:`pipeline.session.process_session` of the whole source, chunk by chunk when it spans more than
     ``chunking.chunk_s`` (None: ``params.long_sessions``, the activity's preset without ``params``).
 
-    Chunked results have the same type: strides from every chunk (each once, renumbered), a trace decimated to at
-    most ``trace_max_fs_hz`` on one grid per leg, the leg diagnostics of the chunk with most strides (counts over
-    the session). A chunk the pipeline cannot use (no samples, one segment missing) is a warning, not a failure.
+    Chunked results have the same type: strides from every chunk (each once, renumbered), one trace per leg on one
+    grid (at most ``trace_max_fs_hz`` beyond ``full_rate_trace_s``), the leg diagnostics of the chunk with most
+    strides (counts over the session). A chunk the pipeline cannot use (no samples, one segment missing) is a
+    warning, not a failure.
     """
     lp = chunking if chunking is not None else (params if params is not None else preset(activity)).long_sessions
     t0, t1 = source.span_s()
@@ -216,7 +217,8 @@ class _Merged:
                 else:
                     leg.gaps.append((a, b))
             if leg.trace is None:
-                leg.trace = _LegTrace(self.t0, self.t1, lr.fs_hz, self.params.trace_max_fs_hz)
+                full = self.t1 - self.t0 <= self.params.full_rate_trace_s
+                leg.trace = _LegTrace(self.t0, self.t1, lr.fs_hz, lr.fs_hz if full else self.params.trace_max_fs_hz)
             leg.trace.add(lr, own)
             n_own = sum(1 for s in lr.strides if own[0] <= s.t_start_s < own[1])
             leg.activities[lr.activity] += n_own + 1e-6  # a chunk without strides still says what the leg was

@@ -350,7 +350,7 @@ class LongSessionParams:
     """Longest session [s] processed in one block (shorter ones give exactly :func:`process_session`'s output), and
     the length of the owned part of each chunk of a longer one. Thirty minutes: hundreds of strides per chunk for
     the axis, centre and standing fits (one walking minute already gives the axis fit its 1000 samples), the
-    processing of one chunk stays near 200 MB, and the overlap below adds only ~2 % to the work."""
+    processing of one chunk stays under 300 MB (bench/speed.py), and the overlap below adds only ~2 % to the work."""
     overlap_s: float = 20.0
     """Data [s] read on either side of a chunk's owned part: a stride (at most 3 s, ``PhaseParams.max_period_s``)
     starting just before the edge ends inside it, and the running medians over strides (11 and 15 strides,
@@ -360,10 +360,13 @@ class LongSessionParams:
     """Strides of two chunks starting closer than this [s] are one stride (kept once, from the earlier chunk): the
     same heel strike found in both moves by milliseconds; two real strides of one leg are >= 0.45 s apart
     (``RunningParams.min_stride_s``)."""
+    full_rate_trace_s: float = 3600.0
+    """A chunked session up to this long [s] keeps its knee-angle trace at the sensors' rate (an hour at 100 Hz is
+    0.36 million samples per leg); a longer one is stored at ``trace_max_fs_hz``."""
     trace_max_fs_hz: float = 25.0
-    """The knee-angle trace of a chunked session is kept at most at this rate [Hz] (every k-th sample, k integer):
-    a day at 100 Hz would be 4.3 million samples per leg; 25 Hz still shows every stride's flexion wave (gait
-    content < 6 Hz, Allseits et al. 2018 filter at 6 Hz). Stride metrics are always computed at the full rate."""
+    """Most samples per second [Hz] of the trace of a session longer than ``full_rate_trace_s`` (every k-th sample,
+    k integer): a day at 100 Hz would be 4.3 million samples per leg; 25 Hz still shows every stride's flexion wave
+    (gait content < 6 Hz; Allseits et al. 2018 filter at 6 Hz). Stride metrics are always computed at full rate."""
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from pipeline.types import RawSensorStream, SessionResult
 
 # Three chunks of 4 min: long enough for several 40 s clock-lag windows per chunk (pipeline.sync), short enough
 # for a fast test. The real chunk is 30 min (pipeline.params.LongSessionParams).
-CHUNKING = LongSessionParams(chunk_s=240.0, overlap_s=20.0)
+CHUNKING = LongSessionParams(chunk_s=240.0, overlap_s=20.0, full_rate_trace_s=0.0)
 
 
 class RecordingSource(ArraySource):
@@ -97,6 +97,21 @@ def test_trace_bounded_on_one_grid(runs, sim: SimSession) -> None:  # noqa: ANN0
         assert ok.mean() > 0.8
         assert np.median(np.abs(lr.angle_deg[ok] - ref[ok])) < 1.0
         assert set(np.unique(lr.estimator[ok])) <= {"go", "cf"}
+
+
+def test_trace_at_full_rate_up_to_an_hour(sim: SimSession) -> None:
+    one = process_session(sim.streams)
+    res = process_source(ArraySource(sim.streams), chunking=dataclasses.replace(CHUNKING, full_rate_trace_s=3600.0))
+    for leg in one.legs:
+        lr, full = res.legs[leg], one.legs[leg]
+        assert lr.fs_hz == full.fs_hz
+        assert np.allclose(np.diff(lr.t_s), 1 / lr.fs_hz)
+        # one grid from the session's first sample: a few samples more than the leg's own grid, none fewer
+        assert 0 <= lr.t_s.size - full.t_s.size <= 10
+        ref = np.interp(lr.t_s, full.t_s, full.angle_deg)
+        ok = np.isfinite(ref) & np.isfinite(lr.angle_deg)
+        assert ok.mean() > 0.8
+        assert np.median(np.abs(lr.angle_deg[ok] - ref[ok])) < 1.0
 
 
 def test_shorter_than_a_chunk_is_process_session(sim: SimSession) -> None:

@@ -19,7 +19,7 @@ from server.sessions.models import Session
 from tests.server.test_jobs import STARTED_AT, get, sm  # noqa: F401 - the sm fixture
 from tests.support.seed import add_stream_batches
 
-CHUNKING = LongSessionParams(chunk_s=240.0, overlap_s=20.0)
+CHUNKING = LongSessionParams(chunk_s=240.0, overlap_s=20.0, full_rate_trace_s=0.0)
 
 
 @pytest.fixture(scope="module")
