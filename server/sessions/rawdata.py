@@ -115,7 +115,9 @@ class StoredStreams:
 
     def window(self, t0_s: float, t1_s: float) -> list[RawSensorStream]:
         """Every sensor's samples with ``t0_s <= t < t1_s``; sensors without any are left out."""
-        t0_ms, t1_ms = 1000.0 * t0_s, 1000.0 * t1_s
+        # open ends become the stored span (a database compares finite numbers)
+        t0_ms = max(1000.0 * t0_s, self.span_ms[0] - _WINDOW_MARGIN_MS)
+        t1_ms = min(1000.0 * t1_s, self.span_ms[1] + _WINDOW_MARGIN_MS)
         out = []
         with self.sm() as db:
             for sensor in self.sensors:
