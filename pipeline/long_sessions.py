@@ -32,6 +32,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from pipeline import ALGORITHM_VERSION
+from pipeline.estimators import get_estimator
 from pipeline.params import LongSessionParams, PipelineParams, preset
 from pipeline.session import process_session
 from pipeline.types import KneeCalibration, LegResult, RawSensorStream, SessionResult, StrideMetrics
@@ -94,6 +95,8 @@ def process_source(source: StreamSource, activity: str = "walking", estimator: s
     strides (counts over the session). A chunk the pipeline cannot use (no samples, one segment missing) is a
     warning, not a failure.
     """
+    if estimator != "auto":
+        get_estimator(estimator)  # fail early on an unknown name, not as a warning per chunk
     lp = chunking if chunking is not None else (params if params is not None else preset(activity)).long_sessions
     t0, t1 = source.span_s()
     if t1 - t0 <= lp.chunk_s:
@@ -114,6 +117,7 @@ def process_source(source: StreamSource, activity: str = "walking", estimator: s
         finally:
             del streams
         merged.add(lo, hi, own, res)
+        del res  # the chunk's full-rate arrays; only its strides and trace samples are kept
     return merged.result(activity)
 
 

@@ -125,6 +125,13 @@ def test_shorter_than_a_chunk_is_process_session(sim: SimSession) -> None:
         assert np.array_equal(a.legs[leg].angle_deg, b.legs[leg].angle_deg, equal_nan=True)
 
 
+def test_unknown_estimator_fails_before_any_chunk(sim: SimSession) -> None:
+    src = RecordingSource(sim.streams)
+    with pytest.raises(ValueError, match="estimator"):
+        process_source(src, estimator="nope", chunking=CHUNKING)
+    assert src.asked == []
+
+
 def test_default_chunking_is_the_parameter_tree() -> None:
     assert WALKING.long_sessions.chunk_s >= 600.0
     assert WALKING.long_sessions.overlap_s > WALKING.phases.max_period_s
