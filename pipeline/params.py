@@ -340,6 +340,36 @@ class RunningParams:
 
 
 @dataclass(frozen=True)
+class LongSessionParams:
+    """Sessions longer than one chunk (a day of continuous monitoring) processed chunk by chunk
+    (:mod:`pipeline.long_sessions`): memory bounded by the chunk, time linear in the length. Each chunk is a whole
+    :func:`pipeline.session.process_session` run, so its joint-axis fit (Seel et al. 2014, Eq. 2) keeps the bounded
+    sample budget of :class:`AxesParams` (``max_fit_samples`` over ``fit_chunks``) per chunk."""
+
+    chunk_s: float = 1800.0
+    """Longest session [s] processed in one block (shorter ones give exactly :func:`process_session`'s output), and
+    the length of the owned part of each chunk of a longer one. Thirty minutes: hundreds of strides per chunk for
+    the axis, centre and standing fits (one walking minute already gives the axis fit its 1000 samples), the
+    processing of one chunk stays under 300 MB (bench/speed.py), and the overlap below adds only ~2 % to the work."""
+    overlap_s: float = 20.0
+    """Data [s] read on either side of a chunk's owned part: a stride (at most 3 s, ``PhaseParams.max_period_s``)
+    starting just before the edge ends inside it, and the running medians over strides (11 and 15 strides,
+    ``FusionParams.offset_smooth``, ``FilterInputParams.bias_smooth_strides``) see the same neighbours as in one
+    block."""
+    dedupe_s: float = 0.2
+    """Strides of two chunks starting closer than this [s] are one stride (kept once, from the earlier chunk): the
+    same heel strike found in both moves by milliseconds; two real strides of one leg are >= 0.45 s apart
+    (``RunningParams.min_stride_s``)."""
+    full_rate_trace_s: float = 3600.0
+    """A chunked session up to this long [s] keeps its knee-angle trace at the sensors' rate (an hour at 100 Hz is
+    0.36 million samples per leg); a longer one is stored at ``trace_max_fs_hz``."""
+    trace_max_fs_hz: float = 25.0
+    """Most samples per second [Hz] of the trace of a session longer than ``full_rate_trace_s`` (every k-th sample,
+    k integer): a day at 100 Hz would be 4.3 million samples per leg; 25 Hz still shows every stride's flexion wave
+    (gait content < 6 Hz; Allseits et al. 2018 filter at 6 Hz). Stride metrics are always computed at full rate."""
+
+
+@dataclass(frozen=True)
 class PipelineParams:
     """One value per stage of the pipeline."""
 
@@ -358,6 +388,7 @@ class PipelineParams:
     fusion: FusionParams = field(default_factory=FusionParams)
     quality: QualityParams = field(default_factory=QualityParams)
     running: RunningParams = field(default_factory=RunningParams)
+    long_sessions: LongSessionParams = field(default_factory=LongSessionParams)
 
 
 WALKING = PipelineParams()

@@ -193,3 +193,21 @@ def test_robustness_cases_change_one_assumption() -> None:
     assert not cells[11].endswith("✗") and not cells[12].endswith("✗")
     ten = next(v for v in AXES["loss"].values if v.label == "10 %")
     assert not _cells(format_row("x", s, ten.targets))[2].endswith("✗")  # 0.9 at 10 % bursty loss
+
+
+def test_speed_bench_lengths_table() -> None:
+    """The per-length table: one short block and one chunked session, gaitmon and the reference in subprocesses."""
+    out = subprocess.run([sys.executable, "-m", "bench.speed", "--lengths", "1m,3m", "--chunk-s", "60"],
+                         cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    rows = [_cells(x) for x in lines if x.startswith("| 1m |") or x.startswith("| 3m |")]
+    assert [r[0] for r in rows] == ["1m", "3m"]
+    for r in rows:
+        cpu_g, per_min, rss_g, cpu_r, _, rss_r, ratio = (float(x) for x in r[1:8])
+        assert cpu_g > 0 and cpu_r > 0 and 50 < rss_g < 2000 and 50 < rss_r < 2000
+        assert ratio == pytest.approx(cpu_g / cpu_r, rel=0.05, abs=0.01)
+        n_g, n_r = (int(x) for x in r[8].split(" / "))
+        assert n_g > 20 and n_r > 20
+    assert rows[1][1] != rows[0][1]
+    assert any(x.startswith("gaitmon CPU per minute at 3m / at 1m:") for x in lines)

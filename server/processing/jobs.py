@@ -159,8 +159,12 @@ def _store_results(db: DbSession, sess_row: tuple[str, datetime], session_id: st
 
 
 def _default_processor(streams, activity: str, calibration=None):  # noqa: ANN001, ANN202
+    from pipeline.long_sessions import process_source
     from pipeline.session import process_session
+    from server.sessions.rawdata import StoredStreams
 
+    if isinstance(streams, StoredStreams):  # longer than one chunk: read and processed window by window
+        return process_source(streams, activity=activity, calibration=calibration, chunking=streams.chunking)
     return process_session(streams, activity=activity, calibration=calibration)
 
 
@@ -180,7 +184,7 @@ def process_claimed(sm: sessionmaker[DbSession], session_id: str, token: str, *,
     """
     from server.config import get_settings
     from server.sessions.bounds import session_span_problem
-    from server.sessions.rawdata import load_streams
+    from server.sessions.rawdata import input_counts, load_input
 
     if max_session_s is None:
         max_session_s = get_settings().max_session_s
@@ -200,8 +204,8 @@ def process_claimed(sm: sessionmaker[DbSession], session_id: str, token: str, *,
                 problem = session_span_problem(db, session_id, max_session_s)
                 if problem is not None:
                     raise ValueError(f"not processed: {problem}")
-                streams = load_streams(db, session_id)
-            n_samples = sum(len(s.t_s) for s in streams)
+                streams = load_input(sm, db, session_id)  # all streams, or windows of a long session
+            n_sensors, n_samples, sensor_legs = input_counts(streams)
             result = processor(streams, activity=activity, calibration=calibrations.for_pipeline(calibration))
             with sm() as db:
                 # The conditional update comes first: it locks the row, so a recovery cannot interleave.
@@ -216,7 +220,7 @@ def process_claimed(sm: sessionmaker[DbSession], session_id: str, token: str, *,
                 _clear_results(db, session_id)
                 n_strides, n_skipped = _store_results(db, sess_row, session_id, result)
                 summary = result.summary()
-                summary[calibrations.SUMMARY_KEY] = calibrations.used_block(calibration, (s.leg for s in streams))
+                summary[calibrations.SUMMARY_KEY] = calibrations.used_block(calibration, sensor_legs)
                 if n_skipped:
                     summary.setdefault("warnings", []).append(
                         f"{n_skipped} stride(s) without finite metrics were not stored")
@@ -232,7 +236,7 @@ def process_claimed(sm: sessionmaker[DbSession], session_id: str, token: str, *,
         except Exception as exc:  # noqa: BLE001 - any failure of one session must end as "failed", never crash
             log.error("session %s failed: %s\n%s", session_id, readable_error(exc), traceback.format_exc())
             return _mark_failed(sm, session_id, token, readable_error(exc))
-    log.info("session %s done: %d sensors, %d samples, %d strides, %.2f s (%s)", session_id, len(streams),
+    log.info("session %s done: %d sensors, %d samples, %d strides, %.2f s (%s)", session_id, n_sensors,
              n_samples, n_strides, time.perf_counter() - t_start, token)
     return "done"
 
