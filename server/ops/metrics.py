@@ -4,8 +4,8 @@
   the route is the template (``/v1/sessions/{session_id}/batches``), never the raw path, so ids do not multiply
   the series; paths no route matches count as ``<unmatched>``.
 - ``gaitmon_batches_total{result=stored|duplicate}``, ``gaitmon_samples_ingested_total``.
-- ``gaitmon_jobs_total{outcome=done|failed|interrupted|lost}``, ``gaitmon_job_duration_seconds{outcome}``: counted by the
-  process that runs the job (the API process with the embedded runner, else each ``gaitmon worker``).
+- ``gaitmon_jobs_total{outcome=done|failed|interrupted|lost}``, ``gaitmon_job_duration_seconds{outcome}``: counted
+  by the process that runs the job (the API process with the embedded runner, else each ``gaitmon worker``).
 - ``gaitmon_sessions_in_queue{status=queued|processing}``: read from the database at every scrape, so it is the
   same whichever process answers.
 
