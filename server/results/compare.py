@@ -39,7 +39,7 @@ from server.numbers import finite_round
 from server.results.schemas import CompareOut, EstimatorSummary, LegComparison, MetricSummary, PairDifference
 from server.sessions.bounds import session_span_problem
 from server.sessions.models import Batch
-from server.sessions.rawdata import load_streams
+from server.sessions.rawdata import CHUNKING, load_streams
 
 log = logging.getLogger("gaitmon.compare")
 
@@ -131,6 +131,16 @@ def compare_results(results: dict[str, SessionResult]) -> dict[str, LegCompariso
     return out
 
 
+def _refuse_long(first_ms: float, last_ms: float) -> None:
+    """Compare runs every estimator on the whole session inside the API process, so it is limited to sessions of
+    at most one processing chunk (longer ones are processed chunk by chunk by the workers only)."""
+    span_s = (float(last_ms) - float(first_ms)) / 1000.0
+    if span_s > CHUNKING.chunk_s:
+        raise ProblemError(422, f"The session spans {span_s / 60:.0f} min; estimators are compared on sessions of "
+                           f"at most {CHUNKING.chunk_s / 60:.0f} min", title="Session too long to compare",
+                           slug="session-too-long-to-compare")
+
+
 def load_input(factory: sessionmaker[DbSession], principal: Principal, session_id: str,
                estimators: tuple[str, ...], *, with_streams: bool = False) -> CompareInput:
     """Check access and readiness and read the raw data (unless the answer is cached and ``with_streams`` is
@@ -140,8 +150,9 @@ def load_input(factory: sessionmaker[DbSession], principal: Principal, session_i
         if session.status == SessionStatus.receiving:
             raise ProblemError(409, "The session is still receiving data; compare it once it is complete",
                                title="Comparison not available", slug="compare-not-ready")
-        n_batches, last_batch = db.execute(select(func.count(), func.max(Batch.id))
-                                           .where(Batch.session_id == session.id)).one()
+        n_batches, last_batch, first_ms, last_ms = db.execute(
+            select(func.count(), func.max(Batch.id), func.min(Batch.t_first_ms), func.max(Batch.t_last_ms))
+            .where(Batch.session_id == session.id)).one()
         if not n_batches:
             raise ProblemError(409, "The session has no uploaded data", title="Comparison not available",
                                slug="compare-not-ready")
@@ -149,6 +160,7 @@ def load_input(factory: sessionmaker[DbSession], principal: Principal, session_i
         if problem is not None:
             raise ProblemError(422, f"The session cannot be compared: {problem}", title="Session out of bounds",
                                slug="session-out-of-bounds")
+        _refuse_long(first_ms, last_ms)
         calibration = calibrations.for_pipeline(calibrations.applicable(db, session.patient_id, session.started_at))
         levels = tuple(sorted((leg, c.calibration_id, c.standing_knee_deg) for leg, c in calibration.items()))
         key = (session.id, n_batches, last_batch, session.activity, ALGORITHM_VERSION, estimator_set(estimators),

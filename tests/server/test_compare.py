@@ -121,3 +121,23 @@ def test_the_estimator_set_is_normalised_for_the_cache() -> None:
     assert compare.requested_estimators("kf, go,kf") == ("kf", "go")
     assert compare.estimator_set(("kf", "go", "kf")) == compare.estimator_set(("go", "kf")) == ("go", "kf")
     assert compare.requested_estimators(None)[0] == "auto"
+
+
+def test_a_session_longer_than_one_chunk_is_not_compared_in_the_api(api: Api) -> None:
+    c = api.client
+    _, clin = api.clinician()
+    patient = api.patient(clin)
+    dev = api.device(clin, patient["id"])
+    create = {"patient_id": patient["id"], "client_session_id": "long-1", "started_at": "2026-11-30T08:00:00Z",
+              "activity": "walking",
+              "sensors": [{"sensor_id": "ls", "leg": "left", "segment": "shank", "sample_rate_hz": 1.0}]}
+    sid = c.post("/v1/sessions", json=create, headers=bearer(dev)).json()["id"]
+    # 40 minutes at 1 Hz without a hole: a span the workers process chunk by chunk
+    still = {"gyro": [[0.0, 0.0, 0.0]] * 600, "acc": [[0.0, 0.0, 9.81]] * 600}
+    for seq in range(4):
+        body = {"sensor_id": "ls", "seq": seq, "t0_ms": seq * 600_000.0, **still}
+        assert api.upload(dev, sid, body).status_code == 201
+    assert c.post(f"/v1/sessions/{sid}/complete", headers=bearer(dev)).status_code == 202
+    r = c.get(f"/v1/sessions/{sid}/compare", headers=bearer(clin))
+    assert r.status_code == 422 and r.headers["content-type"].startswith("application/problem+json")
+    assert r.json()["type"].endswith("session-too-long-to-compare") and "40 min" in r.json()["detail"]
