@@ -32,9 +32,14 @@ class AttentionParams:
     level_free_test: bool = True  # absolute angles: test on the level-free companion (rules.LEVEL_FREE_COMPANION)
     min_trend_sessions: int = 4
     min_trend_span_days: float = 7.0
-    # stalled: equivalence (TOST) of the slope within +-MDC per stalled_weeks, below the goal, enough weeks of data
-    stalled_weeks: int = 4
+    # stalled: after enough exposure, the one-sided upper confidence bound of the improvement slope below the MDC
+    # per stalled_margin_days (the patient would not show a detectable gain between two comparison windows),
+    # the latest level below the goal
+    stalled_weeks: int = 4  # the plateau window
     stalled_min_span_days: float = 21.0
+    stalled_min_sessions: int = 6
+    stalled_margin_days: float = 14.0
+    stalled_confidence: float = 0.95
     stalled_goal: float | None = None  # None: GOALS of the metric (no goal known: never stalled)
     # silent: no session for silent_days, or for silent_missed_sessions prescribed intervals when a schedule is set
     silent_days: float = 3.0

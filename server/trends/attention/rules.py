@@ -9,9 +9,14 @@ Methods (the ``rules`` block of the response says the same with the thresholds u
   2012: 5 deg). The test alone would flag clinically trivial drifts of very regular patients, the MDC alone would
   flag noise; both together bound the false-alarm rate by ``alpha`` under i.i.d. session means, and the measured
   rate on simulated stable patients is in the README.
-- ``stalled``: equivalence of the slope with zero by two one-sided tests (Schuirmann 1987, J Pharmacokinet
-  Biopharm 15:657): the 90 % CI of b lies inside +-MDC per ``stalled_weeks``, with >= ``stalled_min_span_days`` of
-  data, the latest level below the metric's goal, and no significant improvement.
+- ``stalled``: a non-superiority test of the gain (the one-sided half of Schuirmann's two one-sided tests, 1987,
+  J Pharmacokinet Biopharm 15:657; Wellek, Testing Statistical Hypotheses of Equivalence and Noninferiority, 2nd
+  ed. 2010, ch. 2): over the last ``stalled_weeks`` weeks, after >= ``stalled_min_sessions`` sessions spanning
+  >= ``stalled_min_span_days``, the one-sided ``stalled_confidence`` upper bound of the slope in the better
+  direction, b + t(conf, n-2) se(b), is below the MDC per ``stalled_margin_days`` (the patient would not show a
+  detectable gain from one 14-day comparison window to the next), the latest level is below the metric's goal, and
+  the improvement is not significant. A two-sided equivalence bound of +-MDC per 4 weeks is out of reach with
+  twice-weekly sessions whose means scatter by 2-3 deg (the 90 % CI alone is +-1.1 deg/week wide).
 - ``silent``: no session for longer than ``silent_missed_sessions`` prescribed intervals (7 / prescribed sessions per
   week) when a schedule is set, else ``silent_days``.
 - ``sensor_trouble``: data that cost strides or quality, never a count of gaps: per leg over the sensor window,
@@ -178,34 +183,42 @@ def change_flag(kind: str, p: AttentionParams, metric: Metric, leg: str, points:
 
 
 def stalled_flag(p: AttentionParams, metric: Metric, leg: str, points: Sequence[stats.Point],
-                 test_points: Sequence[stats.Point] | None = None) -> dict[str, Any] | None:
-    """``stalled``: a plateau shown by equivalence of the slope with zero, below the goal (points of the last
+                 test_points: Sequence[stats.Point] | None = None,
+                 test_metric: str | None = None) -> dict[str, Any] | None:
+    """``stalled``: a plateau below the goal, shown by a non-superiority test of the slope (points of the last
     ``stalled_weeks`` weeks; the slope from ``test_points``, the level-free companion, when given)."""
     goal = p.goal()
-    if goal is None or metric.better == "none" or len(points) < max(p.min_trend_sessions, 3):
+    if goal is None or metric.better == "none" or len(points) < max(p.min_trend_sessions, p.stalled_min_sessions, 3):
         return None
-    fit = slope_test(test_points if test_points and len(test_points) == len(points) else points)
+    companion = bool(test_points) and len(test_points or []) == len(points)
+    fit = slope_test(test_points if companion and test_points else points)
     if fit is None or fit.se is None or fit.span_days < p.stalled_min_span_days:
         return None
     _, late = _windows(points, p.window_days, -7.0 * p.stalled_weeks)
     level = late.mean
     mdc = _mdc(metric, level)
-    bound = mdc / (7.0 * p.stalled_weeks)
-    ci90 = fit.ci(0.90)
+    bound = mdc / p.stalled_margin_days  # per day
     s = _sign(metric)
-    if level is None or ci90 is None or not (-bound < ci90[0] and ci90[1] < bound) or s * (goal - level) <= 0:
+    # One-sided upper confidence bound of the gain per day (in the better direction).
+    upper = s * fit.slope_per_day + stats.t_quantile(fit.df, p.stalled_confidence) * fit.se
+    if level is None or upper >= bound or s * (goal - level) <= 0:
         return None
     if s * fit.t_stat() > stats.t_quantile(fit.df, 1.0 - p.alpha):
         return None  # a significant improvement is never a plateau
+    conf = f"{100 * p.stalled_confidence:g} %"
     return {"kind": "stalled", "leg": leg, "metric": metric.name, "weeks": p.stalled_weeks,
             "delta": finite_round(fit.fitted_change, 3), "mdc": finite_round(mdc, 3), "goal": goal,
             "level": finite_round(level, 3), "latest": late, **_trend_fields(fit, _one_sided_p(fit, s)),
-            "ci90_per_week": [finite_round(7.0 * ci90[0], 3), finite_round(7.0 * ci90[1], 3)],
+            "tested_on": (test_metric or metric.name) if companion else metric.name,
+            "upper_gain_per_week": finite_round(7.0 * upper, 3),
+            "margin_per_week": finite_round(7.0 * bound, 3),
             "effect": finite_round(abs(goal - level) / mdc if mdc else 0.0, 3),
             "reason": (f"{metric.name} of the {leg} leg has plateaued at {level:.1f} {metric.unit}, "
-                       f"{abs(goal - level):.1f} short of the goal {goal:g}: over {fit.span_days:.0f} days the slope "
-                       f"is {7.0 * fit.slope_per_day:+.2f} {metric.unit}/week (90 % CI "
-                       f"{7.0 * ci90[0]:+.2f} to {7.0 * ci90[1]:+.2f}, inside +-{7.0 * bound:.2f})")}
+                       f"{abs(goal - level):.1f} short of the goal {goal:g}: over {fit.span_days:.0f} days "
+                       f"({fit.n} sessions{f', slope of {test_metric}' if companion and test_metric else ''}) it gains "
+                       f"{7.0 * s * fit.slope_per_day:+.2f} {metric.unit}/week, at most "
+                       f"{7.0 * upper:+.2f} ({conf} upper bound), less than the MDC {mdc:g} per "
+                       f"{p.stalled_margin_days:g} days ({7.0 * bound:.2f}/week)")}
 
 
 def silent_flag(p: AttentionParams, now: datetime, last: datetime | None, created: datetime,

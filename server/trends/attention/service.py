@@ -75,7 +75,7 @@ def leg_flag(p: AttentionParams, metric: Metric, series: dict[str, dict[str, lis
     flag = (rules.change_flag("declining", p, metric, leg, trend, tested, companion)
             or rules.change_flag("improving", p, metric, leg, trend, tested, companion)
             or rules.stalled_flag(p, metric, leg, plateau,
-                                  _as_points(other, -7.0 * p.stalled_weeks) if companion else None))
+                                  _as_points(other, -7.0 * p.stalled_weeks) if companion else None, companion))
     if flag:
         flag["severity"] = rules.SEVERITY[flag["kind"]]
     return flag
@@ -141,10 +141,14 @@ def rules_block(p: AttentionParams, metric: Metric) -> dict[str, Any]:
                       "nominal_false_alarm_rate": p.alpha},
         "stalled": {
             "severity": rules.SEVERITY["stalled"],
-            "method": (f">= {p.stalled_min_span_days:g} days of data in the last {p.stalled_weeks} weeks, 90 % CI "
-                       f"of the slope inside +-MDC per {p.stalled_weeks} weeks (two one-sided tests), latest "
-                       f"{p.window_days:g}-day mean below the goal, no significant improvement"),
-            "goal": goal, "references": ["Schuirmann 1987 (TOST)"]},
+            "method": (f">= {max(p.min_trend_sessions, p.stalled_min_sessions)} sessions over >= "
+                       f"{p.stalled_min_span_days:g} days in the last {p.stalled_weeks} weeks, the one-sided "
+                       f"{100 * p.stalled_confidence:g} % upper bound of the gain per week below the MDC per "
+                       f"{p.stalled_margin_days:g} days (non-superiority test), latest {p.window_days:g}-day mean "
+                       f"below the goal, no significant improvement"),
+            "goal": goal, "references": ["Schuirmann 1987 (two one-sided tests)",
+                                         "Wellek 2010, Testing Statistical Hypotheses of Equivalence and "
+                                         "Noninferiority, ch. 2"]},
         "silent": {"severity": rules.SEVERITY["silent"],
                    "method": (f"no session for {p.silent_missed_sessions:g} prescribed intervals (7 / prescribed "
                               f"sessions per week) when a schedule is set, else {p.silent_days:g} days")},
