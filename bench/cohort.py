@@ -403,7 +403,7 @@ def reasons(out: dict[str, Any]) -> None:
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--split", choices=sorted(SPLITS), default="report")
-    ap.add_argument("--per-group", type=int, default=12)
+    ap.add_argument("--per-group", type=int, default=15)
     ap.add_argument("--api-per-group", type=int, default=2,
                     help="patients per group uploaded through the HTTP API; the others are stored as raw batches "
                          "directly (same simulator, job runner and pipeline; only the HTTP upload is skipped)")

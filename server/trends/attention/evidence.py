@@ -19,7 +19,7 @@ from server.trends.models import AttentionEvidence
 from server.utc import utcnow
 
 # Bump whenever a rule or a preset changes what a stored flag would say: backfill recomputes older rows.
-RULES_VERSION = "2026-12-01b"
+RULES_VERSION = "2026-12-01c"
 
 _PROCESSED = (SessionStatus.done, SessionStatus.failed)
 

@@ -22,7 +22,7 @@ from server.patients.models import Patient
 from server.sessions.models import Session
 from server.trends import stats
 from server.trends.attention import rules
-from server.trends.attention.params import PRESETS, AttentionParams
+from server.trends.attention.params import PRESETS, SESSION_SD_PRIOR, AttentionParams
 from server.trends.metrics import METRICS, MIN_STRIDES_PER_SESSION, Metric
 from server.trends.models import AttentionEvidence, TrendMetricValues, TrendSessionLeg
 from server.utc import as_utc, utcnow
@@ -134,17 +134,21 @@ def rules_block(p: AttentionParams, metric: Metric) -> dict[str, Any]:
                        f"sessions over >= {p.min_trend_span_days:g} days): one-sided t-test, alpha {p.alpha:g}"
                        + (f" (tested on {companion} of the same strides, free of the session's level offset)"
                           if companion else "")
+                       + (f", its residual variance pooled with the pipeline's session scatter (sd "
+                          f"{SESSION_SD_PRIOR.get(companion or metric.name):g}) as {p.sd_prior_df} df"
+                          if p.sd_prior_df > 0 and SESSION_SD_PRIOR.get(companion or metric.name) else "")
                        + f", AND the metric's fitted change beyond the MDC ({metric.mdc:g} {metric.unit})"),
             "nominal_false_alarm_rate": p.alpha,
-            "references": ["Montgomery & Runger, Applied Statistics, eq. 11-21", "Allseits et al. 2018 (MDC)"]},
+            "references": ["Montgomery & Runger, Applied Statistics, eq. 11-21", "Allseits et al. 2018 (MDC)",
+                           "Smyth 2004, Stat Appl Genet Mol Biol 3(1):3 (moderated t)"]},
         "improving": {"severity": rules.SEVERITY["improving"], "method": "the declining rule in the better direction",
                       "nominal_false_alarm_rate": p.alpha},
         "stalled": {
             "severity": rules.SEVERITY["stalled"],
             "method": (f">= {max(p.min_trend_sessions, p.stalled_min_sessions)} sessions over >= "
-                       f"{p.stalled_min_span_days:g} days in the last {p.stalled_weeks} weeks, the one-sided "
-                       f"{100 * p.stalled_confidence:g} % upper bound of the gain per week below the MDC per "
-                       f"{p.stalled_margin_days:g} days (non-superiority test), latest {p.window_days:g}-day mean "
+                       f"{p.stalled_min_span_days:g} days in the last {p.stalled_weeks} weeks, both one-sided "
+                       f"{100 * p.stalled_confidence:g} % bounds of the slope inside +-MDC per "
+                       f"{p.stalled_margin_days:g} days (two one-sided tests), latest {p.window_days:g}-day mean "
                        f"below the goal, no significant improvement"),
             "goal": goal, "references": ["Schuirmann 1987 (two one-sided tests)",
                                          "Wellek 2010, Testing Statistical Hypotheses of Equivalence and "
