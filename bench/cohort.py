@@ -294,23 +294,28 @@ def _read_list(client: Any, headers: dict[str, str]) -> dict[str, Any]:
         params["cursor"] = page["next_cursor"]
 
 
-def reread(url: str, split: str, per_group: int, groups: list[str] | None,
-           params: Any = None) -> dict[str, Any]:
-    """The attention list of an already filled cohort database (service call, live windows, every patient), for
-    tuning."""
+def reread(url: str, split: str, per_group: int, groups: list[str] | None, params: Any = None,
+           api_per_group: int | None = None) -> dict[str, Any]:
+    """The attention list of an already filled cohort database, for tuning: with ``params`` computed live (windows
+    ending now), else as the API answers it, from the attention rows (recomputed first where the rules changed:
+    the production backfill)."""
     from sqlalchemy import select
 
     from server.db import make_engine, make_sessionmaker
     from server.patients.models import Patient
     from server.trends import service
     from server.trends.attention import attention_list
+    from server.trends.summaries import backfill
 
-    patients, _ = plan(split, per_group, groups)
+    patients, _ = plan(split, per_group, groups, api_per_group=api_per_group)
     engine = make_engine(url)
-    with make_sessionmaker(engine)() as db:
+    factory = make_sessionmaker(engine)
+    if params is None:
+        backfill(factory)
+    with factory() as db:
         by_name = dict(db.execute(select(Patient.display_name, Patient.id)).all())
         ids = {p.index: by_name[f"{p.group}-{p.index}"] for p in patients}
-        att = attention_list(db, clinician_id=None, params=params, limit=1000, live=True)
+        att = attention_list(db, clinician_id=None, params=params, limit=1000, live=params is not None)
         trends = {}
         for p in patients:
             pat = db.get(Patient, ids[p.index])
@@ -419,7 +424,7 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     if args.evaluate_only:
-        out = reread(args.db_url, args.split, args.per_group, args.groups)
+        out = reread(args.db_url, args.split, args.per_group, args.groups, api_per_group=args.api_per_group)
         ev = evaluate(out["patients"], out["ids"], out["attention"])
         if args.verbose:
             reasons(out)
