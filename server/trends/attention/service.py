@@ -254,9 +254,11 @@ def _from_evidence(db: DbSession, p: AttentionParams, metric: Metric, now: datet
     """The list from each patient's attention row: one indexed query (patients of the clinician, their rows), the
     sessions still pending (the status index; usually none), ranking; only the returned page is decoded."""
     ae = AttentionEvidence
+    # quiet_since: the latest processed session, else enrolment (one timestamp to parse per patient).
     rows = db.execute(
-        select(Patient.id, Patient.affected_leg, Patient.created_at, Patient.prescribed_sessions_per_week, ae.as_of,
-               ae.legs, ae.flag_index).outerjoin(ae, ae.patient_id == Patient.id).where(*owned)).all()
+        select(Patient.id, Patient.affected_leg, func.coalesce(ae.as_of, Patient.created_at),
+               Patient.prescribed_sessions_per_week, ae.legs, ae.flag_index)
+        .outerjoin(ae, ae.patient_id == Patient.id).where(*owned)).all()
     pending = dict(db.execute(
         select(Session.patient_id, func.max(Session.started_at)).join(Patient, Patient.id == Session.patient_id)
         .where(*owned, Session.status.in_(_PENDING)).group_by(Session.patient_id)).all())
@@ -266,11 +268,11 @@ def _from_evidence(db: DbSession, p: AttentionParams, metric: Metric, now: datet
     legs_of: dict[str, list[str]] = {}
     last_of: dict[str, datetime | None] = {}
     prefix = p.preset + "|"
-    for pid, affected, created, prescribed, as_of, legs, index in rows:
-        last = as_of
+    for pid, affected, quiet_since, prescribed, legs, index in rows:
+        last = quiet_since if legs is not None else None  # legs is NOT NULL on a row: the patient has one
         if pid in pending and (last is None or as_utc(pending[pid]) > as_utc(last)):
             last = pending[pid]
-        quiet_days = (now_s - as_utc(last if last is not None else created).timestamp()) / 86400.0
+        quiet_days = (now_s - as_utc(last if last is not None else quiet_since).timestamp()) / 86400.0
         limit_days = _quiet_limit_days(p, prescribed)
         tops = [(silent_sev, quiet_days / limit_days)] if quiet_days >= limit_days else []
         keys = []
