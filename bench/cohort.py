@@ -3,6 +3,7 @@
     .venv/bin/python -m bench.cohort                       # report seeds (the figures of the README)
     .venv/bin/python -m bench.cohort --split tune          # the seeds the thresholds were chosen on
     .venv/bin/python -m bench.cohort --per-group 2 --workers 2   # a quick look
+    .venv/bin/python -m bench.cohort --split tune --db-url sqlite:////tmp/t.sqlite --evaluate-only  # read again
 
 Every patient walks 8 sessions of ~40 s (60 s recordings, thigh + shank of the affected left leg; ``--both-legs``
 for both) dated over the last 27 days,
@@ -19,9 +20,12 @@ drawn per patient; half the patients have a prescribed schedule of 2 sessions/we
 | sensor_off | 64 deg; in the last session the left shank sensor falls off and stops at 35-60 % of it | sensor_trouble |
 | running | running sessions | none |
 
-Sessions are simulated in parallel processes, uploaded through the HTTP API of an in-process server (create,
-batches, complete), processed by ``--workers`` job-runner processes claiming from the same database (the
-exactly-once claim of :mod:`server.processing.jobs`), and the list is read from ``GET /v1/attention``.
+Sessions are simulated in parallel processes. The first ``--api-per-group`` patients of each group (default 2 of
+15) are uploaded through the HTTP API of an in-process server (create, batches, complete); the others' sessions
+are stored as raw batches directly, as the upload path stores them (``tests.support.seed.add_stream_batches``), so
+they meet the same job runner, pipeline, summaries and attention rows and skip only the HTTP upload. Everything is
+processed by ``--workers`` job-runner processes claiming from the same database (the exactly-once claim of
+:mod:`server.processing.jobs`), and the list is read from ``GET /v1/attention`` (every page).
 """
 
 from __future__ import annotations
