@@ -78,7 +78,11 @@ class AttentionEvidence(Base):
     ``flags`` is the JSON text {preset: {"legs": {leg: flag | null}, "sensor": flag | null}}, decoded only for the
     returned page; ``flag_index`` lists every flag as ``preset|leg|kind|severity|effect`` (leg ``*`` for the
     patient-level sensor flag), ``;``-separated, so ranking a thousand patients parses short strings only;
-    ``legs``: the legs with data, comma-separated. ``silent`` depends on the clock and is judged per request.
+    ``legs``: the legs with data, comma-separated. ``silent`` depends on the clock and is judged per request from
+    ``as_of`` (the latest processed session) and the patient's sessions still pending. ``n_sessions`` and
+    ``first_session_at`` are the patient's exposure (processed sessions); ``rules_version`` is the version of the
+    rules the flags were computed with (:data:`server.trends.attention.evidence.RULES_VERSION`), so a rule change
+    is backfilled without a migration.
     """
 
     __tablename__ = "attention_evidence"
@@ -87,4 +91,7 @@ class AttentionEvidence(Base):
     legs: Mapped[str] = mapped_column(String(32))
     flag_index: Mapped[str] = mapped_column(Text)
     flags: Mapped[str] = mapped_column(Text)
+    n_sessions: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    first_session_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
+    rules_version: Mapped[str | None] = mapped_column(String(16))
     refreshed_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)

@@ -19,7 +19,7 @@ from server.codec import encode_values
 from server.enums import SessionStatus, StrideActivity
 from server.results.models import Stride
 from server.sessions.models import Batch, Session, SessionSensor
-from server.trends.attention.evidence import patients_without_evidence, refresh_patient
+from server.trends.attention.evidence import patients_needing_evidence, refresh_patient
 from server.trends.metrics import METRICS, MIN_QUALITY, STRIDE_METRICS
 from server.trends.models import TrendMetricValues, TrendSessionLeg
 from server.trends.stats import quantiles_sorted
@@ -213,7 +213,7 @@ def backfill(factory: sessionmaker[DbSession], *, batch: int = 200) -> int:
                 refresh_session(db, sid)
             db.commit()
     with factory() as db:
-        for pid in patients_without_evidence(db):
+        for pid in patients_needing_evidence(db):
             refresh_patient(db, pid)
         db.commit()
     if ids:

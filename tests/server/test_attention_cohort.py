@@ -66,3 +66,17 @@ def test_a_clear_decline_is_flagged_and_a_stable_patient_is_not(api: Api, simula
     strict = api.client.get("/v1/attention", params={"preset": "conservative"}, headers=bearer(clin)).json()
     assert strict["params"]["preset"] == "conservative" and strict["params"]["alpha"] == 0.001
     assert api.client.get("/v1/attention", params={"preset": "nope"}, headers=bearer(clin)).status_code == 422
+
+
+def test_the_cohort_bench_runs_both_upload_paths_and_prints_its_tables(capsys: pytest.CaptureFixture[str]) -> None:
+    from bench.cohort import main, plan
+
+    patients, sessions = plan("tune", 2, ["stable"], api_per_group=1)
+    assert [p.via_api for p in patients] == [True, False] and len(sessions) == 16
+    main(["--split", "tune", "--per-group", "2", "--api-per-group", "1", "--groups", "stable", "--workers", "1"])
+    out = capsys.readouterr().out
+    assert "1 patients uploaded through the API" in out
+    rows = {line.split("|")[1].strip(): line for line in out.splitlines() if line.startswith("| ")}
+    # Both stable patients are listed in the per-group table, processed from either path, and none is flagged.
+    assert rows["stable"].replace(" ", "") == "|stable|2|0|0|0|0|0|"
+    assert "stable patients (0-5 % loss) with declining or sensor_trouble: 0 of 2" in out

@@ -18,6 +18,12 @@ from server.enums import StrideActivity
 GOALS: dict[str, float] = {"peak_swing_flexion_deg": 57.0, "rom_deg": 57.0}
 
 
+# The pipeline's session-to-session scatter of session means (residual sd about a patient's own trend line, deg):
+# pooled over the 72 walking patients of the cohort benchmark's tune seeds (``python -m bench.cohort --split tune``;
+# dev seeds: 2.65 / 2.94). It is the prior of the moderated slope test (``sd_prior_df``; rules.moderated).
+SESSION_SD_PRIOR: dict[str, float] = {"rom_deg": 2.7, "peak_swing_flexion_deg": 3.0}
+
+
 @dataclass(frozen=True)
 class AttentionParams:
     """The thresholds of the flags. Windows end now; ``window_days`` is the sensor window, the trend window is
@@ -28,13 +34,22 @@ class AttentionParams:
     activity: str = StrideActivity.walking  # declining/improving/stalled judge strides of this activity only
     window_days: float = 14.0
     # declining / improving: one-sided t-test of the OLS slope of session means AND a fitted change beyond the MDC
-    alpha: float = 0.01
+    alpha: float = 0.005
     level_free_test: bool = True  # absolute angles: test on the level-free companion (rules.LEVEL_FREE_COMPANION)
+    # Weight of SESSION_SD_PRIOR in residual degrees of freedom (0: the plain t-test on the patient's own scatter).
+    # The tune cohort's per-patient variances spread exactly as sampling noise on 6 df would (Smyth's estimate of
+    # d0 is unbounded); 10 keeps most of the patient's own scatter in play, for patients noisier than simulated.
+    sd_prior_df: int = 10
     min_trend_sessions: int = 4
     min_trend_span_days: float = 7.0
-    # stalled: equivalence (TOST) of the slope within +-MDC per stalled_weeks, below the goal, enough weeks of data
-    stalled_weeks: int = 4
+    # stalled: after enough exposure, the one-sided upper confidence bound of the improvement slope below the MDC
+    # per stalled_margin_days (the patient would not show a detectable gain between two comparison windows),
+    # the latest level below the goal
+    stalled_weeks: int = 4  # the plateau window
     stalled_min_span_days: float = 21.0
+    stalled_min_sessions: int = 6
+    stalled_margin_days: float = 14.0
+    stalled_confidence: float = 0.95
     stalled_goal: float | None = None  # None: GOALS of the metric (no goal known: never stalled)
     # silent: no session for silent_days, or for silent_missed_sessions prescribed intervals when a schedule is set
     silent_days: float = 3.0
@@ -62,7 +77,7 @@ class AttentionParams:
 PRESETS: dict[str, AttentionParams] = {
     "default": AttentionParams(),
     # More flags, earlier: a clinic that prefers a phone call too many to a decline noticed late.
-    "sensitive": AttentionParams(preset="sensitive", alpha=0.025, silent_days=2.0, silent_missed_sessions=1.5,
+    "sensitive": AttentionParams(preset="sensitive", alpha=0.02, silent_days=2.0, silent_missed_sessions=1.5,
                                  max_lost_rate=0.3, max_low_quality_rate=0.2, max_fallback_rate=0.2,
                                  max_implausible_rate=0.05),
     # Fewer flags: a large caseload where only unmistakable changes should reach the clinician.

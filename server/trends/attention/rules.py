@@ -4,14 +4,22 @@ Methods (the ``rules`` block of the response says the same with the thresholds u
 
 - ``declining`` / ``improving``: ordinary least squares slope b of the session means of the assessed leg over the
   trend window (the last ``2 * window_days``), one-sided t-test of H0: b = 0 against a change in the worse (better)
-  direction at level ``alpha`` (t = b / se(b), df = n - 2; Montgomery & Runger, Applied Statistics, eq. 11-21/11-22),
+  direction at level ``alpha`` (t = b / se(b); Montgomery & Runger, Applied Statistics, eq. 11-21/11-22),
   AND the fitted change over the data's span, b * span, beyond the MDC (Allseits et al. 2018 after Wilken et al.
-  2012: 5 deg). The test alone would flag clinically trivial drifts of very regular patients, the MDC alone would
-  flag noise; both together bound the false-alarm rate by ``alpha`` under i.i.d. session means, and the measured
-  rate on simulated stable patients is in the README.
+  2012: 5 deg). se(b) is moderated (Smyth 2004, :func:`moderated`): the patient's residual variance on n - 2 df is
+  pooled with the pipeline's known session-to-session scatter (``SESSION_SD_PRIOR``) weighted as ``sd_prior_df``
+  df, and t has n - 2 + ``sd_prior_df`` df. The test alone would flag clinically trivial drifts of very regular
+  patients, the MDC alone would flag noise; both together bound the false-alarm rate by ``alpha`` under i.i.d.
+  session means, and the measured rate on simulated stable patients is in the README.
 - ``stalled``: equivalence of the slope with zero by two one-sided tests (Schuirmann 1987, J Pharmacokinet
-  Biopharm 15:657): the 90 % CI of b lies inside +-MDC per ``stalled_weeks``, with >= ``stalled_min_span_days`` of
-  data, the latest level below the metric's goal, and no significant improvement.
+  Biopharm 15:657; Wellek, Testing Statistical Hypotheses of Equivalence and Noninferiority, 2nd ed. 2010, ch. 2)
+  on the patient's own scatter (a plateau is claimed only from the patient's own data, never from the pooled
+  variance the decline test uses): over the last ``stalled_weeks`` weeks, after >= ``stalled_min_sessions``
+  sessions spanning >= ``stalled_min_span_days``, both one-sided ``stalled_confidence`` bounds of the slope,
+  b +- t(conf, df) se(b), lie inside +-MDC per ``stalled_margin_days`` (the patient would show no detectable gain
+  or loss from one 14-day comparison window to the next), the latest level is below the metric's goal, and the
+  improvement is not significant. A margin of +-MDC per 4 weeks is out of reach with twice-weekly sessions whose
+  means scatter by 2-3 deg (the 90 % CI alone is +-1.1 deg/week wide).
 - ``silent``: no session for longer than ``silent_missed_sessions`` prescribed intervals (7 / prescribed sessions per
   week) when a schedule is set, else ``silent_days``.
 - ``sensor_trouble``: data that cost strides or quality, never a count of gaps: per leg over the sensor window,
@@ -25,7 +33,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime, timedelta
 from typing import Any
 
@@ -33,7 +41,7 @@ from scipy.special import stdtr
 
 from server.numbers import finite_round
 from server.trends import stats
-from server.trends.attention.params import AttentionParams
+from server.trends.attention.params import SESSION_SD_PRIOR, AttentionParams
 from server.trends.metrics import Metric
 from server.utc import as_utc
 
@@ -66,6 +74,7 @@ class SlopeTest:
     intercept: float  # the fitted value now (time is measured from now)
     se: float | None
     df: int
+    sxx: float = 0.0  # sum of squared time deviations (days^2): se = residual sd / sqrt(sxx)
 
     @property
     def fitted_change(self) -> float:
@@ -97,7 +106,20 @@ def slope_test(points: Sequence[stats.Point]) -> SlopeTest | None:
     if fit is None:
         return None
     b, a, se = fit
-    return SlopeTest(len(points), max(t) - min(t), b, a, se, len(points) - 2)
+    tm = sum(t) / len(t)
+    return SlopeTest(len(points), max(t) - min(t), b, a, se, len(points) - 2, sum((x - tm) ** 2 for x in t))
+
+
+def moderated(fit: SlopeTest, prior_sd: float | None, prior_df: int) -> SlopeTest:
+    """The slope test with its residual variance shrunk towards a prior (the moderated t of Smyth 2004, Stat Appl
+    Genet Mol Biol 3(1):3, eq. 3-4): s~^2 = (d0 s0^2 + d s^2) / (d0 + d) on d0 + d degrees of freedom. Eight
+    session means give a residual sd on 6 df, so uncertain that the t-test needs t > 3.14 at 1 %; the pipeline's
+    session-to-session scatter is known much better than that from many patients."""
+    if fit.se is None or prior_sd is None or prior_df <= 0 or fit.sxx <= 0.0:
+        return fit
+    s2 = fit.se * fit.se * fit.sxx
+    s2_mod = (prior_df * prior_sd * prior_sd + fit.df * s2) / (prior_df + fit.df)
+    return replace(fit, se=math.sqrt(s2_mod / fit.sxx), df=fit.df + prior_df)
 
 
 def _sign(metric: Metric) -> int:
@@ -154,6 +176,7 @@ def change_flag(kind: str, p: AttentionParams, metric: Metric, leg: str, points:
         tested = slope_test(test_points) or fit
     else:
         test_metric = None
+    tested = moderated(tested, SESSION_SD_PRIOR.get(test_metric or metric.name), p.sd_prior_df)
     if tested.se is None:
         return None
     direction = -_sign(metric) if kind == "declining" else _sign(metric)  # the slope sign the flag looks for
@@ -178,34 +201,43 @@ def change_flag(kind: str, p: AttentionParams, metric: Metric, leg: str, points:
 
 
 def stalled_flag(p: AttentionParams, metric: Metric, leg: str, points: Sequence[stats.Point],
-                 test_points: Sequence[stats.Point] | None = None) -> dict[str, Any] | None:
-    """``stalled``: a plateau shown by equivalence of the slope with zero, below the goal (points of the last
+                 test_points: Sequence[stats.Point] | None = None,
+                 test_metric: str | None = None) -> dict[str, Any] | None:
+    """``stalled``: a plateau below the goal, shown by an equivalence test of the slope (points of the last
     ``stalled_weeks`` weeks; the slope from ``test_points``, the level-free companion, when given)."""
     goal = p.goal()
-    if goal is None or metric.better == "none" or len(points) < max(p.min_trend_sessions, 3):
+    if goal is None or metric.better == "none" or len(points) < max(p.min_trend_sessions, p.stalled_min_sessions, 3):
         return None
-    fit = slope_test(test_points if test_points and len(test_points) == len(points) else points)
+    companion = bool(test_points) and len(test_points or []) == len(points)
+    fit = slope_test(test_points if companion and test_points else points)
     if fit is None or fit.se is None or fit.span_days < p.stalled_min_span_days:
         return None
     _, late = _windows(points, p.window_days, -7.0 * p.stalled_weeks)
     level = late.mean
     mdc = _mdc(metric, level)
-    bound = mdc / (7.0 * p.stalled_weeks)
-    ci90 = fit.ci(0.90)
+    bound = mdc / p.stalled_margin_days  # per day
     s = _sign(metric)
-    if level is None or ci90 is None or not (-bound < ci90[0] and ci90[1] < bound) or s * (goal - level) <= 0:
+    # One-sided confidence bounds of the gain per day (in the better direction): both inside +-bound.
+    half = stats.t_quantile(fit.df, p.stalled_confidence) * fit.se
+    upper, lower = s * fit.slope_per_day + half, s * fit.slope_per_day - half
+    if level is None or upper >= bound or lower <= -bound or s * (goal - level) <= 0:
         return None
     if s * fit.t_stat() > stats.t_quantile(fit.df, 1.0 - p.alpha):
         return None  # a significant improvement is never a plateau
+    conf = f"{100 * p.stalled_confidence:g} %"
     return {"kind": "stalled", "leg": leg, "metric": metric.name, "weeks": p.stalled_weeks,
             "delta": finite_round(fit.fitted_change, 3), "mdc": finite_round(mdc, 3), "goal": goal,
             "level": finite_round(level, 3), "latest": late, **_trend_fields(fit, _one_sided_p(fit, s)),
-            "ci90_per_week": [finite_round(7.0 * ci90[0], 3), finite_round(7.0 * ci90[1], 3)],
+            "tested_on": (test_metric or metric.name) if companion else metric.name,
+            "gain_bounds_per_week": [finite_round(7.0 * lower, 3), finite_round(7.0 * upper, 3)],
+            "margin_per_week": finite_round(7.0 * bound, 3),
             "effect": finite_round(abs(goal - level) / mdc if mdc else 0.0, 3),
             "reason": (f"{metric.name} of the {leg} leg has plateaued at {level:.1f} {metric.unit}, "
-                       f"{abs(goal - level):.1f} short of the goal {goal:g}: over {fit.span_days:.0f} days the slope "
-                       f"is {7.0 * fit.slope_per_day:+.2f} {metric.unit}/week (90 % CI "
-                       f"{7.0 * ci90[0]:+.2f} to {7.0 * ci90[1]:+.2f}, inside +-{7.0 * bound:.2f})")}
+                       f"{abs(goal - level):.1f} short of the goal {goal:g}: over {fit.span_days:.0f} days "
+                       f"({fit.n} sessions{f', slope of {test_metric}' if companion and test_metric else ''}) it gains "
+                       f"{7.0 * s * fit.slope_per_day:+.2f} {metric.unit}/week ({conf} bounds {7.0 * lower:+.2f} to "
+                       f"{7.0 * upper:+.2f}), inside +-MDC {mdc:g} per {p.stalled_margin_days:g} days "
+                       f"(+-{7.0 * bound:.2f}/week)")}
 
 
 def silent_flag(p: AttentionParams, now: datetime, last: datetime | None, created: datetime,

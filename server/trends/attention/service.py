@@ -22,7 +22,7 @@ from server.patients.models import Patient
 from server.sessions.models import Session
 from server.trends import stats
 from server.trends.attention import rules
-from server.trends.attention.params import PRESETS, AttentionParams
+from server.trends.attention.params import PRESETS, SESSION_SD_PRIOR, AttentionParams
 from server.trends.metrics import METRICS, MIN_STRIDES_PER_SESSION, Metric
 from server.trends.models import AttentionEvidence, TrendMetricValues, TrendSessionLeg
 from server.utc import as_utc, utcnow
@@ -75,7 +75,7 @@ def leg_flag(p: AttentionParams, metric: Metric, series: dict[str, dict[str, lis
     flag = (rules.change_flag("declining", p, metric, leg, trend, tested, companion)
             or rules.change_flag("improving", p, metric, leg, trend, tested, companion)
             or rules.stalled_flag(p, metric, leg, plateau,
-                                  _as_points(other, -7.0 * p.stalled_weeks) if companion else None))
+                                  _as_points(other, -7.0 * p.stalled_weeks) if companion else None, companion))
     if flag:
         flag["severity"] = rules.SEVERITY[flag["kind"]]
     return flag
@@ -134,17 +134,25 @@ def rules_block(p: AttentionParams, metric: Metric) -> dict[str, Any]:
                        f"sessions over >= {p.min_trend_span_days:g} days): one-sided t-test, alpha {p.alpha:g}"
                        + (f" (tested on {companion} of the same strides, free of the session's level offset)"
                           if companion else "")
+                       + (f", its residual variance pooled with the pipeline's session scatter (sd "
+                          f"{SESSION_SD_PRIOR.get(companion or metric.name):g}) as {p.sd_prior_df} df"
+                          if p.sd_prior_df > 0 and SESSION_SD_PRIOR.get(companion or metric.name) else "")
                        + f", AND the metric's fitted change beyond the MDC ({metric.mdc:g} {metric.unit})"),
             "nominal_false_alarm_rate": p.alpha,
-            "references": ["Montgomery & Runger, Applied Statistics, eq. 11-21", "Allseits et al. 2018 (MDC)"]},
+            "references": ["Montgomery & Runger, Applied Statistics, eq. 11-21", "Allseits et al. 2018 (MDC)",
+                           "Smyth 2004, Stat Appl Genet Mol Biol 3(1):3 (moderated t)"]},
         "improving": {"severity": rules.SEVERITY["improving"], "method": "the declining rule in the better direction",
                       "nominal_false_alarm_rate": p.alpha},
         "stalled": {
             "severity": rules.SEVERITY["stalled"],
-            "method": (f">= {p.stalled_min_span_days:g} days of data in the last {p.stalled_weeks} weeks, 90 % CI "
-                       f"of the slope inside +-MDC per {p.stalled_weeks} weeks (two one-sided tests), latest "
-                       f"{p.window_days:g}-day mean below the goal, no significant improvement"),
-            "goal": goal, "references": ["Schuirmann 1987 (TOST)"]},
+            "method": (f">= {max(p.min_trend_sessions, p.stalled_min_sessions)} sessions over >= "
+                       f"{p.stalled_min_span_days:g} days in the last {p.stalled_weeks} weeks, both one-sided "
+                       f"{100 * p.stalled_confidence:g} % bounds of the slope inside +-MDC per "
+                       f"{p.stalled_margin_days:g} days (two one-sided tests), latest {p.window_days:g}-day mean "
+                       f"below the goal, no significant improvement"),
+            "goal": goal, "references": ["Schuirmann 1987 (two one-sided tests)",
+                                         "Wellek 2010, Testing Statistical Hypotheses of Equivalence and "
+                                         "Noninferiority, ch. 2"]},
         "silent": {"severity": rules.SEVERITY["silent"],
                    "method": (f"no session for {p.silent_missed_sessions:g} prescribed intervals (7 / prescribed "
                               f"sessions per week) when a schedule is set, else {p.silent_days:g} days")},
@@ -170,6 +178,8 @@ def attention_list(db: DbSession, *, clinician_id: str | None, params: Attention
     metric = METRICS[p.metric]
     now = as_utc(now or utcnow())
     owned = [Patient.clinician_id == clinician_id] if clinician_id is not None else []
+    if not live and precomputed_preset(p) is not None:
+        return _from_evidence(db, p, metric, now, owned, limit, offset)
     patients = db.execute(
         select(Patient.id, Patient.display_name, Patient.external_id, Patient.affected_leg, Patient.created_at,
                Patient.prescribed_sessions_per_week).where(*owned).order_by(Patient.id)
@@ -178,8 +188,6 @@ def attention_list(db: DbSession, *, clinician_id: str | None, params: Attention
         select(Session.patient_id, func.max(Session.started_at)).join(Patient, Patient.id == Session.patient_id)
         .where(*owned).group_by(Session.patient_id)
     ).all())
-    if not live and precomputed_preset(p) is not None:
-        return _from_evidence(db, p, metric, now, owned, patients, last_session, limit, offset)
     horizon_days = max(2.0 * p.window_days, 7.0 * p.stalled_weeks)
     companion = rules.LEVEL_FREE_COMPANION.get(metric.name) if p.level_free_test else None
     points = _points(db, owned, [metric.name, *([companion] if companion else [])], p.activity,
@@ -233,46 +241,72 @@ def precomputed_preset(p: AttentionParams) -> str | None:
     return p.preset if same == preset else None
 
 
-def _from_evidence(db: DbSession, p: AttentionParams, metric: Metric, now: datetime, owned: list[Any],
-                   patients: list[Any], last_session: dict[str, datetime], limit: int,
+_PENDING = (SessionStatus.receiving, SessionStatus.queued, SessionStatus.processing)
+
+
+def _quiet_limit_days(p: AttentionParams, prescribed: float | None) -> float:
+    """The silent limit of one patient in days (the rule of :func:`rules.silent_flag`)."""
+    return p.silent_missed_sessions * 7.0 / prescribed if prescribed else p.silent_days
+
+
+def _from_evidence(db: DbSession, p: AttentionParams, metric: Metric, now: datetime, owned: list[Any], limit: int,
                    offset: int) -> dict[str, Any]:
-    ev = {pid: (legs, index) for pid, legs, index in db.execute(
-        select(AttentionEvidence.patient_id, AttentionEvidence.legs, AttentionEvidence.flag_index)
-        .join(Patient, Patient.id == AttentionEvidence.patient_id).where(*owned))}
-    ranked = []  # (-severity, -effect, pid, silent flag, [(leg, kind)]) without decoding any flag
-    info = {}
-    for pid, name, ext, affected, created, prescribed in patients:
-        last = last_session.get(pid)
-        silent = rules.silent_flag(p, now, last, created, prescribed)
-        keys: list[tuple[str, int, float]] = []
-        legs, index = ev.get(pid, ("", ""))
+    """The list from each patient's attention row: one indexed query (patients of the clinician, their rows), the
+    sessions still pending (the status index; usually none), ranking; only the returned page is decoded."""
+    ae = AttentionEvidence
+    # quiet_since: the latest processed session, else enrolment (one timestamp to parse per patient).
+    rows = db.execute(
+        select(Patient.id, Patient.affected_leg, func.coalesce(ae.as_of, Patient.created_at),
+               Patient.prescribed_sessions_per_week, ae.legs, ae.flag_index)
+        .outerjoin(ae, ae.patient_id == Patient.id).where(*owned)).all()
+    pending = dict(db.execute(
+        select(Session.patient_id, func.max(Session.started_at)).join(Patient, Patient.id == Session.patient_id)
+        .where(*owned, Session.status.in_(_PENDING)).group_by(Session.patient_id)).all())
+    now_s = now.timestamp()
+    silent_sev = float(rules.SEVERITY["silent"])
+    ranked = []  # (-severity, -effect, pid) without decoding any flag
+    legs_of: dict[str, list[str]] = {}
+    last_of: dict[str, datetime | None] = {}
+    prefix = p.preset + "|"
+    for pid, affected, quiet_since, prescribed, legs, index in rows:
+        last = quiet_since if legs is not None else None  # legs is NOT NULL on a row: the patient has one
+        if pid in pending and (last is None or as_utc(pending[pid]) > as_utc(last)):
+            last = pending[pid]
+        quiet_days = (now_s - as_utc(last if last is not None else quiet_since).timestamp()) / 86400.0
+        limit_days = _quiet_limit_days(p, prescribed)
+        tops = [(silent_sev, quiet_days / limit_days)] if quiet_days >= limit_days else []
+        keys = []
         if index:
             assessed = set(assessed_legs(affected, legs.split(",") if legs else []))
             for entry in index.split(";"):
-                preset, leg, _kind, sev, eff = entry.split("|")
-                if preset == p.preset and (leg == "*" or leg in assessed):
-                    keys.append((leg, int(sev), float(eff)))
-        if not keys and silent is None:
+                if entry.startswith(prefix):
+                    _, leg, _kind, sev, eff = entry.split("|")
+                    if leg == "*" or leg in assessed:
+                        keys.append(leg)
+                        tops.append((float(sev), float(eff)))
+        if not tops:
             continue
-        tops = [(k[1], k[2]) for k in keys]
-        if silent:
-            silent["severity"] = rules.SEVERITY["silent"]
-            tops.append((silent["severity"], silent["effect"] or 0.0))
         sev, eff = max(tops)
-        ranked.append((-sev, -eff, pid))
-        info[pid] = (name, ext, affected, prescribed, last, silent, [k[0] for k in keys])
+        ranked.append((-sev, -round(eff, 3), pid))
+        legs_of[pid] = keys
+        last_of[pid] = last
     ranked.sort()
     page_ids = [pid for _, _, pid in ranked[offset:offset + limit]]
-    docs = dict(db.execute(select(AttentionEvidence.patient_id, AttentionEvidence.flags)
-                           .where(AttentionEvidence.patient_id.in_(page_ids))).all()) if page_ids else {}
     items = []
-    for pid in page_ids:
-        name, ext, affected, prescribed, last, silent, legs = info[pid]
-        mine = json.loads(docs[pid]).get(p.preset, {}) if pid in docs else {}
-        flags = [silent] if silent else []
-        flags += [mine["sensor"] if leg == "*" else mine["legs"][leg] for leg in legs]
-        items.append(_item(pid, name, ext, affected, prescribed, last, _ranked(flags)))
-    out = _page(items, p, metric, now, len(patients), limit, 0)
+    if page_ids:
+        found = {r[0]: r for r in db.execute(
+            select(Patient.id, Patient.display_name, Patient.external_id, Patient.affected_leg, Patient.created_at,
+                   Patient.prescribed_sessions_per_week, ae.flags)
+            .outerjoin(ae, ae.patient_id == Patient.id).where(Patient.id.in_(page_ids)))}
+        for pid in page_ids:
+            _, name, ext, affected, created, prescribed, doc = found[pid]
+            last = last_of[pid]
+            mine = json.loads(doc).get(p.preset, {}) if doc else {}
+            silent = rules.silent_flag(p, now, last, created, prescribed)
+            flags = [silent] if silent else []
+            flags += [mine["sensor"] if leg == "*" else mine["legs"][leg] for leg in legs_of[pid]]
+            items.append(_item(pid, name, ext, affected, prescribed, last, _ranked(flags)))
+    out = _page(items, p, metric, now, len(rows), limit, 0)
     out["n_flagged"] = len(ranked)
     out["next_cursor"] = str(offset + limit) if offset + limit < len(ranked) else None
     return out
