@@ -18,6 +18,7 @@ from server.pagination import after_cursor, decode_cursor, encode_cursor
 from server.patients import service as patient_service
 from server.patients.models import Patient
 from server.patients.schemas import PatientIn, PatientOut, PatientPage, PatientPatch
+from server.schema_types import SafeStr
 from server.sessions.models import Session
 from server.sessions.schemas import SessionListItem, SessionPage
 
@@ -57,12 +58,13 @@ def create_patient(body: PatientIn, db: Db, caller: Caller) -> PatientOut:
             responses={400: {"description": "cursor is not a next_cursor of this API"},
                        403: {"description": "Device tokens may not list patients"}})
 def list_patients(db: Db, caller: Caller, limit: int = Query(50, ge=1, le=200),
-                  cursor: str | None = Query(None, description="next_cursor of the previous page")) -> PatientPage:
+                  cursor: str | None = Query(None, description="next_cursor of the previous page"),
+                  search: SafeStr = Query("", max_length=100,
+                                                description="Only patients whose external_id contains this text "
+                                                            "(case-insensitive)")) -> PatientPage:
     """The caller's patients, one page at a time."""
     require_role(caller, Role.admin, Role.clinician, action="list patients")
-    stmt = select(Patient)
-    if caller.role == Role.clinician:
-        stmt = stmt.where(Patient.clinician_id == caller.clinician_id)
+    stmt = patient_service.patients_of(caller, search)
     if cursor:
         stmt = stmt.where(after_cursor(Patient.created_at, Patient.id, cursor))
     rows = db.scalars(stmt.order_by(Patient.created_at, Patient.id).limit(limit + 1)).all()
@@ -136,7 +138,7 @@ def list_sessions(patient_id: str, db: Db, caller: Caller, limit: int = Query(50
                   cursor: str | None = Query(None, description="next_cursor of the previous page")) -> SessionPage:
     """A patient's sessions, newest first, one page at a time."""
     patient = get_patient_for(db, caller, patient_id)
-    stmt = select(Session).where(Session.patient_id == patient.id)
+    stmt = patient_service.sessions_of(patient.id)
     if cursor:
         # Newest first: "after" the cursor means older, so the keyset condition is mirrored.
         started, sid = decode_cursor(cursor)

@@ -2,8 +2,8 @@
 
 Functions that only wrap a service are thin on purpose. Strides, knee-angle windows and gait cycles come from
 :mod:`server.results.service`, which the API's result routes use too. The few queries still written here (marked
-"query lives here": patient search with offset paging, sessions with offset paging, the latest per-leg values,
-per-session peaks and the first processed session) have no API route yet.
+"query lives here": the latest per-leg values, per-session peaks and the first processed session) have no API
+route yet. Patient and session lists are the patients service's queries, in numbered pages.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from server.auth.service import Principal, get_patient_for, get_session_for
 from server.calibrations import service as calibration_service
 from server.calibrations.models import KneeCalibration as KneeCalibrationRow
 from server.calibrations.schemas import CalibrationIn
+from server.patients import service as patient_service
 from server.patients.models import Patient
 from server.results import compare as compare_service
 from server.results import service as results_service
@@ -70,16 +71,10 @@ class PatientPage:
 def list_patients(db: DbSession, principal: Principal, *, search: str = "", offset: int = 0,
                   limit: int = 25) -> PatientPage:
     """The principal's patients (admin: all), oldest first, optionally those whose external id contains
-    ``search`` (case-insensitive). Query lives here: the API's list route has it inline and no search."""
-    stmt = select(Patient)
-    if principal.role == "clinician":
-        stmt = stmt.where(Patient.clinician_id == principal.clinician_id)
-    if search:
-        escaped = search.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
-        stmt = stmt.where(func.lower(Patient.external_id).like(f"%{escaped.lower()}%", escape="\\"))
-    total = db.scalar(select(func.count()).select_from(stmt.subquery())) or 0
+    ``search`` (the API's list query, :func:`server.patients.service.patients_of`, in numbered pages)."""
+    stmt = patient_service.patients_of(principal, search)
     rows = db.scalars(stmt.order_by(Patient.created_at, Patient.id).offset(offset).limit(limit)).all()
-    return PatientPage(list(rows), int(total), offset, limit)
+    return PatientPage(list(rows), patient_service.count(db, stmt), offset, limit)
 
 
 def latest_values(db: DbSession, patient_ids: list[str]) -> dict[str, dict[str, dict[str, dict[str, Any]]]]:
@@ -166,11 +161,10 @@ def legs_with_data(db: DbSession, patient: Patient) -> list[str]:
 
 
 def list_sessions(db: DbSession, patient: Patient, *, offset: int = 0, limit: int = 20) -> tuple[list[Session], int]:
-    """The patient's sessions, newest first, and their total. Query lives here (inline in the API route)."""
-    total = db.scalar(select(func.count()).select_from(Session).where(Session.patient_id == patient.id)) or 0
-    rows = db.scalars(select(Session).where(Session.patient_id == patient.id)
-                      .order_by(Session.started_at.desc(), Session.id.desc()).offset(offset).limit(limit)).all()
-    return list(rows), int(total)
+    """The patient's sessions, newest first, and their total (the API's list query in numbered pages)."""
+    stmt = patient_service.sessions_of(patient.id)
+    rows = db.scalars(stmt.order_by(Session.started_at.desc(), Session.id.desc()).offset(offset).limit(limit)).all()
+    return list(rows), patient_service.count(db, stmt)
 
 
 def session_peaks(db: DbSession, session_ids: list[str]) -> dict[str, dict[str, tuple[int, float | None]]]:

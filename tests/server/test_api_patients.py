@@ -65,6 +65,28 @@ def test_pagination_walks_every_patient_once_in_creation_order(api: Api) -> None
     assert r.status_code == 400 and r.json()["errors"][0]["field"] == "cursor"
 
 
+def test_search_finds_own_patients_by_external_id_literally(api: Api) -> None:
+    c = api.client
+    _, clin = api.clinician()
+    _, other = api.clinician("Other")
+    knee = api.patient(clin, external_id="KNEE-042")["id"]
+    api.patient(clin, external_id="HIP-7")
+    under = api.patient(clin, external_id="a_b")["id"]
+    api.patient(clin, external_id="axb")
+    api.patient(other, external_id="knee-043")  # someone else's: never listed
+
+    def ids(search: str) -> list[str]:
+        r = c.get("/v1/patients", params={"search": search}, headers=bearer(clin))
+        assert r.status_code == 200, r.text
+        return [p["id"] for p in r.json()["items"]]
+
+    assert ids("knee") == [knee]
+    assert ids("a_b") == [under]  # "_" is a character, not a wildcard
+    assert ids("%") == []
+    assert len(ids("")) == 4
+    assert c.get("/v1/patients", params={"search": "x" * 101}, headers=bearer(clin)).status_code == 422
+
+
 def _fill_patient(api: Api, clin: str) -> str:
     """A patient with sessions, batches, sensors, a device token, strides and a knee angle trace."""
     patient = api.patient(clin)
