@@ -91,9 +91,16 @@ def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: Joi
     # Fit samples stay away from masked gaps: the filters and Eq. 1 differences are unreliable within a few samples.
     margin = max(int(params.axes.fit_margin_s * fs), 1)
     far = ~np.convolve(~valid, np.ones(2 * margin + 1), mode="same").astype(bool)
-    idx = select_fit_samples(g1, g2, centre_fit_mask(far, gait, params.axes.max_fit_samples), params.axes)
+    # a first fit on all of them finds the basin (turns and transitions condition it; gait alone can leave the
+    # solver in a mirrored minimum), then the gait samples alone refine it (centre_fit_mask)
+    idx = select_fit_samples(g1, g2, far, params.axes)
     centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], axes.j1, axes.j2,
                                 params.axes)
+    gait_mask = centre_fit_mask(far, gait, params.axes.max_fit_samples)
+    if gait_mask is not far:
+        idx = select_fit_samples(g1, g2, gait_mask, params.axes)
+        centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], axes.j1, axes.j2,
+                                    params.axes, start=centres)
     acc_angle = accelerometer_angle_deg(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, centres)
     acc_angle[~valid] = np.nan
     return LegInput(prep=prep, axes=axes, centres=centres, rate_dps=rate, acc_angle_deg=acc_angle,
