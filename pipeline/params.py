@@ -25,15 +25,12 @@ class PrepareParams:
     the cubic still sees both sides of any knee event. Longer gaps are masked."""
     noted_bridge_s: float = 0.05
     """Bridged gaps longer than this [s] get a quality note on the strides they touch."""
-    periodic_bridge_s: float = 0.8
+    periodic_bridge_s: float = 0.5
     """Longest gap [s] filled from the neighbouring strides (:func:`pipeline.prepare.periodic_fill`) when the
-    sensor's signal around it is periodic. Shorter than the shortest walking stride (~1 s), so the template one
-    period away lies outside the hole (checked per sample: a hole longer than the stride period is never filled)
-    and a stride's two heel strikes are never both inside one hole. Bursty BLE loss (Gilbert-Elliott, mean burst
-    four 20-sample packets at 128 Hz: 0.63 s) mostly leaves holes of 0.3-0.8 s: at 0.5 s, 3-30 % of the steady
-    strides were lost to them at 3-10 % loss. A hole may now hold a swing peak or a minimum: those strides say so
-    (``peak_in_gap``: quality capped below the trend threshold), the others (``bridged_gap``, ``event_in_gap``)
-    keep measured metrics."""
+    sensor's signal around it is periodic. Below half of the shortest walking stride (~1 s): the hole never holds
+    both the swing and the stance of one stride, so at least one of a stride's two events stays observed, and a
+    template one stride away lies outside the hole. Three lost 20-sample packets at 128 Hz (0.47 s) fit; longer
+    gaps are masked."""
     periodic_period_s: tuple[float, float] = (0.5, 2.5)
     """Search range of the stride period [s] for the periodic fill (running ~0.6, very slow walking ~2.5)."""
     periodic_context_s: float = 0.8

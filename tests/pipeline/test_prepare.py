@@ -53,14 +53,14 @@ def test_short_gaps_are_bridged_and_long_gaps_masked() -> None:
     t = np.arange(0, 10, 0.01)
     drop = np.zeros(t.size, dtype=bool)
     drop[200:210] = True  # 110 ms: bridged
-    drop[500:590] = True  # 0.9 s: longer than the periodic fill's limit, masked
+    drop[500:560] = True  # 0.6 s: masked
     g, a = _signals(t)
     thigh = _stream("thigh", t[~drop], g[~drop], a[~drop], 100)
     p = prepare_leg("left", thigh, _stream("shank", t, g, a, 100))
     assert MAX_BRIDGE_S > 11 * 0.01
     assert len(p.gaps_s) == 1
     a_s, b_s = p.gaps_s[0]
-    assert a_s == pytest.approx(t[499]) and b_s == pytest.approx(t[590])
+    assert a_s == pytest.approx(t[499]) and b_s == pytest.approx(t[560])
     inside = (p.t_s > a_s) & (p.t_s < b_s)
     assert not p.valid[inside].any()
     assert p.valid[~inside].all()
@@ -86,24 +86,6 @@ def test_holes_in_periodic_gait_are_filled_from_the_neighbouring_strides() -> No
     assert p.valid.all() and len(p.filled_s) == 1 and not p.gaps_s
     err = np.rad2deg(p.gyr_thigh_rps[595:645]) - g[595:645]
     assert np.max(np.abs(err)) < 5.0  # of a 300 deg/s swing
-
-
-def test_bursty_holes_shorter_than_a_stride_are_filled_longer_ones_stay_masked() -> None:
-    """A 0.7 s hole (a burst of lost packets) inside 1.1 s strides is filled from the strides around it; a hole
-    longer than the stride period has no template outside itself and stays masked."""
-    t = np.arange(0, 14, 0.01)
-    ph = 2 * np.pi * t / 1.1
-    g = np.column_stack([300 * np.sin(ph) ** 3 + 80 * np.sin(2 * ph), 40 * np.cos(ph), 20 * np.sin(3 * ph)])
-    a = np.column_stack([np.sin(ph), np.cos(ph), 9.81 + np.sin(2 * ph)])
-    drop = np.zeros(t.size, dtype=bool)
-    drop[600:670] = True  # 0.71 s
-    p = prepare_leg("left", _stream("thigh", t[~drop], g[~drop], a[~drop], 100), _stream("shank", t, g, a, 100))
-    assert p.valid.all() and len(p.filled_s) == 1 and not p.gaps_s
-    err = np.rad2deg(p.gyr_thigh_rps[595:675]) - g[595:675]
-    assert np.max(np.abs(err)) < 5.0
-    drop[600:720] = True  # 1.21 s: longer than the 1.1 s stride
-    p = prepare_leg("left", _stream("thigh", t[~drop], g[~drop], a[~drop], 100), _stream("shank", t, g, a, 100))
-    assert len(p.gaps_s) == 1 and not p.filled_s
 
 
 def test_holes_without_periodic_context_stay_masked() -> None:
