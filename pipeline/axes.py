@@ -307,21 +307,6 @@ class _CentreProblem:
         return np.vstack([data, self.centre_reg * np.sqrt(self.args[0].shape[0]) * np.eye(6)])
 
 
-def _multistart_centres(a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray, params: AxesParams
-                        ) -> OptimizeResult:
-    """The Eq. 5 least-squares solution from several starts. MINPACK Levenberg-Marquardt (a 6-parameter problem;
-    the trust-region solver's SVDs cost far more here). The cost has mirrored local minima (a sensor->knee
-    direction flipped), so a few seeded starts on a quarter of the samples, then the two best refined on all of
-    them (the subset alone can prefer a mirrored minimum)."""
-    rng = np.random.default_rng(1)
-    starts = [np.full(6, 1e-3)] + [rng.uniform(-0.25, 0.25, 6) for _ in range(params.n_centre_starts)]
-    sub = slice(None, None, 4) if a1.shape[0] >= 400 else slice(None)
-    args_sub = (a1[sub], m1[sub], a2[sub], m2[sub])
-    reg = params.centre_reg
-    trials = sorted((_lsq_centres(x0, *args_sub, reg) for x0 in starts), key=lambda r: r.cost)
-    return min((_lsq_centres(t.x, a1, m1, a2, m2, reg) for t in trials[:2]), key=lambda r: r.cost)
-
-
 def _centre_resid(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray,
                   centre_reg: float) -> np.ndarray:
     """Seel Eq. 5 residual: ||a1 - Gamma1(o1)|| - ||a2 - Gamma2(o2)|| per sample, plus a weak pull of o towards 0:
@@ -337,18 +322,23 @@ def _lsq_centres(x0: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray,
 
 
 def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,
-                      gd2: np.ndarray, j1: np.ndarray, j2: np.ndarray, params: AxesParams = WALKING.axes,
-                      start: JointCentres | None = None) -> JointCentres:
+                      gd2: np.ndarray, j1: np.ndarray, j2: np.ndarray, params: AxesParams = WALKING.axes
+                      ) -> JointCentres:
     """Joint-centre positions by Seel's Eq. 5 (Rhudy et al. 2024, Eq. 5), least squares with analytic Jacobian,
     then shifted along the axes as in Eq. 5 (the cost is blind to sliding both along j). Inputs: a bounded sample set.
-    ``start``: a fit on other samples of the same leg to refine from (no multi-start search: its basin is kept).
     """
     m1, m2 = gamma_matrices(g1, gd1), gamma_matrices(g2, gd2)
+    # MINPACK Levenberg-Marquardt (a 6-parameter problem; the trust-region solver's SVDs cost far more here).
+    # The cost has mirrored local minima (a sensor->knee direction flipped), so a few seeded starts on a quarter of
+    # the samples, then the best one refined on all of them.
+    rng = np.random.default_rng(1)
+    starts = [np.full(6, 1e-3)] + [rng.uniform(-0.25, 0.25, 6) for _ in range(params.n_centre_starts)]
+    sub = slice(None, None, 4) if a1.shape[0] >= 400 else slice(None)
+    args_sub = (a1[sub], m1[sub], a2[sub], m2[sub])
     reg = params.centre_reg
-    if start is not None and (start.o1.any() or start.o2.any()):  # not the "no lever arms" fallback
-        sol = _lsq_centres(np.concatenate([start.o1, start.o2]), a1, m1, a2, m2, reg)
-    else:
-        sol = _multistart_centres(a1, m1, a2, m2, params)
+    trials = sorted((_lsq_centres(x0, *args_sub, reg) for x0 in starts), key=lambda r: r.cost)
+    # the two best subset solutions refined on all samples: the subset alone can prefer a mirrored minimum
+    sol = min((_lsq_centres(t.x, a1, m1, a2, m2, reg) for t in trials[:2]), key=lambda r: r.cost)
     # one trimming pass: a few samples (next to gaps, impacts) can carry metres-per-second-squared of misfit
     r = _centre_resid(sol.x, a1, m1, a2, m2, reg)[:-6]
     mad = float(np.median(np.abs(r - np.median(r)))) + 1e-9

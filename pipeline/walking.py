@@ -41,22 +41,6 @@ def gait_events(prep: PreparedLeg, axes: JointAxes, params: PipelineParams) -> t
     return shank_sag, events
 
 
-def centre_fit_mask(usable: np.ndarray, gait: list[tuple[int, int, int]], min_samples: int) -> np.ndarray:
-    """The samples the joint-centre fit (Seel Eq. 5) may use: those of ``usable`` inside the gait strides ``gait``
-    when they number at least ``min_samples``, else all of ``usable``. The rigid-hinge model behind Eq. 5 holds in
-    gait; jump landings, sit-to-stand and stepping up are fast too (so the fastest-sample selection would pick
-    them) but add soft-tissue and strap motion at the landing shocks (Seel et al. 2012, joint position estimation:
-    the fit wants hinge motion only)."""
-    if not gait:
-        return usable
-    arr = np.asarray(gait)
-    delta = np.zeros(usable.shape[0] + 1, dtype=int)
-    np.add.at(delta, arr[:, 0], 1)
-    np.add.at(delta, arr[:, 2] + 1, -1)
-    inside = usable & (np.cumsum(delta)[:-1] > 0)
-    return inside if int(inside.sum()) >= min_samples else usable
-
-
 def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: JointAxes | None = None,
                             fit_gyr: tuple[np.ndarray, np.ndarray] | None = None,
                             other: OtherLeg | None = None) -> LegInput:
@@ -91,16 +75,9 @@ def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: Joi
     # Fit samples stay away from masked gaps: the filters and Eq. 1 differences are unreliable within a few samples.
     margin = max(int(params.axes.fit_margin_s * fs), 1)
     far = ~np.convolve(~valid, np.ones(2 * margin + 1), mode="same").astype(bool)
-    # a first fit on all of them finds the basin (turns and transitions condition it; gait alone can leave the
-    # solver in a mirrored minimum), then the gait samples alone refine it (centre_fit_mask)
     idx = select_fit_samples(g1, g2, far, params.axes)
     centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], axes.j1, axes.j2,
                                 params.axes)
-    gait_mask = centre_fit_mask(far, gait, params.axes.max_fit_samples)
-    if gait_mask is not far:
-        idx = select_fit_samples(g1, g2, gait_mask, params.axes)
-        centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], axes.j1, axes.j2,
-                                    params.axes, start=centres)
     acc_angle = accelerometer_angle_deg(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, centres)
     acc_angle[~valid] = np.nan
     return LegInput(prep=prep, axes=axes, centres=centres, rate_dps=rate, acc_angle_deg=acc_angle,
