@@ -11,6 +11,7 @@ is kept when some mid-swing of the other leg within half a stride of it lies at 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -39,3 +40,38 @@ def non_alternating(strides_s: Sequence[tuple[float, float, float]], other_swing
     """Indices of the strides that are not gait by :func:`alternates` (judged ones only)."""
     swings = np.sort(np.asarray(other_swings_s, dtype=float))
     return [k for k, s in enumerate(strides_s) if alternates(s, swings, other_gaps_s, min_phase) is False]
+
+
+@dataclass(frozen=True)
+class OtherLeg:
+    """What the alternation check needs of the contralateral leg: its mid-swing times (sorted) and data gaps [s]."""
+
+    swings_s: np.ndarray
+    gaps_s: tuple[tuple[float, float], ...] = ()
+
+
+def stride_spans_s(t_s: np.ndarray, strides: Sequence[tuple[int, int, int]], ms: np.ndarray
+                   ) -> list[tuple[float, float, float]]:
+    """``(t_start, t_own_mid_swing, t_end)`` [s] of each stride ``(hs, to, hs_next)`` (sample indices of ``t_s``):
+    the first mid-swing peak (``ms``, sample indices) between toe-off and the stride's end, else the middle of
+    that swing interval."""
+    own = np.sort(np.asarray(ms, dtype=int))
+    own = own[own >= 0]
+    spans = []
+    for a, t, b in strides:
+        k = int(np.searchsorted(own, t))
+        m = float(t_s[own[k]]) if k < own.size and own[k] <= b else 0.5 * (float(t_s[t]) + float(t_s[b]))
+        spans.append((float(t_s[a]), m, float(t_s[b])))
+    return spans
+
+
+def gait_strides(t_s: np.ndarray, strides: Sequence[tuple[int, int, int]], ms: np.ndarray,
+                 other: OtherLeg | None, min_phase: float = MIN_PHASE) -> list[tuple[int, int, int]]:
+    """The strides that are gait by the other leg's swings (:func:`alternates` True): the ones allowed to decide
+    anything about the leg (the thigh axis's sign, the joint-centre fit). Strides the other leg cannot judge (its
+    data gap) and those of a leg alone (``other`` None) are kept: nothing says they are not gait."""
+    if other is None:
+        return list(strides)
+    swings = np.sort(np.asarray(other.swings_s, dtype=float))
+    return [s for s, span in zip(strides, stride_spans_s(t_s, strides, ms), strict=True)
+            if alternates(span, swings, other.gaps_s, min_phase) is not False]

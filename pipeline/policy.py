@@ -124,7 +124,8 @@ def running_auto(leg: LegInput) -> PolicyResult:
     level would be the joint-plane frames' own (sensor->knee directions tilted 10-30 deg by the sensors' offsets
     from the segment axes), so the EKF curve is moved to GO's level instead (:func:`go_levelled`): no absolute
     reference either, but one that does not depend on where the sensors sit; the strides say so (``go_level``) and
-    lose quality."""
+    lose quality. Quality is capped like walking's (:func:`pipeline.quality.stride_quality`): ``assumed_level``
+    without a calibration."""
     rp = leg.params.running
     name = rp.auto_estimator
     angle, diag = get_estimator(name)(leg)
@@ -135,8 +136,11 @@ def running_auto(leg: LegInput) -> PolicyResult:
     labels = np.where(np.isfinite(angle), name, "").astype(str)
     reasons: tuple[str, ...] = (() if ref is not None else ("no_absolute_reference",))
     reasons += (("go_level",) if levelled is not None else ()) + _level_reasons(leg)
-    choice = StrideChoice(estimator=name, quality=rp.no_reference_quality if ref is None else 1.0, reasons=reasons,
-                          fallback=False)
+    # the same caps as walking (pipeline.quality): a level resting on the assumed standing flexion is never vouched
+    # for, whichever estimator carries the curve
+    base = rp.no_reference_quality if ref is None else 1.0
+    choice = StrideChoice(estimator=name, quality=min(base, stride_quality(reasons, leg.params.quality)),
+                          reasons=reasons, fallback=False)
     return PolicyResult(angle_deg=angle, estimator=labels, choices=tuple(choice for _ in leg.events.strides),
                         absolute_reference=_reference(ref), standing_ref_deg=None if ref is None else round(ref, 2),
                         tuning=_tuning(diag))

@@ -16,7 +16,7 @@ import numpy as np
 
 from pipeline import ALGORITHM_VERSION
 from pipeline.assignment import check_segments, pairing_suspicious, swapped_pairing_better
-from pipeline.bilateral import non_alternating
+from pipeline.bilateral import OtherLeg, non_alternating
 from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
 from pipeline.metrics import stride_values
@@ -34,7 +34,7 @@ from pipeline.types import (
     SessionResult,
     StrideMetrics,
 )
-from pipeline.walking import build_walking_leg_input
+from pipeline.walking import build_walking_leg_input, gait_events
 
 
 def process_session(streams: Sequence[RawSensorStream], activity: str = "walking", estimator: str = "auto",
@@ -61,6 +61,7 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
     assigned = _check_labels(by_leg, ap, warnings)
     legs: dict[str, LegResult] = {}
     swings: dict[str, np.ndarray] = {}
+    synced: dict[str, SyncedLeg] = {}
     for leg in sorted(by_leg):
         segs = by_leg[leg]
         if "thigh" not in segs or "shank" not in segs:
@@ -68,12 +69,19 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
             warnings.append(f"{leg} leg skipped: no {missing} sensor")
             continue
         try:
+            synced[leg] = _synced(leg, segs["thigh"], segs["shank"], activity, params)
+        except ValueError as exc:
+            warnings.append(f"{leg} leg skipped: {exc}")
+    others = _other_legs(synced, activity, params)
+    for leg in sorted(synced):
+        segs = by_leg[leg]
+        try:
             legs[leg], swings[leg] = _process_leg(leg, segs["thigh"], segs["shank"], activity, estimator, params,
-                                                  (calibration or {}).get(leg))
+                                                  (calibration or {}).get(leg), synced[leg], others.get(leg))
         except ValueError as exc:
             warnings.append(f"{leg} leg skipped: {exc}")
     legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
-                                        warnings)
+                                        warnings, others)
     legs = _alternating_strides(legs, swings, warnings)
     for leg, how in assigned.items():
         lr = legs.get(leg)
@@ -113,7 +121,7 @@ def _check_thigh_pairing(legs: dict[str, LegResult], swings: dict[str, np.ndarra
                          by_leg: dict[str, dict[str, RawSensorStream]], activity: str,
                          estimator: str, params: PipelineParams | None,
                          calibration: Mapping[str, KneeCalibration] | None, ap: AssignmentParams,
-                         assigned: dict[str, str], warnings: list[str]
+                         assigned: dict[str, str], warnings: list[str], others: Mapping[str, OtherLeg]
                          ) -> tuple[dict[str, LegResult], dict[str, np.ndarray]]:
     """Both legs processed again with the thighs exchanged when a joint-centre residual is suspicious; the swapped
     pairing is kept when it fits clearly better (:func:`pipeline.assignment.swapped_pairing_better`)."""
@@ -125,7 +133,7 @@ def _check_thigh_pairing(legs: dict[str, LegResult], swings: dict[str, np.ndarra
     other = {"left": "right", "right": "left"}
     try:
         runs = {k: _process_leg(k, by_leg[other[k]]["thigh"], by_leg[k]["shank"], activity, estimator, params,
-                                (calibration or {}).get(k)) for k in ("left", "right")}
+                                (calibration or {}).get(k), other=others.get(k)) for k in ("left", "right")}
     except ValueError:
         runs = {}
     swapped = {k: v[0] for k, v in runs.items()}
@@ -186,8 +194,32 @@ def _streams_by_leg(streams: Sequence[RawSensorStream], warnings: list[str]
     return by_leg
 
 
+def _synced(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str, params: PipelineParams | None
+            ) -> SyncedLeg:
+    """:func:`pipeline.sync.synchronised_leg` with the session's parameters (runtime warnings of NaN-heavy
+    input silenced, as for the whole leg)."""
+    with _warnings.catch_warnings():
+        _warnings.simplefilter("ignore", RuntimeWarning)
+        return synchronised_leg(leg, thigh, shank, params if params is not None else preset(activity))
+
+
+def _other_legs(synced: Mapping[str, SyncedLeg], activity: str, params: PipelineParams | None
+                ) -> dict[str, OtherLeg]:
+    """Per leg, the contralateral leg's mid-swing times and gaps (its shank's gait events, which do not depend on
+    the thigh axis): what lets a leg's processing tell its gait strides from jumps (:mod:`pipeline.bilateral`)."""
+    if set(synced) != {"left", "right"}:
+        return {}
+    p = params if params is not None else preset(activity)
+    seen = {}
+    for leg, sl in synced.items():
+        _, events = gait_events(sl.prep, sl.axes, p)
+        seen[leg] = OtherLeg(np.sort(sl.prep.t_s[events.ms]), tuple(sl.prep.gaps_s))
+    return {"left": seen["right"], "right": seen["left"]}
+
+
 def _leg_input(synced: SyncedLeg, activity: str, params: PipelineParams | None,
-               calibration: KneeCalibration | None = None) -> tuple[LegInput, RunningDiagnostics | None]:
+               calibration: KneeCalibration | None = None, other: OtherLeg | None = None
+               ) -> tuple[LegInput, RunningDiagnostics | None]:
     """The estimators' input for one synchronised leg: the running flow when declared or (``unknown``) detected
     running, else the walking flow. ``params`` None: the preset of the activity the leg is processed as; either
     tree takes the leg's calibrated standing flexion."""
@@ -196,7 +228,7 @@ def _leg_input(synced: SyncedLeg, activity: str, params: PipelineParams | None,
     cycles = detect_running(synced.prep, walking.running) if activity == "unknown" else None
     if activity == "running" or cycles is not None:
         return build_running_leg_input(synced.prep, running, cycles)
-    return build_walking_leg_input(synced.prep, walking, axes=synced.axes, fit_gyr=synced.fit_gyr), None
+    return build_walking_leg_input(synced.prep, walking, axes=synced.axes, fit_gyr=synced.fit_gyr, other=other), None
 
 
 def _calibrated(params: PipelineParams, calibration: KneeCalibration | None) -> PipelineParams:
@@ -215,13 +247,15 @@ def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activi
 
 
 def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str, estimator: str,
-                 params: PipelineParams | None, calibration: KneeCalibration | None
-                 ) -> tuple[LegResult, np.ndarray]:
-    """:func:`process_leg` and the times [s] of every mid-swing peak of the leg (in bouts or not)."""
+                 params: PipelineParams | None, calibration: KneeCalibration | None,
+                 synced: SyncedLeg | None = None, other: OtherLeg | None = None) -> tuple[LegResult, np.ndarray]:
+    """:func:`process_leg` and the times [s] of every mid-swing peak of the leg (in bouts or not). ``synced``: the
+    leg already synchronised; ``other``: the contralateral leg's swings (:func:`_other_legs`)."""
+    if synced is None:
+        synced = _synced(leg, thigh, shank, activity, params)
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore", RuntimeWarning)
-        synced = synchronised_leg(leg, thigh, shank, params if params is not None else preset(activity))
-        data, running = _leg_input(synced, activity, params, calibration)
+        data, running = _leg_input(synced, activity, params, calibration, other)
         result = auto(data) if estimator == "auto" else single_estimator(data, estimator)
     strides = _strides(leg, data, result)
     diagnostics = _diagnostics(data, synced, result, strides, running, calibration)

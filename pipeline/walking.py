@@ -16,9 +16,10 @@ from pipeline.axes import (
     orient_thigh_on_gait,
     select_fit_samples,
 )
+from pipeline.bilateral import OtherLeg, gait_strides
 from pipeline.leg_input import LegInput
 from pipeline.params import PipelineParams
-from pipeline.phases import detect_gait_events
+from pipeline.phases import GaitEvents, detect_gait_events
 from pipeline.prepare import PreparedLeg
 from pipeline.signal_utils import lowpass_runs_many
 
@@ -30,11 +31,23 @@ def fit_gyros(prep: PreparedLeg, cutoff_hz: float) -> tuple[np.ndarray, np.ndarr
     return g1, g2
 
 
+def gait_events(prep: PreparedLeg, axes: JointAxes, params: PipelineParams) -> tuple[np.ndarray, GaitEvents]:
+    """Shank sagittal rate ``g2.j2`` (N,) [deg/s] (NaN where masked) and the gait events found on it (Allseits
+    et al. 2018): they depend on the shank axis alone, not on the thigh axis's sign."""
+    shank_sag = np.rad2deg(prep.gyr_shank_rps @ axes.j2)
+    shank_sag[~prep.valid] = np.nan
+    events = detect_gait_events(shank_sag, prep.fs_hz, prep.valid, shank_acc_mps2=prep.acc_shank_mps2,
+                                params=params.phases)
+    return shank_sag, events
+
+
 def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: JointAxes | None = None,
-                            fit_gyr: tuple[np.ndarray, np.ndarray] | None = None) -> LegInput:
+                            fit_gyr: tuple[np.ndarray, np.ndarray] | None = None,
+                            other: OtherLeg | None = None) -> LegInput:
     """Axes (unless given), rates, events, joint centres and accelerometer angle of one prepared leg.
     ``fit_gyr``: :func:`fit_gyros` of this very ``prep`` when already computed (:func:`pipeline.sync.synchronised_leg`),
-    so the same filter is not run twice."""
+    so the same filter is not run twice. ``other``: the contralateral leg's swings; only the strides that alternate
+    with them (:func:`pipeline.bilateral.gait_strides`) decide the thigh axis's sign."""
     valid = prep.valid
     fs = prep.fs_hz
     cutoff = params.axes.fit_cutoff_hz
@@ -42,13 +55,14 @@ def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: Joi
     if axes is None:
         axes = fit_joint_axes(g1, g2, valid, params.axes)
     rate = np.rad2deg(prep.gyr_thigh_rps @ axes.j1 - prep.gyr_shank_rps @ axes.j2)
-    shank_sag = np.rad2deg(prep.gyr_shank_rps @ axes.j2)
     rate[~valid] = np.nan
-    shank_sag[~valid] = np.nan
-    events = detect_gait_events(shank_sag, fs, valid, shank_acc_mps2=prep.acc_shank_mps2, params=params.phases)
+    shank_sag, events = gait_events(prep, axes, params)
     # the thigh axis's sign again, from gait alone: non-gait movements between bouts can outweigh gait in the
-    # whole-session rule (pipeline.axes.orient_thigh_on_gait); the shank's sign already found the strides
-    j1 = orient_thigh_on_gait(axes.j1, axes.j2, g1, g2, events.strides)
+    # whole-session rule (pipeline.axes.orient_thigh_on_gait); the shank's sign already found the strides. Jumps
+    # and squats in a row look like strides of one leg; only the other leg's anti-phase swing tells gait from them,
+    # so they never vote (pipeline.bilateral)
+    gait = gait_strides(prep.t_s, events.strides, events.ms, other)
+    j1 = orient_thigh_on_gait(axes.j1, axes.j2, g1, g2, gait)
     if j1 is not axes.j1:
         axes = dataclasses.replace(axes, j1=j1)
         rate = np.rad2deg(prep.gyr_thigh_rps @ axes.j1 - prep.gyr_shank_rps @ axes.j2)

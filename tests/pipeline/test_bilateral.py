@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.bilateral import alternates, non_alternating
+from bench.matching import match_strides
+from pipeline.bilateral import OtherLeg, alternates, gait_strides, non_alternating, stride_spans_s
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, simulate_session
 
@@ -17,11 +18,10 @@ def test_anti_phase_swings_alternate_and_in_phase_ones_do_not() -> None:
     assert alternates(stride, np.array([]), [(10.2, 10.9)]) is None  # no data to judge
 
 
-def test_rhythmic_jumps_give_no_strides() -> None:
-    """Twenty seconds of rhythmic jumping between two short bouts: no stride inside the jumps and no impossible
-    angle stored. The walking strides of such a session are lost too (the thigh axis sign is voted per leg over
-    every stride-like cycle, before the legs are compared, and the jumps outvote the walk), which the closing
-    assertion pins until the vote moves after the alternation check."""
+def test_rhythmic_jumps_give_no_strides_and_keep_the_walk() -> None:
+    """Twenty seconds of rhythmic jumping between two short bouts: no stride inside the jumps, no impossible angle
+    stored, and the walking strides kept: the jumps' in-phase "strides" never vote on the thigh axis's sign (only
+    strides that alternate with the other leg do), so they cannot turn the walk's flexion upside down."""
     sim = simulate_session(SimConfig(pattern="normal", seed=1, duration_s=60.0, bout_strides=8,
                                      activities=("jump",), move_reps=8, jump_rest_s=0.0))
     res = process_session(sim.streams)
@@ -29,10 +29,26 @@ def test_rhythmic_jumps_give_no_strides() -> None:
     inside = [s for lr in res.legs.values() for s in lr.strides
               if any(a < s.t_end_s and s.t_start_s < b for _, a, b in jumps)]
     assert not inside
-    for lr in res.legs.values():
+    for leg, lr in res.legs.items():
         finite = lr.angle_deg[np.isfinite(lr.angle_deg)]
         assert finite.size and finite.min() >= -15.0 and finite.max() <= 160.0
-    assert all(len(lr.strides) < 5 for lr in res.legs.values())
+        steady = [t for t in sim.truth[leg].strides if t.steady]
+        pairs = match_strides(lr.strides, steady)
+        assert len(pairs) >= 0.95 * len(steady), (leg, len(pairs), len(steady))
+        err = [lr.strides[i].peak_swing_flexion_deg - steady[j].peak_swing_flexion_deg for i, j in pairs]
+        assert np.max(np.abs(err)) < 5.0
+
+
+def test_jump_strides_never_vote_on_the_thigh_sign() -> None:
+    """Only strides in anti-phase with the other leg's swings are gait (pipeline.bilateral.gait_strides); in-phase
+    ones and those of a leg alone are judged as before."""
+    t_s = np.arange(0, 10, 0.01)
+    strides = [(100, 160, 210), (210, 270, 320), (500, 560, 610)]
+    ms = np.array([185, 295, 585])
+    other = OtherLeg(np.array([1.3, 2.4, 5.85]))  # anti-phase to the first two, in phase with the third
+    assert gait_strides(t_s, strides, ms, other) == strides[:2]
+    assert gait_strides(t_s, strides, ms, None) == strides
+    assert stride_spans_s(t_s, strides, ms)[0] == (1.0, 1.85, 2.1)
 
 
 def test_short_jump_block_keeps_the_walking_strides() -> None:

@@ -161,6 +161,20 @@ def test_running_session_auto_uses_the_extended_kalman_filter(running_sim: SimSe
     assert 85.0 <= float(np.median(peaks)) <= 125.0
 
 
+def test_running_strides_of_an_assumed_level_are_capped_like_walking(running_sim: SimSession) -> None:
+    """Without a calibration a running stride's level rests on the assumed standing flexion: never >= 0.8
+    (pipeline.quality); with the measured value the same strides are vouched for again."""
+    from pipeline.types import KneeCalibration
+
+    res = process_session(running_sim.streams, activity="running")
+    strides = res.legs["left"].strides
+    assert strides and all("assumed_level" in s.quality_reasons and s.quality <= 0.75 for s in strides)
+    cal = {"left": KneeCalibration(standing_knee_deg=running_sim.truth["left"].stand_knee_deg, method="goniometer")}
+    calibrated = process_session(running_sim.streams, activity="running", calibration=cal).legs["left"].strides
+    assert calibrated and all("assumed_level" not in s.quality_reasons for s in calibrated)
+    assert max(s.quality for s in calibrated) > 0.8
+
+
 def test_unknown_activity_is_detected_as_running(running_sim: SimSession) -> None:
     res = process_session(running_sim.streams, activity="unknown")
     assert res.legs["left"].strides[0].estimator == "ekf"
