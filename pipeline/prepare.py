@@ -75,8 +75,8 @@ def to_si(stream: RawSensorStream) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not (np.isfinite(t).all() and np.isfinite(gyr).all() and np.isfinite(acc).all()):
         finite = np.isfinite(t) & np.isfinite(gyr).all(axis=1) & np.isfinite(acc).all(axis=1)
         t, gyr, acc = t[finite], gyr[finite], acc[finite]
-    if t.shape[0] > 1 and np.all(np.diff(t) > 0):
-        return t, gyr, acc  # the usual case: already sorted and unique
+    if t.shape[0] < 2 or np.all(np.diff(t) > 0):
+        return t, gyr, acc  # the usual case: already sorted and unique (or nothing to sort)
     order = np.argsort(t, kind="stable")
     t, gyr, acc = t[order], gyr[order], acc[order]
     keep = np.concatenate(([True], np.diff(t) > 0))

@@ -150,6 +150,13 @@ def test_missing_segment_and_empty_input() -> None:
         process_session(empty)
     with pytest.raises(ValueError):
         process_session([])
+    # one empty sensor among full ones: that leg is skipped with the reason, the other leg is processed
+    left_thigh = next(s for s in sim.streams if s.leg == "left" and s.segment == "thigh")
+    hollow = [dataclasses.replace(s, t_s=np.zeros(0), gyr=np.zeros((0, 3)), acc=np.zeros((0, 3)))
+              if s is left_thigh else s for s in sim.streams]
+    res = process_session(hollow)
+    assert set(res.legs) == {"right"} and res.legs["right"].strides
+    assert any("left thigh" in w and "usable samples" in w for w in res.warnings)
 
 
 def test_saturated_gyro_strides_fall_back_to_cf() -> None:
