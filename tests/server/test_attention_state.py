@@ -10,17 +10,17 @@ from datetime import UTC, datetime, timedelta
 
 import numpy as np
 import pytest
-from sqlalchemy import delete, select, update
+from sqlalchemy import select, update
 from sqlalchemy.orm import Session as DbSession
 
 from pipeline.simulate import SimConfig, simulate_session
-from server.auth.models import Clinician, Token
+from server.auth.models import Clinician
 from server.db import make_engine, make_sessionmaker, new_id
 from server.enums import SessionStatus
 from server.patients.models import Patient
+from server.patients.service import delete_patient
 from server.processing.jobs import run_queued
-from server.results.models import KneeAngleTrace, Stride
-from server.sessions.models import Batch, Session, SessionSensor
+from server.sessions.models import Session
 from server.trends.attention import attention_list
 from server.trends.attention.evidence import RULES_VERSION, patients_needing_evidence
 from server.trends.attention.service import evidence_document
@@ -152,13 +152,8 @@ def test_a_rule_change_is_backfilled_and_a_deleted_patient_loses_the_row(factory
         assert pid not in patients_needing_evidence(db)
         assert [f["kind"] for f in _flags(db, clin, pid)[0]] == ["declining"]
 
-        # Deleted as the API deletes a patient: the row goes with it (ON DELETE CASCADE), the list forgets them.
-        session_ids = select(Session.id).where(Session.patient_id == pid).scalar_subquery()
-        for model in (Batch, Stride, KneeAngleTrace, SessionSensor):
-            db.execute(delete(model).where(model.session_id.in_(session_ids)))
-        db.execute(delete(Session).where(Session.patient_id == pid))
-        db.execute(delete(Token).where(Token.patient_id == pid))
-        db.execute(delete(Patient).where(Patient.id == pid))
+        # Deleted by the service the API uses: the row goes with it (ON DELETE CASCADE), the list forgets them.
+        delete_patient(db, pid)
         db.commit()
         assert _row(db, pid) is None
         flags, out = _flags(db, clin, pid)
