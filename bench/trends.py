@@ -157,11 +157,14 @@ def run(name: str, url: str, args: argparse.Namespace) -> list[tuple[str, str, f
             conn.execute(text("ANALYZE"))
             conn.commit()
 
+    # midnight a year back: the first daily session (08:00-16:00) is inside whatever the time of day now
+    year_start = (NOW - timedelta(days=min(args.days, 365))).replace(hour=0, minute=0, second=0, microsecond=0)
+
     def trend_service() -> None:
         with factory() as db:
             patient = db.get(Patient, pid)
             out = service.patient_trends(db, patient, metric_name="peak_swing_flexion_deg", leg="left",
-                                         bucket="day", start=NOW - timedelta(days=365), end=None)
+                                         bucket="day", start=year_start, end=None)
             assert len(out["buckets"]) == min(args.days, 365)
 
     def attention_service() -> None:
