@@ -68,11 +68,12 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
 def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
                 axes_params: AxesParams | None = None) -> tuple[float | None, float]:
     """Shank-vs-thigh lag at mid-session [s] and its drift [s/s]: one lag per ``window_s`` window and a straight line
-    through them (rate error clipped to ``max_drift``), from the hinge constraint; where it does not give a model,
-    from the joint-centre constraint (when ``axes_params`` is given). Applied only when at least two windows are
-    informative and agree with the line within ``agree_s``: a real knee is not a perfect hinge, and on the
-    hardware-synchronised biomechZoo trial (one 10 s window) the constraint alone suggests a false 10-18 ms lag, so
-    a single unconfirmed estimate is not used. ``g1``, ``g2``: low-passed gyros (N, 3) [rad/s]."""
+    through them (rate error clipped to ``max_drift``), from the hinge constraint; where fewer than two of its windows
+    are informative (no out-of-plane motion), from the joint-centre constraint (when ``axes_params`` is given).
+    Applied only when at least two windows are informative and agree with the line within ``agree_s``: a real knee
+    is not a perfect hinge, and on the hardware-synchronised biomechZoo trial (one 10 s window) the constraint alone
+    suggests a false 10-18 ms lag, so a single unconfirmed estimate is not used. ``g1``, ``g2``: low-passed gyros
+    (N, 3) [rad/s]."""
     fs = prep.fs_hz
     win = int(params.window_s * fs)
     if prep.n < 2 * win:
@@ -80,9 +81,13 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
     edges = np.linspace(0, prep.n, int(prep.n // win) + 1).astype(int)
     windows = [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
     rates = hinge_rates(g1, g2, axes.j1, axes.j2)  # once for all windows
-    offset, drift = _line_model(prep, windows, params, lambda w: estimate_sync_lag_s(
-        g1, g2, axes.j1, axes.j2, prep.valid, fs, window=w, rates=rates, max_lag_s=params.max_lag_s))
-    if offset is not None or axes_params is None:
+    hinge = [estimate_sync_lag_s(g1, g2, axes.j1, axes.j2, prep.valid, fs, window=w, rates=rates,
+                                 max_lag_s=params.max_lag_s) for w in windows]
+    offset, drift = _line_model(prep, windows, params, lambda w: hinge[windows.index(w)])
+    # the joint-centre cue only where the hinge constraint is silent (fewer than two informative windows): hinge
+    # windows that speak but disagree mark a leg whose timing is not to be trusted, and on the sweep's tune seeds
+    # the centre cue is the less accurate of the two wherever turns make both informative
+    if offset is not None or axes_params is None or sum(lag is not None for lag in hinge) >= 2:
         return offset, drift
     a1, a2 = (np.nan_to_num(a) for a in lowpass_runs_many((prep.acc_thigh_mps2, prep.acc_shank_mps2), prep.valid,
                                                             axes_params.fit_cutoff_hz, fs))
