@@ -241,14 +241,7 @@ def estimate_sync_lag_s(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.n
         for i, k in enumerate(range(-k_max, k_max + 1)):
             sel = idx[ok2[idx + k]]
             cost[i] = np.mean((m1[sel] - m2[sel + k]) ** 2) if sel.size else np.inf
-    b = int(np.argmin(cost))
-    # an interior minimum that stands clearly below the ends of the search range (noise and model misfit leave a
-    # floor under the whole curve, so compare depths, not ratios to the median)
-    if b == 0 or b == cost.size - 1 or not np.isfinite(cost).all() or 0.5 * (cost[0] + cost[-1]) < 1.2 * cost[b]:
-        return None
-    den = cost[b - 1] - 2 * cost[b] + cost[b + 1]
-    frac = 0.5 * (cost[b - 1] - cost[b + 1]) / den if den > 0 else 0.0
-    return float((b - k_max + frac) / fs_hz)
+    return _parabolic_minimum_s(cost, k_max, fs_hz)
 
 
 def angular_acceleration(g: np.ndarray, fs_hz: float) -> np.ndarray:
@@ -357,6 +350,61 @@ def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.nd
     in_plane = min(np.linalg.norm(o1 - (o1 @ j1) * j1), np.linalg.norm(o2 - (o2 @ j2) * j2))
     return JointCentres(o1=o1, o2=o2, rms_residual_mps2=float(np.sqrt(np.mean(r ** 2))),
                         absolute=bool(in_plane > 0.03))
+
+
+def fit_margin_mask(valid: np.ndarray, fs_hz: float, params: AxesParams = WALKING.axes) -> np.ndarray:
+    """Samples at least ``fit_margin_s`` from any masked gap: the filters and Eq. 1 differences are unreliable
+    within a few samples of one."""
+    margin = max(int(params.fit_margin_s * fs_hz), 1)
+    return ~np.convolve(~valid, np.ones(2 * margin + 1), mode="same").astype(bool)
+
+
+def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,
+                          gd2: np.ndarray, j1: np.ndarray, j2: np.ndarray, far: np.ndarray, fs_hz: float,
+                          window: slice, max_lag_s: float, params: AxesParams = WALKING.axes) -> float | None:
+    """Timestamp offset of the shank relative to the thigh [s] (sign as :func:`estimate_sync_lag_s`) from Seel's
+    joint-centre constraint (Eq. 5): both accelerometers, moved to the knee centre by ``Gamma o``, measure one
+    acceleration, so ``||a1 - Gamma_1 o1|| = ||a2 - Gamma_2 o2||`` sample by sample. Unlike the hinge constraint
+    (Eq. 2) this holds timing information in straight walking: the knee-centre acceleration swings by several
+    m/s^2 each stride, most sharply at heel strike. For each whole-sample lag the shank samples are shifted and the
+    centres fitted again (a profile of the Eq. 5 cost over the lag; keeping the zero-lag centres would let them
+    absorb part of the offset), then a parabola through the three best lags. None without a clear interior
+    minimum. Inputs on one grid: low-passed accelerations [m/s^2], gyros [rad/s] and their Eq. 1 derivatives,
+    ``far`` the samples usable for a fit (:func:`fit_margin_mask`); only samples inside ``window`` are used."""
+    k_max = max(int(round(max_lag_s * fs_hz)), 2)
+    n = g1.shape[0]
+    inner = np.zeros(n, dtype=bool)
+    lo, hi = max(window.start or 0, k_max), min(window.stop if window.stop is not None else n, n - k_max)
+    if hi - lo < 10 * k_max:
+        return None
+    inner[lo:hi] = far[lo:hi]
+    idx = select_fit_samples(g1, g2, inner, params)
+    if idx.size < 10 * k_max:
+        return None
+    centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], j1, j2, params)
+    x0 = np.concatenate([centres.o1, centres.o2])
+    m1 = gamma_matrices(g1[idx], gd1[idx])
+    cost = np.empty(2 * k_max + 1)
+    for i, k in enumerate(range(-k_max, k_max + 1)):
+        ok = far[idx + k]
+        if ok.sum() < 10 * k_max:
+            return None
+        s1, s2 = idx[ok], idx[ok] + k
+        sol = _lsq_centres(x0, a1[s1], m1[ok], a2[s2], gamma_matrices(g2[s2], gd2[s2]), params.centre_reg)
+        cost[i] = 2.0 * sol.cost / ok.sum()
+    return _parabolic_minimum_s(cost, k_max, fs_hz)
+
+
+def _parabolic_minimum_s(cost: np.ndarray, k_max: int, fs_hz: float) -> float | None:
+    """The lag [s] of an interior minimum of ``cost`` over lags ``-k_max..k_max`` samples that stands clearly below
+    the ends of the search range (noise and model misfit leave a floor under the whole curve, so compare depths, not
+    ratios to the median), refined by a parabola through the three best lags. None without one."""
+    b = int(np.argmin(cost))
+    if b == 0 or b == cost.size - 1 or not np.isfinite(cost).all() or 0.5 * (cost[0] + cost[-1]) < 1.2 * cost[b]:
+        return None
+    den = cost[b - 1] - 2 * cost[b] + cost[b + 1]
+    frac = 0.5 * (cost[b - 1] - cost[b + 1]) / den if den > 0 else 0.0
+    return float((b - k_max + frac) / fs_hz)
 
 
 def joint_plane_frames(centres: JointCentres, j1: np.ndarray, j2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

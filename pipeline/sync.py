@@ -1,18 +1,30 @@
 """Thigh/shank clock offset and drift of one leg from Seel's hinge constraint (Seel et al. 2014, Eq. 2;
-:func:`pipeline.axes.estimate_sync_lag_s`), and the leg prepared again with the shank's stamps corrected.
+:func:`pipeline.axes.estimate_sync_lag_s`) or, where that is flat (straight walking, jumps: no out-of-plane motion),
+from his joint-centre constraint (Eq. 5; :func:`pipeline.axes.estimate_centre_lag_s`), and the leg prepared again
+with the shank's stamps corrected.
 
 A 10-15 ms offset, common between two BLE sensors, would otherwise distort swing flexion by several degrees.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.axes import JointAxes, estimate_sync_lag_s, fit_joint_axes, hinge_rates
-from pipeline.params import PipelineParams, SyncParams
+from pipeline.axes import (
+    JointAxes,
+    angular_acceleration,
+    estimate_centre_lag_s,
+    estimate_sync_lag_s,
+    fit_joint_axes,
+    fit_margin_mask,
+    hinge_rates,
+)
+from pipeline.params import AxesParams, PipelineParams, SyncParams
 from pipeline.prepare import PreparedLeg, nominal_fs, prepare_leg_si, to_si
+from pipeline.signal_utils import lowpass_runs_many
 from pipeline.types import RawSensorStream
 from pipeline.walking import fit_gyros
 
@@ -41,7 +53,7 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     g1, g2 = fit_gyros(prep, params.axes.fit_cutoff_hz)
     fit_gyr: tuple[np.ndarray, np.ndarray] | None = (g1, g2)
     axes = fit_joint_axes(g1, g2, prep.valid, params.axes)
-    offset, drift = clock_model(prep, g1, g2, axes, params.sync)
+    offset, drift = clock_model(prep, g1, g2, axes, params.sync, params.axes)
     if offset is None:
         return SyncedLeg(prep, axes, None, None, fit_gyr)
     # lag(t) = offset + drift * (t - t_mid): shift the shank's stamps back by it
@@ -53,26 +65,48 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     return SyncedLeg(prep, axes, round(1000 * offset, 1), round(1e6 * drift, 1), fit_gyr)
 
 
-def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams
-                ) -> tuple[float | None, float]:
+def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
+                axes_params: AxesParams | None = None) -> tuple[float | None, float]:
     """Shank-vs-thigh lag at mid-session [s] and its drift [s/s]: one lag per ``window_s`` window and a straight line
-    through them (rate error clipped to ``max_drift``). Applied only when at least two windows are informative and
-    agree with the line within ``agree_s``: a real knee is not a perfect hinge, and on the hardware-synchronised
-    biomechZoo trial (one 10 s window) the constraint alone suggests a false 10-18 ms lag, so a single unconfirmed
-    estimate is not used. ``g1``, ``g2``: low-passed gyros (N, 3) [rad/s]."""
+    through them (rate error clipped to ``max_drift``), from the hinge constraint; where fewer than two of its windows
+    are informative (no out-of-plane motion), from the joint-centre constraint (when ``axes_params`` is given).
+    Applied only when at least two windows are informative and agree with the line within ``agree_s``: a real knee
+    is not a perfect hinge, and on the hardware-synchronised biomechZoo trial (one 10 s window) the constraint alone
+    suggests a false 10-18 ms lag, so a single unconfirmed estimate is not used. ``g1``, ``g2``: low-passed gyros
+    (N, 3) [rad/s]."""
     fs = prep.fs_hz
     win = int(params.window_s * fs)
-    t_mid = float(prep.t_s[prep.n // 2])
     if prep.n < 2 * win:
         return None, 0.0
     edges = np.linspace(0, prep.n, int(prep.n // win) + 1).astype(int)
-    pts = []
+    windows = [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
     rates = hinge_rates(g1, g2, axes.j1, axes.j2)  # once for all windows
-    for a, b in zip(edges[:-1], edges[1:], strict=True):
-        lag = estimate_sync_lag_s(g1, g2, axes.j1, axes.j2, prep.valid, fs, window=slice(a, b), rates=rates,
-                                  max_lag_s=params.max_lag_s)
+    hinge = [estimate_sync_lag_s(g1, g2, axes.j1, axes.j2, prep.valid, fs, window=w, rates=rates,
+                                 max_lag_s=params.max_lag_s) for w in windows]
+    offset, drift = _line_model(prep, windows, params, lambda w: hinge[windows.index(w)])
+    # the joint-centre cue only where the hinge constraint is silent (fewer than two informative windows): hinge
+    # windows that speak but disagree mark a leg whose timing is not to be trusted, and on the sweep's tune seeds
+    # the centre cue is the less accurate of the two wherever turns make both informative
+    if offset is not None or axes_params is None or sum(lag is not None for lag in hinge) >= 2:
+        return offset, drift
+    a1, a2 = (np.nan_to_num(a) for a in lowpass_runs_many((prep.acc_thigh_mps2, prep.acc_shank_mps2), prep.valid,
+                                                            axes_params.fit_cutoff_hz, fs))
+    gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)
+    far = fit_margin_mask(prep.valid, fs, axes_params)
+    return _line_model(prep, windows, params, lambda w: estimate_centre_lag_s(
+        a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, far, fs, w, params.max_lag_s, axes_params))
+
+
+def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
+                lag_of: Callable[[slice], float | None]) -> tuple[float | None, float]:
+    """Offset at mid-session and drift of the window lags ``lag_of(window)``; None unless at least two windows are
+    informative and all agree with the line within ``agree_s``."""
+    t_mid = float(prep.t_s[prep.n // 2])
+    pts = []
+    for w in windows:
+        lag = lag_of(w)
         if lag is not None:
-            pts.append((float(prep.t_s[(a + b) // 2]) - t_mid, lag))
+            pts.append((float(prep.t_s[(w.start + w.stop) // 2]) - t_mid, lag))
     if len(pts) < 2:
         return None, 0.0
     t, lag = np.array(pts).T

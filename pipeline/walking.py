@@ -13,6 +13,7 @@ from pipeline.axes import (
     angular_acceleration,
     fit_joint_axes,
     fit_joint_centres,
+    fit_margin_mask,
     orient_thigh_on_gait,
     select_fit_samples,
 )
@@ -73,8 +74,7 @@ def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: Joi
     # joint centres only tell standing from sitting (upright test of the standing reference, pipeline.posture):
     # their in-plane directions are too uncertain for the absolute zero itself.
     # Fit samples stay away from masked gaps: the filters and Eq. 1 differences are unreliable within a few samples.
-    margin = max(int(params.axes.fit_margin_s * fs), 1)
-    far = ~np.convolve(~valid, np.ones(2 * margin + 1), mode="same").astype(bool)
+    far = fit_margin_mask(valid, fs, params.axes)
     idx = select_fit_samples(g1, g2, far, params.axes)
     centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], axes.j1, axes.j2,
                                 params.axes)
