@@ -83,6 +83,10 @@ class SyncParams:
     """Search range of the lag [s]: larger offsets are not a clock error between two BLE sensors."""
     min_shift_samples: float = 0.25
     """A correction smaller than this share of a sample period is not applied (re-preparing costs time)."""
+    max_centre_windows: int = 8
+    """Most windows the joint-centre cue is evaluated on, spread evenly over the session: each costs one centre fit
+    per candidate lag (13 at 100 Hz), and an offset with a drift needs only a few agreeing points, so the cost of a
+    long recording without turns stays that of eight windows."""
 
 
 @dataclass(frozen=True)

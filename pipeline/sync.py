@@ -93,7 +93,8 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
                                                             axes_params.fit_cutoff_hz, fs))
     gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)
     far = fit_margin_mask(prep.valid, fs, axes_params)
-    return _line_model(prep, windows, params, lambda w: estimate_centre_lag_s(
+    pick = np.unique(np.linspace(0, len(windows) - 1, min(len(windows), params.max_centre_windows)).round())
+    return _line_model(prep, [windows[int(i)] for i in pick], params, lambda w: estimate_centre_lag_s(
         a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, far, fs, w, params.max_lag_s, axes_params))
 
 

@@ -90,3 +90,21 @@ def test_centre_lag_on_hardware_synchronised_real_trial() -> None:
         lag = estimate_centre_lag_s(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, far, fs, slice(0, prep.n),
                                     WALKING.sync.max_lag_s)
         assert lag is not None and abs(lag) < 0.004
+
+
+def test_the_centre_cue_runs_on_a_bounded_number_of_windows(straight, monkeypatch: pytest.MonkeyPatch) -> None:
+    """However long a recording without turns, the costly centre profile is evaluated on at most
+    ``max_centre_windows`` windows spread over it."""
+    calls: list[slice] = []
+
+    def counted(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        calls.append(args[10])
+        return estimate_centre_lag_s(*args, **kwargs)
+
+    monkeypatch.setattr("pipeline.sync.estimate_centre_lag_s", counted)
+    prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
+    params = dataclasses.replace(WALKING.sync, window_s=10.0, max_centre_windows=3)
+    offset, _ = clock_model(prep, g1, g2, axes, params, WALKING.axes)
+    assert len(calls) == 3  # of 9 windows
+    assert calls[0].start == 0 and calls[-1].stop == prep.n  # the first and the last: spread over the session
+    assert offset is not None and abs(offset - 0.012) < 0.003
