@@ -168,8 +168,8 @@ async def upload_batch(session_id: str, request: Request, response: Response, ca
                                              caller, session_id, raw, settings.max_samples_per_batch)
     response.status_code = 201 if outcome.created else 200
     ops_metrics.batch_ingested(outcome.samples, stored=outcome.created)
-    log.info("batch session=%s sensor=%s seq=%d samples=%d -> %s", session_id, outcome.sensor_id, outcome.seq,
-             outcome.samples, "stored" if outcome.created else "duplicate")
+    log.debug("batch session=%s sensor=%s seq=%d samples=%d -> %s", session_id, outcome.sensor_id, outcome.seq,
+              outcome.samples, "stored" if outcome.created else "duplicate")
     return BatchOut(sensor_id=outcome.sensor_id, seq=outcome.seq, samples=outcome.samples,
                     duplicate=not outcome.created)
 
