@@ -136,14 +136,14 @@ def main(argv: list[str] | None = None) -> None:
                         r = client.get(path)
                         cpu.append((time.process_time() - c0) * 1000.0)
                         assert r.status_code == 200, (path, r.status_code, r.text[:300])
-                    med, p95 = timeit(get, args.repeats)
+                    med, p95, *_ = timeit(get, args.repeats)
                     size = len(client.get(path).content)
                     print(f"  {name + ', ' + state:<34} {med:6.1f} ms {p95:6.1f} ms "
                           f"{statistics.median(cpu[1:]):6.1f} ms  {size / 1024:.0f} kB")
             t = time.perf_counter()
             assert client.get(f"/ui/sessions/{sid}/compare").status_code == 200
             first = (time.perf_counter() - t) * 1000.0
-            med, _ = timeit(lambda: client.get(f"/ui/sessions/{sid}/compare"), 3)
+            med, *_ = timeit(lambda: client.get(f"/ui/sessions/{sid}/compare"), 3)
             print(f"  {'Estimator comparison':<28} {first:7.0f} ms first (re-runs 5 estimators), {med:.1f} ms cached")
     sys.stdout.flush()
 

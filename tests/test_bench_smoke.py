@@ -124,6 +124,16 @@ def test_speed_bench_runs() -> None:
     assert sum(1 for x in lines if x.startswith("| `pipeline.")) == 3
 
 
+def test_pages_bench_times_every_page() -> None:
+    out = subprocess.run([sys.executable, "-m", "bench.pages", "--days", "3", "--strides", "20", "--cohort", "2",
+                          "--minutes", "0.5", "--repeats", "2"], cwd=REPO, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr
+    rows = [x for x in out.stdout.splitlines() if x.strip().startswith(("My patients", "Patient", "Session"))]
+    assert len(rows) == 10 and all(" ms " in r for r in rows)  # 5 pages, cold and warm
+    assert "Estimator comparison" in out.stdout
+
+
 def test_ingest_bench_uploads_through_a_real_server(capsys: pytest.CaptureFixture[str]) -> None:
     """bench.ingest end to end on SQLite: one phone, a short session, every batch stored, the session processed."""
     from bench.ingest import main
