@@ -20,26 +20,58 @@ MIN_PHASE = 0.25
 cycle is the midpoint, far from the 0.4-0.6 of asymmetric (hemiparetic) gait."""
 
 
+def alternation(strides_s: np.ndarray | Sequence[tuple[float, float, float]], other_swings_s: np.ndarray,
+                other_gaps_s: Sequence[tuple[float, float]], min_phase: float = MIN_PHASE) -> np.ndarray:
+    """Per stride ``(t_start, t_own_mid_swing, t_end)`` [s] (rows of ``strides_s``), whether it alternates with the
+    other leg: 1 when some mid-swing of the other leg (``other_swings_s``, sorted [s]) within half a stride of it
+    lies in anti-phase, 0 when none does, -1 when the other leg shows no swing there and has a data gap in the
+    stride (nothing to judge). All strides at once: one (strides x candidate swings) matrix."""
+    spans = np.asarray(strides_s, dtype=float).reshape(-1, 3)
+    swings = np.asarray(other_swings_s, dtype=float)
+    t0, ms, t1 = spans[:, 0], spans[:, 1], spans[:, 2]
+    period = t1 - t0
+    lo = np.searchsorted(swings, t0 - 0.5 * period)
+    hi = np.searchsorted(swings, t1 + 0.5 * period)
+    out = np.zeros(spans.shape[0], dtype=np.int8)
+    width = int((hi - lo).max(initial=0))
+    if width:
+        k = lo[:, None] + np.arange(width)
+        c = swings[np.minimum(k, swings.size - 1)]
+        d = np.abs(((c - ms[:, None]) / period[:, None] + 0.5) % 1.0 - 0.5)
+        out[((k < hi[:, None]) & (d >= min_phase)).any(axis=1)] = 1
+    if other_gaps_s:
+        gapped = np.zeros(spans.shape[0], dtype=bool)
+        for g0, g1 in other_gaps_s:
+            gapped |= (g0 < t1) & (g1 > t0)
+        out[(hi == lo) & gapped] = -1
+    return out
+
+
 def alternates(stride_s: tuple[float, float, float], other_swings_s: np.ndarray,
                other_gaps_s: Sequence[tuple[float, float]], min_phase: float = MIN_PHASE) -> bool | None:
-    """Whether one stride ``(t_start, t_own_mid_swing, t_end)`` [s] alternates with the other leg: some mid-swing
-    of the other leg (``other_swings_s``, sorted [s]) within half a stride of it lies in anti-phase. None when the
-    other leg shows no swing there and has a data gap in the stride (nothing to judge)."""
-    t0, ms, t1 = stride_s
-    period = t1 - t0
-    lo, hi = np.searchsorted(other_swings_s, [t0 - 0.5 * period, t1 + 0.5 * period])
-    c = other_swings_s[lo:hi]
-    if c.size == 0:
-        return None if any(g0 < t1 and g1 > t0 for g0, g1 in other_gaps_s) else False
-    d = np.abs(((c - ms) / period + 0.5) % 1.0 - 0.5)
-    return bool(np.any(d >= min_phase))
+    """:func:`alternation` of one stride: True, False, or None (nothing to judge)."""
+    v = int(alternation([stride_s], other_swings_s, other_gaps_s, min_phase)[0])
+    return None if v < 0 else bool(v)
 
 
-def non_alternating(strides_s: Sequence[tuple[float, float, float]], other_swings_s: np.ndarray,
+def non_alternating(strides_s: Sequence[tuple[float, float, float]] | np.ndarray, other_swings_s: np.ndarray,
                     other_gaps_s: Sequence[tuple[float, float]], min_phase: float = MIN_PHASE) -> list[int]:
-    """Indices of the strides that are not gait by :func:`alternates` (judged ones only)."""
+    """Indices of the strides that are not gait by :func:`alternation` (judged ones only)."""
     swings = np.sort(np.asarray(other_swings_s, dtype=float))
-    return [k for k, s in enumerate(strides_s) if alternates(s, swings, other_gaps_s, min_phase) is False]
+    return np.flatnonzero(alternation(strides_s, swings, other_gaps_s, min_phase) == 0).tolist()
+
+
+def mid_swings_s(own_swings_s: np.ndarray, t_toe_off_s: np.ndarray, t_end_s: np.ndarray) -> np.ndarray:
+    """Each stride's own mid-swing time [s]: the first of ``own_swings_s`` (sorted [s]) between its toe-off and its
+    end, else the middle of that swing interval."""
+    own = np.asarray(own_swings_s, dtype=float)
+    to, end = np.asarray(t_toe_off_s, dtype=float), np.asarray(t_end_s, dtype=float)
+    mid = 0.5 * (to + end)
+    if own.size == 0:
+        return mid
+    k = np.searchsorted(own, to)
+    first = own[np.minimum(k, own.size - 1)]
+    return np.where((k < own.size) & (first <= end), first, mid)
 
 
 @dataclass(frozen=True)
@@ -55,23 +87,26 @@ def stride_spans_s(t_s: np.ndarray, strides: Sequence[tuple[int, int, int]], ms:
     """``(t_start, t_own_mid_swing, t_end)`` [s] of each stride ``(hs, to, hs_next)`` (sample indices of ``t_s``):
     the first mid-swing peak (``ms``, sample indices) between toe-off and the stride's end, else the middle of
     that swing interval."""
+    return [tuple(r) for r in _spans(t_s, strides, ms).tolist()]
+
+
+def _spans(t_s: np.ndarray, strides: Sequence[tuple[int, int, int]], ms: np.ndarray) -> np.ndarray:
+    """:func:`stride_spans_s` as an (M, 3) array."""
+    arr = np.asarray(strides, dtype=int).reshape(-1, 3)
     own = np.sort(np.asarray(ms, dtype=int))
     own = own[own >= 0]
-    spans = []
-    for a, t, b in strides:
-        k = int(np.searchsorted(own, t))
-        m = float(t_s[own[k]]) if k < own.size and own[k] <= b else 0.5 * (float(t_s[t]) + float(t_s[b]))
-        spans.append((float(t_s[a]), m, float(t_s[b])))
-    return spans
+    t = np.asarray(t_s, dtype=float)
+    # t_s increases strictly, so comparing sample indices and comparing their times is the same
+    return np.column_stack([t[arr[:, 0]], mid_swings_s(t[own], t[arr[:, 1]], t[arr[:, 2]]), t[arr[:, 2]]])
 
 
 def gait_strides(t_s: np.ndarray, strides: Sequence[tuple[int, int, int]], ms: np.ndarray,
                  other: OtherLeg | None, min_phase: float = MIN_PHASE) -> list[tuple[int, int, int]]:
-    """The strides that are gait by the other leg's swings (:func:`alternates` True): the ones allowed to decide
+    """The strides that are gait by the other leg's swings (:func:`alternation` not 0): the ones allowed to decide
     anything about the leg (the thigh axis's sign, the joint-centre fit). Strides the other leg cannot judge (its
     data gap) and those of a leg alone (``other`` None) are kept: nothing says they are not gait."""
-    if other is None:
+    if other is None or not strides:
         return list(strides)
     swings = np.sort(np.asarray(other.swings_s, dtype=float))
-    return [s for s, span in zip(strides, stride_spans_s(t_s, strides, ms), strict=True)
-            if alternates(span, swings, other.gaps_s, min_phase) is not False]
+    keep = alternation(_spans(t_s, strides, ms), swings, other.gaps_s, min_phase) != 0
+    return [s for s, k in zip(strides, keep.tolist(), strict=True) if k]

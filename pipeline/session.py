@@ -16,7 +16,7 @@ import numpy as np
 
 from pipeline import ALGORITHM_VERSION
 from pipeline.assignment import check_segments, pairing_suspicious, swapped_pairing_better
-from pipeline.bilateral import OtherLeg, non_alternating
+from pipeline.bilateral import OtherLeg, mid_swings_s, non_alternating
 from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
 from pipeline.metrics import stride_values
@@ -157,12 +157,10 @@ def _alternating_strides(legs: dict[str, LegResult], swings: dict[str, np.ndarra
     out = dict(legs)
     for leg, other in (("left", "right"), ("right", "left")):
         lr = legs[leg]
-        own = np.sort(swings[leg])
-        spans = []
-        for s in lr.strides:
-            k = np.searchsorted(own, s.t_toe_off_s)
-            ms = float(own[k]) if k < own.size and own[k] <= s.t_end_s else (s.t_toe_off_s + s.t_end_s) / 2
-            spans.append((s.t_start_s, ms, s.t_end_s))
+        if not lr.strides:
+            continue
+        t0, to, t1 = np.array([(s.t_start_s, s.t_toe_off_s, s.t_end_s) for s in lr.strides]).T
+        spans = np.column_stack([t0, mid_swings_s(np.sort(swings[leg]), to, t1), t1])
         drop = set(non_alternating(spans, swings[other], legs[other].gaps_s))
         if not drop:
             continue
