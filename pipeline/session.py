@@ -21,6 +21,7 @@ from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
 from pipeline.metrics import stride_values
 from pipeline.params import RUNNING, AssignmentParams, PipelineParams, preset
+from pipeline.phases import GaitEvents
 from pipeline.policy import PolicyResult, auto, single_estimator
 from pipeline.quality import edge_reasons, gap_reasons, stride_quality
 from pipeline.running import build_running_leg_input, detect_running
@@ -72,12 +73,14 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
             synced[leg] = _synced(leg, segs["thigh"], segs["shank"], activity, params)
         except ValueError as exc:
             warnings.append(f"{leg} leg skipped: {exc}")
-    others = _other_legs(synced, activity, params)
+    events = _leg_events(synced, activity, params)
+    others = _other_legs(synced, events)
     for leg in sorted(synced):
         segs = by_leg[leg]
         try:
             legs[leg], swings[leg] = _process_leg(leg, segs["thigh"], segs["shank"], activity, estimator, params,
-                                                  (calibration or {}).get(leg), synced[leg], others.get(leg))
+                                                  (calibration or {}).get(leg), synced[leg], others.get(leg),
+                                                  events.get(leg))
         except ValueError as exc:
             warnings.append(f"{leg} leg skipped: {exc}")
     legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
@@ -201,32 +204,41 @@ def _synced(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: 
         return synchronised_leg(leg, thigh, shank, params if params is not None else preset(activity))
 
 
-def _other_legs(synced: Mapping[str, SyncedLeg], activity: str, params: PipelineParams | None
-                ) -> dict[str, OtherLeg]:
-    """Per leg, the contralateral leg's mid-swing times and gaps (its shank's gait events, which do not depend on
-    the thigh axis): what lets a leg's processing tell its gait strides from jumps (:mod:`pipeline.bilateral`)."""
+def _leg_events(synced: Mapping[str, SyncedLeg], activity: str, params: PipelineParams | None
+               ) -> dict[str, tuple[np.ndarray, GaitEvents]]:
+    """Per leg of a two-legged session, :func:`pipeline.walking.gait_events` of its synchronised data: the shank's
+    gait events, which do not depend on the thigh axis, so the other leg's check (:func:`_other_legs`) and the
+    leg's own walking input use the same ones."""
     if set(synced) != {"left", "right"}:
         return {}
     p = params if params is not None else preset(activity)
-    seen = {}
-    for leg, sl in synced.items():
-        _, events = gait_events(sl.prep, sl.axes, p)
-        seen[leg] = OtherLeg(np.sort(sl.prep.t_s[events.ms]), tuple(sl.prep.gaps_s))
+    return {leg: gait_events(sl.prep, sl.axes, p) for leg, sl in synced.items()}
+
+
+def _other_legs(synced: Mapping[str, SyncedLeg], events: Mapping[str, tuple[np.ndarray, GaitEvents]]
+                ) -> dict[str, OtherLeg]:
+    """Per leg, the contralateral leg's mid-swing times and gaps (:func:`_leg_events`): what lets a leg's
+    processing tell its gait strides from jumps (:mod:`pipeline.bilateral`)."""
+    if set(events) != {"left", "right"}:
+        return {}
+    seen = {leg: OtherLeg(np.sort(synced[leg].prep.t_s[ev.ms]), tuple(synced[leg].prep.gaps_s))
+            for leg, (_, ev) in events.items()}
     return {"left": seen["right"], "right": seen["left"]}
 
 
 def _leg_input(synced: SyncedLeg, activity: str, params: PipelineParams | None,
-               calibration: KneeCalibration | None = None, other: OtherLeg | None = None
-               ) -> tuple[LegInput, RunningDiagnostics | None]:
+               calibration: KneeCalibration | None = None, other: OtherLeg | None = None,
+               events: tuple[np.ndarray, GaitEvents] | None = None) -> tuple[LegInput, RunningDiagnostics | None]:
     """The estimators' input for one synchronised leg: the running flow when declared or (``unknown``) detected
     running, else the walking flow. ``params`` None: the preset of the activity the leg is processed as; either
-    tree takes the leg's calibrated standing flexion."""
+    tree takes the leg's calibrated standing flexion. ``events``: :func:`_leg_events` of this leg, if computed."""
     walking = _calibrated(params if params is not None else preset(activity), calibration)
     running = _calibrated(params if params is not None else RUNNING, calibration)
     cycles = detect_running(synced.prep, walking.running) if activity == "unknown" else None
     if activity == "running" or cycles is not None:
         return build_running_leg_input(synced.prep, running, cycles)
-    return build_walking_leg_input(synced.prep, walking, axes=synced.axes, fit_gyr=synced.fit_gyr, other=other), None
+    return build_walking_leg_input(synced.prep, walking, axes=synced.axes, fit_gyr=synced.fit_gyr, other=other,
+                                   events=events), None
 
 
 def _calibrated(params: PipelineParams, calibration: KneeCalibration | None) -> PipelineParams:
@@ -246,14 +258,16 @@ def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activi
 
 def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str, estimator: str,
                  params: PipelineParams | None, calibration: KneeCalibration | None,
-                 synced: SyncedLeg | None = None, other: OtherLeg | None = None) -> tuple[LegResult, np.ndarray]:
+                 synced: SyncedLeg | None = None, other: OtherLeg | None = None,
+                 events: tuple[np.ndarray, GaitEvents] | None = None) -> tuple[LegResult, np.ndarray]:
     """:func:`process_leg` and the times [s] of every mid-swing peak of the leg (in bouts or not). ``synced``: the
-    leg already synchronised; ``other``: the contralateral leg's swings (:func:`_other_legs`)."""
+    leg already synchronised; ``other``: the contralateral leg's swings (:func:`_other_legs`); ``events``: the
+    leg's own gait events on ``synced`` (:func:`_leg_events`)."""
     if synced is None:
         synced = _synced(leg, thigh, shank, activity, params)
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore", RuntimeWarning)
-        data, running = _leg_input(synced, activity, params, calibration, other)
+        data, running = _leg_input(synced, activity, params, calibration, other, events)
         result = auto(data) if estimator == "auto" else single_estimator(data, estimator)
     strides = _strides(leg, data, result)
     diagnostics = _diagnostics(data, synced, result, strides, running, calibration)

@@ -44,11 +44,13 @@ def gait_events(prep: PreparedLeg, axes: JointAxes, params: PipelineParams) -> t
 
 def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: JointAxes | None = None,
                             fit_gyr: tuple[np.ndarray, np.ndarray] | None = None,
-                            other: OtherLeg | None = None) -> LegInput:
+                            other: OtherLeg | None = None,
+                            events: tuple[np.ndarray, GaitEvents] | None = None) -> LegInput:
     """Axes (unless given), rates, events, joint centres and accelerometer angle of one prepared leg.
     ``fit_gyr``: :func:`fit_gyros` of this very ``prep`` when already computed (:func:`pipeline.sync.synchronised_leg`),
     so the same filter is not run twice. ``other``: the contralateral leg's swings; only the strides that alternate
-    with them (:func:`pipeline.bilateral.gait_strides`) decide the thigh axis's sign."""
+    with them (:func:`pipeline.bilateral.gait_strides`) decide the thigh axis's sign. ``events``: :func:`gait_events`
+    of this ``prep`` and ``axes`` when already computed (the other leg's alternation check needs them first)."""
     valid = prep.valid
     fs = prep.fs_hz
     cutoff = params.axes.fit_cutoff_hz
@@ -57,12 +59,12 @@ def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: Joi
         axes = fit_joint_axes(g1, g2, valid, params.axes)
     rate = np.rad2deg(prep.gyr_thigh_rps @ axes.j1 - prep.gyr_shank_rps @ axes.j2)
     rate[~valid] = np.nan
-    shank_sag, events = gait_events(prep, axes, params)
+    shank_sag, ev = gait_events(prep, axes, params) if events is None else events
     # the thigh axis's sign again, from gait alone: non-gait movements between bouts can outweigh gait in the
     # whole-session rule (pipeline.axes.orient_thigh_on_gait); the shank's sign already found the strides. Jumps
     # and squats in a row look like strides of one leg; only the other leg's anti-phase swing tells gait from them,
     # so they never vote (pipeline.bilateral)
-    gait = gait_strides(prep.t_s, events.strides, events.ms, other)
+    gait = gait_strides(prep.t_s, ev.strides, ev.ms, other)
     j1 = orient_thigh_on_gait(axes.j1, axes.j2, g1, g2, gait)
     if j1 is not axes.j1:
         axes = dataclasses.replace(axes, j1=j1)
@@ -81,4 +83,4 @@ def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: Joi
     acc_angle = accelerometer_angle_deg(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, centres)
     acc_angle[~valid] = np.nan
     return LegInput(prep=prep, axes=axes, centres=centres, rate_dps=rate, acc_angle_deg=acc_angle,
-                    shank_sag_dps=shank_sag, events=events, params=params, activity="walking")
+                    shank_sag_dps=shank_sag, events=ev, params=params, activity="walking")
