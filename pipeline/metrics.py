@@ -4,6 +4,8 @@ parameters from the gait events."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from pipeline.params import WALKING, MetricsParams
@@ -14,26 +16,40 @@ def stride_values(angle_deg: np.ndarray, t_s: np.ndarray, hs: int, to: int, hs_n
                   params: MetricsParams = WALKING.metrics) -> StrideValues:
     """Metrics of one stride ``[hs, hs_next]`` (sample indices) with toe-off ``to``; ``angle_deg`` (N,) must be
     finite on the stride, ``t_s`` (N,) its time stamps [s]."""
-    seg = angle_deg[hs:hs_next + 1]
-    swing = angle_deg[to:hs_next + 1]
-    load_end = hs + max(int(round(params.loading_share * (to - hs))), 1)
-    t0, t1, tt = float(t_s[hs]), float(t_s[hs_next]), float(t_s[to])
-    peak = _nanmax(swing)
-    low = _nanmin(seg)
-    return StrideValues(
-        t_start_s=t0, t_end_s=t1, duration_s=t1 - t0, t_toe_off_s=tt, stance_time_s=tt - t0, swing_time_s=t1 - tt,
-        stance_pct=100.0 * (tt - t0) / (t1 - t0), peak_swing_flexion_deg=peak, min_flexion_deg=low,
-        rom_deg=_nanmax(seg) - low, stance_flexion_deg=_nanmax(angle_deg[hs:load_end + 1]),
-    )
+    return stride_values_many(angle_deg, t_s, [(hs, to, hs_next)], params)[0]
 
 
-# np.nanmax/np.nanmin cost ~10 us each (NaN masking copies); called per stride they dominated this module. Plain
-# max/min give the same value whenever no NaN is present (they propagate a NaN, which triggers the NaN-aware call).
-def _nanmax(x: np.ndarray) -> float:
-    v = float(x.max())
-    return float(np.nanmax(x)) if v != v else v
+def stride_values_many(angle_deg: np.ndarray, t_s: np.ndarray, strides: Sequence[tuple[int, int, int]],
+                       params: MetricsParams = WALKING.metrics) -> list[StrideValues]:
+    """:func:`stride_values` of every stride ``(hs, to, hs_next)``, all at once: each extremum is one
+    ``reduceat`` over the stride's samples (a maximum or minimum does not depend on the order it is taken in)."""
+    if not len(strides):
+        return []
+    arr = np.asarray(strides, dtype=int).reshape(-1, 3)
+    hs, to, hs_next = arr[:, 0], arr[:, 1], arr[:, 2]
+    load_end = hs + np.maximum(np.round(params.loading_share * (to - hs)).astype(int), 1)
+    angle = np.asarray(angle_deg, dtype=float)
+    peak = _range_max(angle, to, hs_next + 1)
+    low = _range_extreme(np.minimum, angle, hs, hs_next + 1)
+    high = _range_max(angle, hs, hs_next + 1)
+    stance = _range_max(angle, hs, load_end + 1)
+    t = np.asarray(t_s, dtype=float)
+    t0, t1, tt = t[hs], t[hs_next], t[to]
+    cols = (t0, t1, t1 - t0, tt, tt - t0, t1 - tt, 100.0 * (tt - t0) / (t1 - t0), peak, low, high - low, stance)
+    return [StrideValues(*row) for row in zip(*(c.tolist() for c in cols), strict=True)]
 
 
-def _nanmin(x: np.ndarray) -> float:
-    v = float(x.min())
-    return float(np.nanmin(x)) if v != v else v
+def _range_max(x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    return _range_extreme(np.maximum, x, lo, hi)
+
+
+def _range_extreme(op: np.ufunc, x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """``op`` (np.maximum / np.minimum) over each ``x[lo:hi]`` (``lo < hi``), ignoring NaN unless all are NaN.
+    Interleaved ``reduceat`` indices reduce ``[lo_k, hi_k)`` at even positions; one padding sample keeps
+    ``hi == len(x)`` a valid index."""
+    idx = np.column_stack([lo, hi]).ravel()
+    out = op.reduceat(np.append(x, 0.0), idx)[::2]
+    for k in np.flatnonzero(np.isnan(out)):  # a NaN propagates: take the NaN-aware extremum there
+        seg = x[lo[k]:hi[k]]
+        out[k] = np.nanmax(seg) if op is np.maximum else np.nanmin(seg)
+    return out

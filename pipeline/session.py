@@ -19,7 +19,7 @@ from pipeline.assignment import check_segments, pairing_suspicious, swapped_pair
 from pipeline.bilateral import OtherLeg, mid_swings_s, non_alternating
 from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
-from pipeline.metrics import stride_values
+from pipeline.metrics import stride_values_many
 from pipeline.params import RUNNING, AssignmentParams, PipelineParams, preset
 from pipeline.phases import GaitEvents
 from pipeline.policy import PolicyResult, auto, single_estimator
@@ -290,11 +290,11 @@ def _strides(leg: str, data: LegInput, result: PolicyResult) -> list[StrideMetri
     gap = gap_reasons(t_s, data.prep.filled_s, angle, triples)
     lobe = {int(h): k for k, h in enumerate(events.hs) if h >= 0}
     ks = [lobe[a] for a, _, _ in triples]
-    swing_dps = np.array([data.shank_sag_dps[events.ms[k + 1]] for k in ks]) if ks else np.zeros(0)
-    edge = edge_reasons(triples, [int(events.bout[k]) for k in ks], swing_dps)
+    swing_dps = data.shank_sag_dps[events.ms[np.asarray(ks, dtype=int) + 1]]
+    edge = edge_reasons(triples, events.bout[np.asarray(ks, dtype=int)].tolist(), swing_dps)
     qp = data.params.quality
-    for ((a, t, b), choice), g, e in zip(kept, gap, edge, strict=True):
-        v = stride_values(angle, t_s, a, t, b, data.params.metrics)
+    values = stride_values_many(angle, t_s, triples, data.params.metrics)
+    for (_, choice), g, e, v in zip(kept, gap, edge, values, strict=True):
         extra = tuple(r for r in (*g, *e) if r not in choice.reasons)
         reasons = (*choice.reasons, *extra)
         quality = min(float(choice.quality), stride_quality(reasons, qp)) if extra else float(choice.quality)
