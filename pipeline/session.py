@@ -237,8 +237,8 @@ def _leg_input(synced: SyncedLeg, activity: str, params: PipelineParams | None,
     cycles = detect_running(synced.prep, walking.running) if activity == "unknown" else None
     if activity == "running" or cycles is not None:
         return build_running_leg_input(synced.prep, running, cycles)
-    return build_walking_leg_input(synced.prep, walking, axes=synced.axes, fit_gyr=synced.fit_gyr, other=other,
-                                   events=events), None
+    return build_walking_leg_input(synced.prep, walking, axes=synced.axes, fit_gyr=synced.fit_gyr,
+                                   thigh_fit=synced.thigh_fit, other=other, events=events), None
 
 
 def _calibrated(params: PipelineParams, calibration: KneeCalibration | None) -> PipelineParams:

@@ -26,7 +26,7 @@ from pipeline.params import AxesParams, PipelineParams, SyncParams
 from pipeline.prepare import PreparedLeg, nominal_fs, prepare_leg_si, to_si
 from pipeline.signal_utils import lowpass_runs_many
 from pipeline.types import RawSensorStream
-from pipeline.walking import fit_gyros
+from pipeline.walking import fit_gyros, reusable_thigh_fit
 
 
 @dataclass(frozen=True)
@@ -38,6 +38,7 @@ class SyncedLeg:
     shank_lag_ms: float | None  # offset at mid-session
     shank_drift_ppm: float | None
     fit_gyr: tuple[np.ndarray, np.ndarray] | None  # :func:`pipeline.walking.fit_gyros` of ``prep`` when computed
+    thigh_fit: np.ndarray | None = None  # else its thigh half when known (:func:`pipeline.walking.reusable_thigh_fit`)
 
 
 def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, params: PipelineParams) -> SyncedLeg:
@@ -59,9 +60,11 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     # lag(t) = offset + drift * (t - t_mid): shift the shank's stamps back by it
     t_mid = float(prep.t_s[prep.n // 2])
     if max(abs(offset), abs(drift) * (prep.t_s[-1] - prep.t_s[0]) / 2) * prep.fs_hz > params.sync.min_shift_samples:
+        first = prep
         prep = prepare_leg_si(leg, si1, si2, fs1, fs2, shank_shift_s=-(offset - drift * t_mid),
-                              shank_drift=-drift, reuse=prep, params=params.prepare)
-        fit_gyr = None
+                              shank_drift=-drift, reuse=first, params=params.prepare)
+        return SyncedLeg(prep, axes, round(1000 * offset, 1), round(1e6 * drift, 1), None,
+                         reusable_thigh_fit(first, prep, g1))
     return SyncedLeg(prep, axes, round(1000 * offset, 1), round(1e6 * drift, 1), fit_gyr)
 
 

@@ -25,11 +25,25 @@ from pipeline.prepare import PreparedLeg
 from pipeline.signal_utils import lowpass_runs_many
 
 
-def fit_gyros(prep: PreparedLeg, cutoff_hz: float) -> tuple[np.ndarray, np.ndarray]:
-    """Thigh and shank gyros (N, 3) [rad/s] low-passed at ``cutoff_hz`` for the fits, NaN-free."""
+def fit_gyros(prep: PreparedLeg, cutoff_hz: float, thigh: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Thigh and shank gyros (N, 3) [rad/s] low-passed at ``cutoff_hz`` for the fits, NaN-free. ``thigh``: the
+    thigh's already, from :func:`reusable_thigh_fit`; then only the shank is filtered."""
+    if thigh is not None:
+        (g2,) = lowpass_runs_many((prep.gyr_shank_rps,), prep.valid, cutoff_hz, prep.fs_hz)
+        return thigh, np.nan_to_num(g2)
     g1, g2 = (np.nan_to_num(g) for g in lowpass_runs_many((prep.gyr_thigh_rps, prep.gyr_shank_rps), prep.valid,
                                                             cutoff_hz, prep.fs_hz))
     return g1, g2
+
+
+def reusable_thigh_fit(first: PreparedLeg, prep: PreparedLeg, thigh_fit: np.ndarray) -> np.ndarray | None:
+    """The thigh's fit gyros of ``first`` (:func:`fit_gyros`) when they are also ``prep``'s: ``prep`` is the same leg
+    with only the shank re-stamped, keeping ``first``'s thigh channels and mask
+    (:func:`pipeline.prepare.prepare_leg_si` with ``reuse``). The filter runs column by column, so filtering the
+    thigh again would give the same values. None otherwise."""
+    if prep.gyr_thigh_rps is first.gyr_thigh_rps and np.array_equal(prep.valid, first.valid):
+        return thigh_fit
+    return None
 
 
 def gait_events(prep: PreparedLeg, axes: JointAxes, params: PipelineParams) -> tuple[np.ndarray, GaitEvents]:
@@ -43,18 +57,19 @@ def gait_events(prep: PreparedLeg, axes: JointAxes, params: PipelineParams) -> t
 
 
 def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: JointAxes | None = None,
-                            fit_gyr: tuple[np.ndarray, np.ndarray] | None = None,
+                            fit_gyr: tuple[np.ndarray, np.ndarray] | None = None, thigh_fit: np.ndarray | None = None,
                             other: OtherLeg | None = None,
                             events: tuple[np.ndarray, GaitEvents] | None = None) -> LegInput:
     """Axes (unless given), rates, events, joint centres and accelerometer angle of one prepared leg.
     ``fit_gyr``: :func:`fit_gyros` of this very ``prep`` when already computed (:func:`pipeline.sync.synchronised_leg`),
-    so the same filter is not run twice. ``other``: the contralateral leg's swings; only the strides that alternate
+    so the same filter is not run twice; else ``thigh_fit``, the thigh's half of it (:func:`reusable_thigh_fit`).
+    ``other``: the contralateral leg's swings; only the strides that alternate
     with them (:func:`pipeline.bilateral.gait_strides`) decide the thigh axis's sign. ``events``: :func:`gait_events`
     of this ``prep`` and ``axes`` when already computed (the other leg's alternation check needs them first)."""
     valid = prep.valid
     fs = prep.fs_hz
     cutoff = params.axes.fit_cutoff_hz
-    g1, g2 = fit_gyros(prep, cutoff) if fit_gyr is None else fit_gyr
+    g1, g2 = fit_gyros(prep, cutoff, thigh=thigh_fit) if fit_gyr is None else fit_gyr
     if axes is None:
         axes = fit_joint_axes(g1, g2, valid, params.axes)
     rate = np.rad2deg(prep.gyr_thigh_rps @ axes.j1 - prep.gyr_shank_rps @ axes.j2)
