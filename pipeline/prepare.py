@@ -125,41 +125,62 @@ def saturation_mask(gyr: np.ndarray, params: PrepareParams = WALKING.prepare) ->
     return out
 
 
+_INTERP_BLOCK = 4096
+"""Grid samples interpolated per block: the block's (rows, 6) temporaries stay in cache (the whole grid's do not),
+which halves the time of the memory-bound evaluation; each value is computed the same way, so blocking does not
+change it."""
+
+
 def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray, max_bridge_s: float) -> np.ndarray:
     """Cubic Hermite interpolation (Catmull-Rom slopes from the neighbouring samples, non-uniform times), fully
     vectorised; straight lines across gaps longer than ``max_bridge_s`` (masked anyway, but no overshoot)."""
     n = t.shape[0]
     if n < 4:
         return np.column_stack([np.interp(t_new, t, x[:, k]) for k in range(x.shape[1])])
-    # slopes: central differences inside, one-sided at the ends and next to long gaps
     dt = np.diff(t)
-    dx = np.diff(x, axis=0) / dt[:, None]
+
+    def one_sided(k: np.ndarray | int) -> np.ndarray:
+        """Slope of interval ``k`` (``x[k] -> x[k + 1]``), only where it is needed."""
+        return (x[k + 1] - x[k]) / np.asarray(dt[k])[..., None]
+
+    # slopes: central differences inside, one-sided at the ends and next to long gaps
     m = np.empty_like(x)
     m[1:-1] = (x[2:] - x[:-2]) / (t[2:] - t[:-2])[:, None]
-    m[0], m[-1] = dx[0], dx[-1]
+    m[0], m[-1] = one_sided(0), one_sided(n - 2)
     long_gap = dt > max_bridge_s
     g = np.flatnonzero(long_gap)
-    m[g] = dx[np.maximum(g - 1, 0)]  # one-sided: the data before the gap
-    m[g + 1] = dx[np.minimum(g + 1, n - 2)]  # and after it
-    i = np.clip(np.searchsorted(t, t_new, side="right") - 1, 0, n - 2)
-    h = dt[i]
-    u = (t_new - t[i]) / h
-    u2, u3 = u * u, u * u * u
-    # same sums in the same order as the textbook one-liner (h00 x0 + h10 h m0 + h01 x1 + h11 h m1), accumulated in
-    # place with one scratch array: fewer (N, 6) temporaries, bit-identical values
-    x0, x1 = np.take(x, i, axis=0), np.take(x, i + 1, axis=0)
-    out = (2 * u3 - 3 * u2 + 1)[:, None] * x0
-    tmp = np.take(m, i, axis=0)
-    tmp *= ((u3 - 2 * u2 + u) * h)[:, None]
-    out += tmp
-    np.multiply((-2 * u3 + 3 * u2)[:, None], x1, out=tmp)
-    out += tmp
-    np.take(m, i + 1, axis=0, out=tmp)
-    tmp *= ((u3 - u2) * h)[:, None]
-    out += tmp
-    lin = long_gap[i]
+    m[g] = one_sided(np.maximum(g - 1, 0))  # one-sided: the data before the gap
+    m[g + 1] = one_sided(np.minimum(g + 1, n - 2))  # and after it
+    i_all = np.clip(np.searchsorted(t, t_new, side="right") - 1, 0, n - 2)
+    n_new = t_new.shape[0]
+    out = np.empty((n_new, x.shape[1]))
+    scratch = np.empty((min(_INTERP_BLOCK, n_new), x.shape[1]))
+    for a in range(0, n_new, _INTERP_BLOCK):
+        b = min(a + _INTERP_BLOCK, n_new)
+        i = i_all[a:b]
+        h = dt[i]
+        u = (t_new[a:b] - t[i]) / h
+        u2, u3 = u * u, u * u * u
+        # same sums in the same order as the textbook one-liner (h00 x0 + h10 h m0 + h01 x1 + h11 h m1),
+        # accumulated in place with one scratch array
+        o, tmp = out[a:b], scratch[:b - a]
+        np.take(x, i, axis=0, out=tmp)
+        np.multiply((2 * u3 - 3 * u2 + 1)[:, None], tmp, out=o)
+        np.take(m, i, axis=0, out=tmp)
+        tmp *= ((u3 - 2 * u2 + u) * h)[:, None]
+        o += tmp
+        np.take(x, i + 1, axis=0, out=tmp)
+        tmp *= (-2 * u3 + 3 * u2)[:, None]
+        o += tmp
+        np.take(m, i + 1, axis=0, out=tmp)
+        tmp *= ((u3 - u2) * h)[:, None]
+        o += tmp
+    lin = long_gap[i_all]
     if lin.any():
-        out[lin] = x0[lin] + u[lin, None] * (x1[lin] - x0[lin])
+        il = i_all[lin]
+        x0, x1 = x[il], x[il + 1]
+        u = (t_new[lin] - t[il]) / dt[il]
+        out[lin] = x0 + u[:, None] * (x1 - x0)
     return out
 
 
