@@ -13,10 +13,11 @@ Sign convention (the knee flexion rate ``g1.j1 - g2.j2`` is positive for flexion
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import OptimizeResult, least_squares
+from scipy.optimize import leastsq
 
 from pipeline.params import WALKING, AxesParams
 from pipeline.signal_utils import cross_rows, row_norm
@@ -32,6 +33,24 @@ class JointAxes:
     j2: np.ndarray  # shank frame
     rms_residual_dps: float
     n_samples: int
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """A least-squares solution and its cost (half the sum of squared residuals)."""
+
+    x: np.ndarray
+    cost: float
+
+
+def _lm(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], np.ndarray], x0: np.ndarray) -> _Fit:
+    """MINPACK's Levenberg-Marquardt with an analytic Jacobian (lmder), called as
+    ``least_squares(fun, x0, jac=jac, method="lm", max_nfev=200)`` calls it (same tolerances and limits, so the same
+    iterates and solution) without that wrapper's per-call set-up and per-evaluation bookkeeping, which cost more
+    than the residuals of a thousand samples."""
+    x, _, info, _, _ = leastsq(fun, x0, Dfun=jac, full_output=True, ftol=1e-8, xtol=1e-8, gtol=1e-8, maxfev=200)
+    f = info["fvec"]
+    return _Fit(x=x, cost=0.5 * float(np.dot(f, f)))
 
 
 @dataclass(frozen=True)
@@ -128,7 +147,7 @@ def _principal_axis(g: np.ndarray) -> np.ndarray:
 def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | None = None,
                    params: AxesParams = WALKING.axes) -> JointAxes:
     """Joint axis of the knee in the thigh (``j1``) and shank (``j2``) sensor frames by Seel's Eq. 2
-    (Rhudy et al. 2024, Eq. 2-3), solved with ``scipy.optimize.least_squares`` on a bounded sample set.
+    (Rhudy et al. 2024, Eq. 2-3), solved by Levenberg-Marquardt (:func:`_lm`) on a bounded sample set.
 
     Initialised with each segment's principal rotation axis (McGrath et al. 2018) plus a few seeded restarts;
     deterministic. Signs follow the module convention (flexion rate ``g1.j1 - g2.j2`` positive).
@@ -149,12 +168,12 @@ def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | N
     best = None
     prob_sub = _AxisProblem(g1[sub], g2[sub])
     for x0 in starts:
-        sol = least_squares(prob_sub.residuals, x0, jac=prob_sub.jacobian, method="lm", max_nfev=200)
+        sol = _lm(prob_sub.residuals, prob_sub.jacobian, x0)
         if best is None or sol.cost < best.cost - 1e-12:
             best = sol
     assert best is not None
     prob = _AxisProblem(g1, g2)
-    best = least_squares(prob.residuals, best.x, jac=prob.jacobian, method="lm", max_nfev=200)
+    best = _lm(prob.residuals, prob.jacobian, best.x)
     j1, j2 = _sph(best.x[0], best.x[1]), _sph(best.x[2], best.x[3])
     j1, j2 = orient_axes(j1, j2, g1_rps, g2_rps, mask=valid)
     rms = float(np.rad2deg(np.sqrt(2.0 * best.cost / idx.size)))
@@ -309,9 +328,9 @@ def _centre_resid(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray,
 
 
 def _lsq_centres(x0: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray,
-                 centre_reg: float) -> OptimizeResult:
+                 centre_reg: float) -> _Fit:
     prob = _CentreProblem(a1, m1, a2, m2, centre_reg)
-    return least_squares(prob.residuals, x0, jac=prob.jacobian, method="lm", max_nfev=200)
+    return _lm(prob.residuals, prob.jacobian, x0)
 
 
 def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,
