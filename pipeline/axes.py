@@ -298,6 +298,7 @@ class _CentreProblem:
         self.args = (a1, m1, a2, m2)
         self.centre_reg = centre_reg
         self.reg = centre_reg * np.sqrt(a1.shape[0])
+        self._reg_rows = self.centre_reg * np.sqrt(a1.shape[0]) * np.eye(6)  # the pull's rows of the Jacobian
         self._x: np.ndarray | None = None
         self._parts: tuple[np.ndarray, ...] = ()
 
@@ -309,14 +310,24 @@ class _CentreProblem:
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         _, _, n1, n2 = self._eval(x)
-        return np.concatenate([n1 - n2, self.reg * x])
+        n = n1.shape[0]
+        out = np.empty(n + 6)
+        np.subtract(n1, n2, out=out[:n])
+        np.multiply(self.reg, x, out=out[n:])
+        return out
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         v1, v2, n1, n2 = self._eval(x)
         _, m1, _, m2 = self.args
+        n = n1.shape[0]
         n1, n2 = np.maximum(n1, _EPS)[:, None], np.maximum(n2, _EPS)[:, None]
-        data = np.hstack([-np.einsum("ni,nij->nj", v1 / n1, m1), np.einsum("ni,nij->nj", v2 / n2, m2)])
-        return np.vstack([data, self.centre_reg * np.sqrt(self.args[0].shape[0]) * np.eye(6)])
+        # written into one preallocated array: the values of the stacked blocks, without the stacking copies
+        out = np.empty((n + 6, 6))
+        out[:n, :3] = np.einsum("ni,nij->nj", v1 / n1, m1)
+        np.negative(out[:n, :3], out=out[:n, :3])
+        out[:n, 3:] = np.einsum("ni,nij->nj", v2 / n2, m2)
+        out[n:] = self._reg_rows
+        return out
 
 
 def _centre_resid(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray,
