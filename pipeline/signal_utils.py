@@ -45,15 +45,17 @@ def fill_invalid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
     if ok.all() or not ok.any():
         return np.nan_to_num(x)
     # only the invalid samples are interpolated: np.interp returns a node's own value exactly, so the valid ones
-    # would come back unchanged anyway (same result as interpolating every sample, far fewer points)
-    idx = np.arange(x.shape[0])
+    # would come back unchanged anyway (same result as interpolating every sample, far fewer points). An invalid
+    # sample lies between the last valid one before its run and the first one after it, so those are the only nodes
+    # needed: interpolating on them brackets every invalid sample by the same two nodes, the same values
     bad = ~ok
-    at, xp = idx[bad], idx[ok]
+    at = np.flatnonzero(bad)
+    xp = np.unique(np.concatenate((np.flatnonzero(ok[:-1] & bad[1:]), np.flatnonzero(bad[:-1] & ok[1:]) + 1)))
     out = x.copy()
     if x.ndim == 1:
-        out[bad] = np.interp(at, xp, x[ok])
+        out[bad] = np.interp(at, xp, x[xp])
         return out
-    good = x[ok]
+    good = x[xp]
     for k in range(x.shape[1]):
         out[bad, k] = np.interp(at, xp, good[:, k])
     return out
