@@ -236,16 +236,21 @@ def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.nd
     if c.size < ctx:
         return None
     g = x[:, :3]
-    a = g[c] - g[c].mean(axis=0)
+    mean = g[c].mean(axis=0)
+    a = g[c] - mean
+    a2 = a ** 2
     score = np.full(lags.size, -np.inf)
     for sign in (-1, 1):
         src = c[None, :] + sign * lags[:, None]  # (lags, context)
         ok = (src >= 0) & (src < n)
         ok[ok] = ~bad[src[ok]]
-        b = g[np.clip(src, 0, n - 1)] - g[c].mean(axis=0)  # (lags, context, 3)
+        b = g[np.clip(src, 0, n - 1)]  # (lags, context, 3)
+        b -= mean
         w = ok[:, :, None]
-        num = np.sum(w * a[None] * b, axis=(1, 2))
-        den = np.sqrt(np.sum(w * a[None] ** 2, axis=(1, 2)) * np.sum(w * b ** 2, axis=(1, 2)))
+        # w is 0 or 1, so w * b * b == (w * b) ** 2 and w * a * b == a * (w * b) exactly: the masked terms in place
+        b *= w
+        num = np.sum(a[None] * b, axis=(1, 2))
+        den = np.sqrt(np.sum(w * a2[None], axis=(1, 2)) * np.sum(np.square(b, out=b), axis=(1, 2)))
         with np.errstate(invalid="ignore", divide="ignore"):
             r = np.where(ok.mean(axis=1) >= 0.5, num / den, -np.inf)
         score = np.maximum(score, np.nan_to_num(r, nan=-np.inf))
