@@ -49,29 +49,37 @@ def zau_points(rate_f: np.ndarray, integral: np.ndarray, leg: LegInput) -> tuple
     ev = leg.events
     fs = leg.fs_hz
     p = leg.params.go
-    idx, bouts, found = [], [], []
+    empty = np.zeros(0, dtype=int)
     # crossings and non-finite samples located once for the whole signal, then looked up per window (the same
-    # crossings a per-window scan finds: a crossing at i needs samples i-1 and i, both inside [lo, hi))
+    # crossings a per-window scan finds: a crossing at i needs samples i-1 and i, both inside [lo, hi)); all
+    # windows at once
     cross_all = np.flatnonzero((rate_f[:-1] < 0) & (rate_f[1:] >= 0)) + 1
     bad_cum = np.concatenate(([0], np.cumsum(~np.isfinite(integral))))
-    for k in range(ev.ms.size):
-        if ev.bout[k] < 0 or ev.to[k] < 0:
-            continue
-        hi = min(int(ev.to[k]) + int(p.zau_after_to_s * fs) + 1, int(ev.ms[k]))
-        prev_ok = k > 0 and ev.bout[k - 1] == ev.bout[k] and ev.mst[k - 1] >= 0
-        lo = int(ev.mst[k - 1]) if prev_ok else max(int(ev.to[k] - p.first_zau_lookback_s * fs), 0)
-        if hi - lo < 3 or bad_cum[hi] != bad_cum[lo]:
-            continue
-        cross = cross_all[np.searchsorted(cross_all, lo + 1):np.searchsorted(cross_all, hi - 1, side="right")]
-        if cross.size:
-            best = int(cross[np.argmin(integral[cross])])
-            found.append(True)
-        else:
-            best = lo + int(np.argmin(integral[lo:hi]))
-            found.append(False)
-        idx.append(best)
-        bouts.append(int(ev.bout[k]))
-    return np.array(idx, dtype=int), np.array(bouts, dtype=int), np.array(found, dtype=bool)
+    bout, to, ms, mst = (np.asarray(a, dtype=int) for a in (ev.bout, ev.to, ev.ms, ev.mst))
+    k = np.flatnonzero((bout >= 0) & (to >= 0))
+    if k.size == 0:
+        return empty, empty, np.zeros(0, dtype=bool)
+    hi = np.minimum(to[k] + int(p.zau_after_to_s * fs) + 1, ms[k])
+    prev = np.maximum(k - 1, 0)
+    prev_ok = (k > 0) & (bout[prev] == bout[k]) & (mst[prev] >= 0)
+    back = np.maximum((to[k] - p.first_zau_lookback_s * fs).astype(int), 0)  # int(): truncation, as per window
+    lo = np.where(prev_ok, mst[prev], back)
+    use = (hi - lo >= 3) & (bad_cum[np.clip(hi, 0, None)] == bad_cum[np.clip(lo, 0, None)])
+    k, lo, hi = k[use], lo[use], hi[use]
+    c0 = np.searchsorted(cross_all, lo + 1)
+    c1 = np.maximum(np.searchsorted(cross_all, hi - 1, side="right"), c0)
+    best = np.empty(k.size, dtype=int)
+    found = c1 > c0
+    # the crossing with the lowest integral per window (first of equals, as argmin): sort by window, value, position
+    cnt = c1 - c0
+    win = np.repeat(np.arange(k.size), cnt)
+    pos = cross_all[c0[win] + np.arange(win.size) - np.repeat(np.cumsum(cnt) - cnt, cnt)] if win.size else empty
+    order = np.lexsort((pos, integral[pos], win))
+    first = np.concatenate(([True], win[order][1:] != win[order][:-1])) if order.size else np.zeros(0, dtype=bool)
+    best[win[order][first]] = pos[order][first]
+    for j in np.flatnonzero(~found):  # no crossing: the window's integral minimum (rare)
+        best[j] = lo[j] + int(np.argmin(integral[lo[j]:hi[j]]))
+    return best, bout[k], found
 
 
 def go_relative(leg: LegInput) -> tuple[np.ndarray, GoDiagnostics]:
