@@ -70,7 +70,9 @@ def standing_mask(leg: LegInput, quiet: np.ndarray | None = None, exclude: np.nd
     stand = quiet & prep.valid & ~exclude
     for acc, up, j in ((prep.acc_thigh_mps2, ups[0], leg.axes.j1), (prep.acc_shank_mps2, ups[1], leg.axes.j2)):
         y = np.cross(j, up)
-        stand &= np.abs(np.degrees(np.arctan2(acc @ y, acc @ up))) < p.upright_deg
+        cand = np.flatnonzero(stand)  # the upright test only where it can still matter (row by row: same values)
+        a = acc[cand]
+        stand[cand] = np.abs(np.degrees(np.arctan2(a @ y, a @ up))) < p.upright_deg
     min_len = p.quiet_min_s * prep.fs_hz
     out = np.zeros_like(stand)
     for a, b in true_runs(stand):
