@@ -265,9 +265,13 @@ def estimate_sync_lag_s(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.n
 
 def angular_acceleration(g: np.ndarray, fs_hz: float) -> np.ndarray:
     """Seel Eq. 1 (Rhudy et al. 2024, Eq. 1): five-point central difference; one-sided at the ends."""
-    gd = np.gradient(g, 1.0 / fs_hz, axis=0)
-    if g.shape[0] >= 5:
-        gd[2:-2] = (g[:-4] - 8.0 * g[1:-3] + 8.0 * g[3:-1] - g[4:]) * (fs_hz / 12.0)
+    if g.shape[0] < 5:
+        return np.gradient(g, 1.0 / fs_hz, axis=0)
+    gd = np.empty_like(g, dtype=float)
+    gd[2:-2] = (g[:-4] - 8.0 * g[1:-3] + 8.0 * g[3:-1] - g[4:]) * (fs_hz / 12.0)
+    # the two samples at each end as np.gradient gives them (its values there depend on three samples only)
+    gd[:2] = np.gradient(g[:3], 1.0 / fs_hz, axis=0)[:2]
+    gd[-2:] = np.gradient(g[-3:], 1.0 / fs_hz, axis=0)[1:]
     return gd
 
 
