@@ -145,7 +145,9 @@ def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray, max_bridge_
 
     # slopes: central differences inside, one-sided at the ends and next to long gaps
     m = np.empty_like(x)
-    m[1:-1] = (x[2:] - x[:-2]) / (t[2:] - t[:-2])[:, None]
+    for a in range(1, n - 1, _INTERP_BLOCK):
+        b = min(a + _INTERP_BLOCK, n - 1)
+        m[a:b] = (x[a + 1:b + 1] - x[a - 1:b - 1]) / (t[a + 1:b + 1] - t[a - 1:b - 1])[:, None]
     m[0], m[-1] = one_sided(0), one_sided(n - 2)
     long_gap = dt > max_bridge_s
     g = np.flatnonzero(long_gap)
