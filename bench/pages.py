@@ -125,6 +125,8 @@ def time_pages(cfg: dict[str, Any]) -> list[dict[str, Any]]:
     with TestClient(app) as client:
         sign_in(client, cfg["token"])
         for name, template in PAGES:
+            if cfg.get("only") and cfg["only"] not in name:
+                continue
             path = template.format(pid=cfg["pid"], sid=cfg["sid"])
             for state in ("cold", "warm"):
                 wall, cpu = [], []
@@ -200,6 +202,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--server-repo", type=Path, action="append", default=[],
                     help="another checkout whose pages are timed on the same data, alternately with this code")
     ap.add_argument("--rounds", type=int, default=2, help="turns of each code with --server-repo")
+    ap.add_argument("--only", default="", help="time only the pages whose name contains this (e.g. Session)")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         db_file = Path(tmp) / "pages.sqlite"
@@ -217,7 +220,7 @@ def main(argv: list[str] | None = None) -> None:
         sid = add_recording(factory, pid, args.minutes)
         engine.dispose()
         cfg = {"url": url, "data_dir": str(Path(tmp) / "data"), "token": token, "pid": pid, "sid": sid,
-               "repeats": args.repeats}
+               "repeats": args.repeats, "only": args.only}
         print(f"clinician pages, SQLite, {args.days} daily sessions, {args.repeats} requests each; target < 300 ms")
         print(f"  load average at start {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (wall time grows with "
               f"other load; CPU time does not)")
@@ -244,6 +247,8 @@ def main(argv: list[str] | None = None) -> None:
                 sys.stdout.flush()
         print("CPU p50 (ms) per round, and this code / other (ratio of the medians over rounds)")
         for row_i, row in enumerate(results[0][0]):
+            if "state" not in row:
+                continue
             label = f"{row['page']}, {row['state']}"
             mine = [r[row_i]["cpu_p50"] for r in results[0]]
             cells = [" / ".join(f"{x:.0f}" for x in mine)]
