@@ -67,7 +67,7 @@ def list_patients(db: Db, caller: Caller, limit: int = Query(50, ge=1, le=200),
     stmt = patient_service.patients_of(caller, search)
     if cursor:
         stmt = stmt.where(after_cursor(Patient.created_at, Patient.id, cursor))
-    rows = db.scalars(stmt.order_by(Patient.created_at, Patient.id).limit(limit + 1)).all()
+    rows = db.scalars(stmt.order_by(*patient_service.PATIENT_ORDER).limit(limit + 1)).all()
     page = rows[:limit]
     next_cursor = encode_cursor(page[-1].created_at, page[-1].id) if len(rows) > limit else None
     return PatientPage(items=[patient_out(p) for p in page], next_cursor=next_cursor)
@@ -143,7 +143,7 @@ def list_sessions(patient_id: str, db: Db, caller: Caller, limit: int = Query(50
         # Newest first: "after" the cursor means older, so the keyset condition is mirrored.
         started, sid = decode_cursor(cursor)
         stmt = stmt.where(or_(Session.started_at < started, and_(Session.started_at == started, Session.id < sid)))
-    rows = db.scalars(stmt.order_by(Session.started_at.desc(), Session.id.desc()).limit(limit + 1)).all()
+    rows = db.scalars(stmt.order_by(*patient_service.SESSION_ORDER).limit(limit + 1)).all()
     page = rows[:limit]
     next_cursor = encode_cursor(page[-1].started_at, page[-1].id) if len(rows) > limit else None
     items = [SessionListItem.model_validate(s) for s in page]

@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session as DbSession
 
 from server.codec import decode_trace
 from server.results.models import KneeAngleTrace, Stride
+from server.trends.summaries import stride_exclusions
 
 CYCLE_POINTS = 101  # 0, 1, ..., 100 % of the gait cycle
 
@@ -107,13 +108,22 @@ class Cycle:
     toe_off_pct: float | None  # mean stance phase of these strides: where swing starts
 
 
-def gait_cycles(db: DbSession, session_id: str, rows: list[Any], excluded: list[list[str]]) -> dict[str, Cycle]:
+def gait_cycles(db: DbSession, session_id: str, rows: list[Any] | None = None,
+                excluded: list[list[str]] | None = None) -> dict[str, Cycle]:
     """Per leg: each included stride's stored angle trace resampled to 0..100 % between its heel strikes, then
     mean and SD across strides at every percent.
 
     ``rows`` are the session's :func:`strides`, ``excluded`` per stride why it does not count in the trends (empty:
-    it counts); excluded strides and strides that cross a gap in the trace are left out."""
+    it counts; :func:`server.trends.summaries.stride_exclusions`); both are read here when the caller has not.
+    Excluded strides and strides that cross a gap in the trace are left out. A session without a stored trace has
+    no cycle, and its strides are not read at all (a patient's first session may be one)."""
     stored = traces(db, session_id)
+    if not stored:
+        return {}
+    if rows is None:
+        rows = strides(db, session_id)
+    if excluded is None:
+        excluded = stride_exclusions(rows)
     by_leg: dict[str, list[Any]] = {}
     for s, why in zip(rows, excluded, strict=True):
         if not why:

@@ -81,12 +81,55 @@ def legs_with_data(db: DbSession, patient_id: str, activity: str = StrideActivit
     return [leg for leg, n in sorted(rows, key=lambda r: -(r[1] or 0)) if (n or 0) > 0]
 
 
+def summaries_version(db: DbSession, patient_id: str) -> tuple[int, str]:
+    """What changes whenever a patient's trend summaries do: every processing run rewrites its session's legs with
+    a new ``refreshed_at``, and a deleted session removes them (their count and newest refresh time)."""
+    n, last = db.execute(select(func.count(), func.max(TrendSessionLeg.refreshed_at))
+                         .where(TrendSessionLeg.patient_id == patient_id)).one()
+    return int(n), str(last)
+
+
 def default_leg(db: DbSession, patient: Patient, activity: str = StrideActivity.walking) -> str | None:
     """The affected leg when it has data (or nothing has), else the leg with the most strides."""
     legs = legs_with_data(db, patient.id, activity)
     if patient.affected_leg and (patient.affected_leg in legs or not legs):
         return patient.affected_leg
     return legs[0] if legs else None
+
+
+def latest_session_means(db: DbSession, patient_ids: list[str], metrics: tuple[str, ...]
+                         ) -> dict[str, dict[str, dict[str, dict[str, Any]]]]:
+    """{patient: {leg: {metric: {mean, at}}}}: per patient, leg and metric, the mean of the included strides of the
+    most recent session that has any, in one query for a list of patients (read along the summaries'
+    (patient, metric, leg, time) index)."""
+    if not patient_ids:
+        return {}
+    m = TrendMetricValues
+    last = (select(m.patient_id, m.metric, m.leg, func.max(m.started_at).label("t"))
+            .where(m.patient_id.in_(patient_ids), m.metric.in_(metrics), m.n_included > 0)
+            .group_by(m.patient_id, m.metric, m.leg).subquery())
+    rows = db.execute(select(m.patient_id, m.leg, m.metric, m.mean, m.started_at).join(
+        last, (last.c.patient_id == m.patient_id) & (last.c.metric == m.metric) & (last.c.leg == m.leg)
+        & (last.c.t == m.started_at)).where(m.n_included > 0)).all()
+    out: dict[str, dict[str, dict[str, dict[str, Any]]]] = {}
+    for pid, leg, metric, mean, at in rows:
+        if mean is not None:
+            out.setdefault(pid, {}).setdefault(leg, {})[metric] = {"mean": float(mean), "at": as_utc(at)}
+    return out
+
+
+def session_medians(db: DbSession, session_ids: list[str], metric_name: str
+                    ) -> dict[str, dict[str, tuple[int, float | None]]]:
+    """{session: {leg: (included strides, their median)}} of one metric from the trend summaries (so a stride that
+    does not count in the trends does not count here either)."""
+    m = TrendMetricValues
+    out: dict[str, dict[str, tuple[int, float | None]]] = {}
+    if not session_ids:
+        return out
+    for sid, leg, n, median in db.execute(select(m.session_id, m.leg, m.n_included, m.median).where(
+            m.session_id.in_(session_ids), m.metric == metric_name)):
+        out.setdefault(sid, {})[leg] = (int(n), None if median is None else float(median))
+    return out
 
 
 def load_session_rows(db: DbSession, patient_id: str, metric: Metric, leg: str, start: datetime | None,

@@ -1,4 +1,5 @@
-"""What each page shows: data from :mod:`server.ui.data` turned into rows, sentences and SVG charts."""
+"""What each page shows: data from the services (through :mod:`server.ui.data` where the pages need it adapted)
+turned into rows, sentences and SVG charts."""
 
 from __future__ import annotations
 
@@ -10,10 +11,14 @@ from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
 
 from server.auth.service import Principal
+from server.patients import service as patient_service
 from server.patients.models import Patient
-from server.results.service import CYCLE_POINTS
+from server.results import service as results_service
+from server.results.service import CYCLE_POINTS, Cycle, TraceWindow
 from server.sessions.models import Session
+from server.trends import service as trend_service
 from server.trends.metrics import METRICS
+from server.trends.summaries import stride_exclusions
 from server.trends.timeutil import zone
 from server.ui import data, plots, words
 from server.ui.plots import AFFECTED, OTHER, Axis, Band, HBand, Series
@@ -22,6 +27,9 @@ from server.utc import as_utc
 CALENDAR_DAYS = 182
 SESSIONS_PER_PAGE = 20
 STRIDES_SHOWN = 300
+# The metrics of the patient page, in the order a physiotherapist reads them, and those of the patient list.
+TREND_METRICS = ("peak_swing_flexion_deg", "rom_deg", "min_flexion_deg", "strides_per_day")
+OVERVIEW_METRICS = ("peak_swing_flexion_deg", "rom_deg")
 
 
 def leg_roles(patient: Patient, legs: list[str]) -> tuple[str, str]:
@@ -39,9 +47,10 @@ def leg_name(patient: Patient, leg: str) -> str:
 
 def patients_page(db: DbSession, principal: Principal, *, search: str, page: int, per_page: int = 25) -> dict:
     """Template context of the patient list."""
-    listing = data.list_patients(db, principal, search=search, offset=(page - 1) * per_page, limit=per_page)
+    listing = patient_service.patient_page(db, principal, search=search, offset=(page - 1) * per_page,
+                                           limit=per_page)
     rows = []
-    latest_all = data.latest_values(db, [p.id for p in listing.items])
+    latest_all = trend_service.latest_session_means(db, [p.id for p in listing.items], OVERVIEW_METRICS)
     for p in listing.items:
         tz = zone(p.timezone)
         comp = data.completeness(db, p, days=30)
@@ -176,19 +185,20 @@ def symmetry_chart(patient: Patient, sym: dict[str, Any], first: date, last: dat
 def patient_page(db: DbSession, patient: Patient, *, bucket: str | None, session_page: int) -> dict[str, Any]:
     """Template context of the patient page."""
     tz = zone(patient.timezone)
-    legs = data.legs_with_data(db, patient)
+    legs = trend_service.legs_with_data(db, patient.id)
     ref, _ = leg_roles(patient, legs)
     comp = data.completeness(db, patient, days=CALENDAR_DAYS)
-    sessions, n_sessions = data.list_sessions(db, patient, offset=(session_page - 1) * SESSIONS_PER_PAGE,
-                                              limit=SESSIONS_PER_PAGE)
-    first_session = data.first_done_session(db, patient)
+    listing = patient_service.session_page(db, patient.id, offset=(session_page - 1) * SESSIONS_PER_PAGE,
+                                           limit=SESSIONS_PER_PAGE)
+    sessions, n_sessions = listing.items, listing.total
+    first_session = patient_service.first_done_session(db, patient.id)
     first_day = (as_utc(first_session.started_at).astimezone(tz).date() if first_session else None)
     today = data.local_today(patient)
     span = (today - first_day).days if first_day else 0
     bucket = bucket if bucket in ("day", "week") else ("day" if span <= 90 else "week")
     charts, summaries = [], []
     if first_day is not None and legs:
-        for metric in data.TREND_METRICS:
+        for metric in TREND_METRICS:
             per_leg = {leg: data.trends(db, patient, metric, leg, bucket) for leg in ("left", "right") if leg in legs}
             charts.append({"metric": metric, "title": words.METRIC_SHORT[metric],
                            "svg": trend_chart(patient, metric, per_leg, ref, bucket, first_day, today),
@@ -208,7 +218,7 @@ def patient_page(db: DbSession, patient: Patient, *, bucket: str | None, session
     calendar = plots.calendar_svg(days, title=f"Days with data, last {CALENDAR_DAYS // 7} weeks "
                                               f"(local days, {tz.key})")
     rows = []
-    peaks = data.session_peaks(db, [s.id for s in sessions])
+    peaks = trend_service.session_medians(db, [s.id for s in sessions], "peak_swing_flexion_deg")
     for s in sessions:
         rows.append({"id": s.id, "when": words.local_time(s.started_at, tz), "activity": s.activity,
                      "status": words.STATUS.get(s.status, s.status), "failed": s.status == "failed",
@@ -233,13 +243,13 @@ def datetime_or_none(s: str | None) -> datetime | None:
 
 # --- Session page --------------------------------------------------------------------------------------------
 
-def cycle_chart(patient: Patient, leg: str, this: data.Cycle | None, first: data.Cycle | None,
+def cycle_chart(patient: Patient, leg: str, this: Cycle | None, first: Cycle | None,
                 first_when: str, is_first: bool) -> str:
     """SVG of the knee angle over the gait cycle, this session against the first."""
     pct = [float(i) for i in range(CYCLE_POINTS)]
     series, bands, ys = [], [], []
 
-    def add(c: data.Cycle, label: str, color: str, dash: str | None) -> None:
+    def add(c: Cycle, label: str, color: str, dash: str | None) -> None:
         lo = [None if m is None or s is None else m - s for m, s in zip(c.mean_deg, c.sd_deg, strict=True)]
         hi = [None if m is None or s is None else m + s for m, s in zip(c.mean_deg, c.sd_deg, strict=True)]
         ys.extend(c.mean_deg + lo + hi)
@@ -261,7 +271,7 @@ def cycle_chart(patient: Patient, leg: str, this: data.Cycle | None, first: data
                        subtitle="Stance from heel strike to toe-off, then swing with the flexion peak.")
 
 
-def trace_chart(traces: list[data.TraceWindow], patient: Patient, start: float, end: float) -> str:
+def trace_chart(traces: list[TraceWindow], patient: Patient, start: float, end: float) -> str:
     """SVG of the continuous knee angle of both legs in a time window."""
     series, ys = [], [0.0]
     for tr, color, dash in zip(traces, (AFFECTED, OTHER), (None, "5 3"), strict=False):
@@ -312,12 +322,12 @@ def session_page(db: DbSession, patient: Patient, session: Session, *, start: fl
     }
     if session.status != "done":
         return ctx
-    first = data.first_done_session(db, patient)
+    first = patient_service.first_done_session(db, patient.id)
     is_first = first is None or first.id == session.id
-    rows = data.strides(db, session)
-    excluded = data.exclusions(rows)
-    this_cycles = data.gait_cycles(db, session, rows, excluded)
-    first_cycles = data.gait_cycles(db, first) if first is not None and not is_first else {}
+    rows = results_service.strides(db, session.id)
+    excluded = stride_exclusions(rows)
+    this_cycles = results_service.gait_cycles(db, session.id, rows, excluded)
+    first_cycles = results_service.gait_cycles(db, first.id) if first is not None and not is_first else {}
     first_when = words.local_date(first.started_at, tz) if first is not None else ""
     for leg in sorted(set(this_cycles) | set(first_cycles)):
         ctx["cycles"].append({"leg": leg, "svg": cycle_chart(patient, leg, this_cycles.get(leg),

@@ -358,3 +358,68 @@ def test_the_precomputed_attention_evidence_matches_the_live_computation(factory
         db.commit()
         after = attention_list(db, clinician_id=c.id, now=NOW)
     assert declining.id not in kinds(after) or "declining" not in kinds(after)[declining.id]
+
+
+def test_latest_session_means_and_per_session_medians_count_only_trustworthy_strides(factory) -> None:
+    with factory() as db:
+        p = _patient(db)
+        other = _patient(db)
+        old = add_session(db, p.id, NOW - timedelta(days=2),
+                          {"left": {"n": 4, "peak_swing_flexion_deg": [40, 42, 44, 150]},
+                           "right": {"n": 3, "peak_swing_flexion_deg": 61.0}})
+        new = add_session(db, p.id, NOW - timedelta(days=1),
+                          {"left": {"n": 3, "peak_swing_flexion_deg": [50, 56, 53]}})
+        # The newest session's strides are all low quality: it has no value, so the one before stays the latest.
+        add_session(db, p.id, NOW, {"left": {"n": 3, "peak_swing_flexion_deg": 90.0, "quality": 0.2}})
+        db.commit()
+        latest = service.latest_session_means(db, [p.id, other.id], ("peak_swing_flexion_deg", "rom_deg"))
+        assert set(latest) == {p.id}  # the other patient has no session
+        left, right = latest[p.id]["left"], latest[p.id]["right"]
+        assert left["peak_swing_flexion_deg"]["mean"] == pytest.approx(53.0)
+        assert left["peak_swing_flexion_deg"]["at"] == NOW - timedelta(days=1)
+        assert left["rom_deg"]["mean"] == pytest.approx(51.0)  # rom = peak - 2 deg minimum flexion
+        assert right["peak_swing_flexion_deg"]["mean"] == pytest.approx(61.0)
+        assert service.latest_session_means(db, [], ("rom_deg",)) == {}
+        medians = service.session_medians(db, [old, new], "peak_swing_flexion_deg")
+        # 150 deg is implausible: three of the four left strides count, their median is 42.
+        assert medians == {old: {"left": (3, 42.0), "right": (3, 61.0)}, new: {"left": (3, 53.0)}}
+        assert service.session_medians(db, [], "peak_swing_flexion_deg") == {}
+
+
+def test_numbered_session_pages_and_the_first_processed_session(factory) -> None:
+    from server.patients import service as patient_service
+
+    with factory() as db:
+        p = _patient(db)
+        add_session(db, p.id, NOW - timedelta(days=9), {"left": {"n": 3}}, status="failed", refresh=False)
+        ids = [add_session(db, p.id, NOW - timedelta(days=d), {"left": {"n": 3}}) for d in (5, 3, 1)]
+        db.commit()
+        first = patient_service.first_done_session(db, p.id)
+        assert first is not None and first.id == ids[0]  # the failed session before it is not a reference
+        page = patient_service.session_page(db, p.id, offset=1, limit=2)
+        assert page.total == 4 and [s.id for s in page.items] == [ids[1], ids[0]]  # newest first
+        assert patient_service.first_done_session(db, _patient(db).id) is None
+
+
+def test_gait_cycle_of_a_session_without_a_trace_reads_no_strides(factory) -> None:
+    from sqlalchemy import event
+
+    from server.results import service as results_service
+
+    with factory() as db:
+        p = _patient(db)
+        sid = add_session(db, p.id, NOW, {"left": {"n": 50}})
+        db.commit()
+        statements: list[str] = []
+        engine = db.get_bind()
+
+        def record(conn, cursor, statement, *args) -> None:  # noqa: ANN001, ANN002
+            statements.append(statement)
+
+        event.listen(engine, "before_cursor_execute", record)
+        try:
+            assert results_service.gait_cycles(db, sid) == {}
+        finally:
+            event.remove(engine, "before_cursor_execute", record)
+        assert statements and all("knee_angle_traces" in s for s in statements)
+        assert len(results_service.strides(db, sid)) == 50  # the strides are there, only not read for nothing

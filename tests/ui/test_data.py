@@ -9,7 +9,8 @@ import numpy as np
 
 from server.trends import exports
 from server.trends.metrics import METRICS
-from server.ui import data, plots
+from server.trends.summaries import stride_exclusions
+from server.ui import plots
 
 
 def test_exclusions_match_the_export_rule_stride_by_stride() -> None:
@@ -25,7 +26,7 @@ def test_exclusions_match_the_export_rule_stride_by_stride() -> None:
             values["rom_deg"] = float("nan")
         quality = None if i % 50 == 0 else float(rng.choice([0.2, 0.49, 0.5, 0.9, 1.0]))
         rows.append(SimpleNamespace(quality=quality, **values))
-    got = data.exclusions(rows)
+    got = stride_exclusions(rows)
     want = [exports._exclusions({"quality": r.quality, **{c: getattr(r, c) for c in columns}}) for r in rows]
     assert got == want
     assert any(got) and not all(got)  # both outcomes occur
