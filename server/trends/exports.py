@@ -39,8 +39,9 @@ from server.results.models import Stride
 from server.results.stride_record import STRIDE_UNITS, STRIDE_VALUE_FIELDS
 from server.sessions.models import Session
 from server.trends import stats
-from server.trends.metrics import METRICS, MIN_QUALITY, Metric
+from server.trends.metrics import METRICS, Metric
 from server.trends.models import TrendMetricValues, TrendSessionLeg
+from server.trends.summaries import stride_exclusions
 from server.trends.timeutil import local_date, local_midnight, zone
 from server.utc import as_utc, utcnow
 
@@ -74,21 +75,6 @@ def _num(x: float | None, nd: int = 4) -> str:
     return "" if v is None else f"{v:.{nd}f}".rstrip("0").rstrip(".")
 
 
-def _exclusions(row: Any) -> list[str]:
-    """Why a stride does not count in the trends (same rules as :mod:`server.trends.summaries`)."""
-    q = row["quality"]
-    if q is None or not q >= MIN_QUALITY:
-        return [f"quality<{MIN_QUALITY:g}"]
-    out = []
-    for name, metric in METRICS.items():
-        if metric.column is None:
-            continue
-        v = metric.values(np.array([row[metric.column]], dtype=np.float64))
-        if not metric.plausible(v)[0]:
-            out.append(f"implausible:{name}")
-    return out
-
-
 def strides_csv(db: DbSession, patient: Patient, start: datetime | None, end: datetime | None,
                 chunk: int = 2000, *, activity: str = StrideActivity.walking) -> Iterator[str]:
     """Stream the patient's strides of one activity as RFC 4180 CSV (header first; times ISO 8601 in the
@@ -108,25 +94,22 @@ def strides_csv(db: DbSession, patient: Patient, start: datetime | None, end: da
     q = q.order_by(Stride.started_at, Stride.leg, Stride.index).execution_options(yield_per=chunk)
     buf = io.StringIO()
     w = csv.writer(buf)
-    for n, row in enumerate(db.execute(q), start=1):
-        s = row._mapping
-        local = as_utc(s["started_at"]).astimezone(tz)
-        excl = _exclusions(s)
-        cadence = 120.0 / s["duration_s"] if s["duration_s"] else None
-        values = {**s, "cadence_steps_per_min": cadence}
-        w.writerow([
-            s["session_id"], s["client_session_id"], s["leg"], s["index"], local.isoformat(),
-            local.date().isoformat(), *(_num(values[c], _DECIMALS[_UNITS[c]]) for c in VALUE_COLUMNS),
-            s["estimator"], _num(s["quality"], 3),
-            ";".join(s["quality_reasons"] or []), "0" if excl else "1", ";".join(excl), s["activity"],
-            "1" if s["fallback"] else "0",
-        ])
-        if n % chunk == 0:
-            yield buf.getvalue()
-            buf.seek(0)
-            buf.truncate()
-    if buf.tell():
+    for rows in db.execute(q).partitions():
+        for row, excl in zip(rows, stride_exclusions(rows), strict=True):
+            s = row._mapping
+            local = as_utc(s["started_at"]).astimezone(tz)
+            cadence = 120.0 / s["duration_s"] if s["duration_s"] else None
+            values = {**s, "cadence_steps_per_min": cadence}
+            w.writerow([
+                s["session_id"], s["client_session_id"], s["leg"], s["index"], local.isoformat(),
+                local.date().isoformat(), *(_num(values[c], _DECIMALS[_UNITS[c]]) for c in VALUE_COLUMNS),
+                s["estimator"], _num(s["quality"], 3),
+                ";".join(s["quality_reasons"] or []), "0" if excl else "1", ";".join(excl), s["activity"],
+                "1" if s["fallback"] else "0",
+            ])
         yield buf.getvalue()
+        buf.seek(0)
+        buf.truncate()
 
 
 def _quantity(metric: Metric, value: float) -> dict[str, Any]:

@@ -74,13 +74,13 @@ def summarise_leg(columns: dict[str, np.ndarray], quality: np.ndarray, fallback:
 
 
 def stride_exclusions(rows: list[Any]) -> list[list[str]]:
-    """Per stride, why it does not count in the trends (empty: it counts), in the codes of
-    :func:`server.trends.exports._exclusions` (``quality<0.5``, ``implausible:<metric>``).
+    """Per stride, why it does not count in the trends (empty: it counts): ``quality<0.5`` (and nothing else), or
+    ``implausible:<metric>`` for each metric whose value is outside its plausible range. The pages, the results API
+    and the CSV export all say why a stride is excluded from this one rule.
 
     ``rows``: anything with ``quality`` and the metric columns as attributes (the results service's stride rows).
     The rule of :func:`summarise_leg`, evaluated on whole columns with the same :class:`Metric` methods (per-stride
-    calls cost ~60 us each, too slow for a long session); tests/ui/test_data.py checks it against
-    ``exports._exclusions`` stride by stride."""
+    calls cost ~60 us each, too slow for a long session)."""
     if not rows:
         return []
     metrics = [(name, metric) for name, metric in METRICS.items() if metric.column is not None]
