@@ -9,6 +9,7 @@ generator's own backlog, and the latencies it reports are partly its own. This c
 from __future__ import annotations
 
 import asyncio
+import gzip
 import json
 from dataclasses import dataclass
 from typing import Any
@@ -73,6 +74,8 @@ class Http1Connection:
             raise ValueError("answer without Content-Length or chunked encoding")
         if headers.get("connection", "").lower() == "close":
             self.close()
+        if headers.get("content-encoding", "").lower() == "gzip":
+            body = gzip.decompress(body)
         return Answer(status, headers, body)
 
     def close(self) -> None:

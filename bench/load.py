@@ -250,7 +250,9 @@ async def _lag_loop(stop: asyncio.Event, stats: Stats, period_s: float = 0.05) -
 async def _sensor_uploads(client: Http1Connection, sid: str, sensor_id: str, token: str,
                           args: argparse.Namespace, t_start: float, stats: Stats) -> None:
     rng = np.random.default_rng(abs(hash((sid, sensor_id))) % 2**32)
-    headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/json", "Content-Encoding": "gzip"}
+    # Accept-Encoding as a phone's HTTP stack (OkHttp, NSURLSession) sends it: the server's response gzip layer runs.
+    headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/json", "Content-Encoding": "gzip",
+               "Accept-Encoding": "gzip"}
     acked = stats.acked.setdefault((sid, sensor_id), set())
     sent = stats.sent.setdefault((sid, sensor_id), set())
     hard_deadline = t_start + args.seconds + args.drain_s
@@ -379,7 +381,7 @@ async def saturate(base: str, path_for: list[tuple[str, str, str]], seconds: flo
         url, sensor_id, token = path_for[k % len(path_for)]
         rng = np.random.default_rng(k)
         headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/json",
-                   "Content-Encoding": "gzip"}
+                   "Content-Encoding": "gzip", "Accept-Encoding": "gzip"}
         seq = 100_000 + k * 100_000
         c = _connection(base)
         try:
