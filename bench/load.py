@@ -11,7 +11,9 @@ from the database the samples lost (acknowledged but not stored) and doubled (st
 Each phone is an asyncio task per sensor (``--sensors`` per phone, default 2: thigh and shank of one leg) sending
 one gzip'd batch per second (``--fs`` samples) in seq order, as the app's upload queue does: a 503 is retried
 after its ``Retry-After``, a dropped connection after a short back-off, until ``--seconds`` plus a drain of at
-most ``--drain-s``. ``/healthz`` is sampled every 0.5 s on a connection of its own. The server is uvicorn on
+most ``--drain-s``. The phones use the lean keep-alive client of :mod:`bench.http1` (a connection each), and the
+generator reports its own event-loop lag: that much of every latency it measures is its own, not the server's.
+``/healthz`` is sampled every 0.5 s on a connection of its own. The server is uvicorn on
 127.0.0.1 (``--api-workers`` processes) with a fresh database; on PostgreSQL a ``gaitmon worker`` runs too.
 
 Reference: a bare FastAPI endpoint that inflates and validates the same gzip'd body the same way (a thread each,
@@ -29,7 +31,6 @@ import json
 import os
 import random
 import signal
-import ssl
 import subprocess
 import sys
 import tempfile
@@ -39,6 +40,7 @@ import zlib
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import anyio
 import httpx
@@ -47,6 +49,7 @@ from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
 from sqlalchemy import create_engine, text
 
+from bench.http1 import Http1Connection, Http1Error
 from bench.ingest import _free_port, _fresh_pg, _gaitmon, _log, _wait_healthy
 from server.sessions.schemas import BatchIn
 
@@ -85,9 +88,13 @@ class Stats:
     acked: dict[tuple[str, str], set[int]] = field(default_factory=dict)
     sent: dict[tuple[str, str], set[int]] = field(default_factory=dict)
     unfinished: int = 0
+    # How late this load generator's event loop woke up for a 50 ms sleep: its share of every latency above
+    loop_lag_ms: list[float] = field(default_factory=list)
+    # CPU seconds while the phones ran: the API processes, and this load generator (same 2 cores)
+    api_cpu_s: float = 0.0
+    generator_cpu_s: float = 0.0
 
 
-_TLS = ssl.create_default_context()
 _SAMPLES_JSON: dict[tuple[float, int], bytes] = {}
 
 
@@ -191,14 +198,14 @@ class Server:
         return total / 1024.0
 
 
-async def _retrying(client: httpx.AsyncClient, method: str, url: str, stats: Stats, deadline: float,
-                    **kw) -> httpx.Response | None:  # noqa: ANN003
+async def _retrying(client: httpx.AsyncClient | Http1Connection, method: str, url: str, stats: Stats,
+                    deadline: float, **kw) -> httpx.Response | None:  # noqa: ANN003
     """Send until a non-503 answer or the deadline; 503 waits Retry-After, a dropped connection 0.5-1 s."""
     while time.monotonic() < deadline:
         t0 = time.perf_counter()
         try:
             r = await client.request(method, url, **kw)
-        except httpx.HTTPError:
+        except (httpx.HTTPError, Http1Error):
             stats.conn_errors += 1
             await asyncio.sleep(0.5 + random.random() * 0.5)
             continue
@@ -219,19 +226,33 @@ async def _retrying(client: httpx.AsyncClient, method: str, url: str, stats: Sta
 
 async def _sensor_loop(base: str, sid: str, sensor_id: str, token: str, args: argparse.Namespace,
                        t_start: float, stats: Stats) -> None:
-    # A client (and connection) per sensor, as on a phone; one shared pool of hundreds of connections would
-    # make the load generator itself the bottleneck (httpcore scans its pool on every request).
-    # One shared TLS context: building one per client (certifi's store) costs ~50 ms each, and the loopback
-    # traffic is plain HTTP anyway.
-    async with httpx.AsyncClient(base_url=base, timeout=30, limits=httpx.Limits(max_connections=1),
-                                 verify=_TLS) as client:
+    # A connection per sensor, as on a phone, on the lean client of bench.http1: with httpx (~1 ms CPU per request)
+    # 200+ phones in one event loop delay their own sends and answers by hundreds of ms.
+    client = _connection(base)
+    try:
         await _sensor_uploads(client, sid, sensor_id, token, args, t_start, stats)
+    finally:
+        client.close()
 
 
-async def _sensor_uploads(client: httpx.AsyncClient, sid: str, sensor_id: str, token: str,
+def _connection(base: str) -> Http1Connection:
+    url = urlsplit(base)
+    return Http1Connection(url.hostname or "127.0.0.1", url.port or 80, timeout_s=30)
+
+
+async def _lag_loop(stop: asyncio.Event, stats: Stats, period_s: float = 0.05) -> None:
+    while not stop.is_set():
+        t0 = time.perf_counter()
+        await asyncio.sleep(period_s)
+        stats.loop_lag_ms.append(1000 * (time.perf_counter() - t0 - period_s))
+
+
+async def _sensor_uploads(client: Http1Connection, sid: str, sensor_id: str, token: str,
                           args: argparse.Namespace, t_start: float, stats: Stats) -> None:
     rng = np.random.default_rng(abs(hash((sid, sensor_id))) % 2**32)
-    headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/json", "Content-Encoding": "gzip"}
+    # Accept-Encoding as a phone's HTTP stack (OkHttp, NSURLSession) sends it: the server's response gzip layer runs.
+    headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/json", "Content-Encoding": "gzip",
+               "Accept-Encoding": "gzip"}
     acked = stats.acked.setdefault((sid, sensor_id), set())
     sent = stats.sent.setdefault((sid, sensor_id), set())
     hard_deadline = t_start + args.seconds + args.drain_s
@@ -318,6 +339,7 @@ async def drive_phones(base: str, phones: list[tuple[str, str, list[str]]], args
                        server: Server) -> tuple[Stats, float, float]:
     """Run the phones; returns their stats, the wall time and the API's peak RSS (MB)."""
     stats = Stats()
+    cpu0, gen0 = server.cpu_s(), _own_cpu_s()
     stop = asyncio.Event()
     health_stop = threading.Event()
     peak = [0.0]
@@ -325,6 +347,7 @@ async def drive_phones(base: str, phones: list[tuple[str, str, list[str]]], args
     health = threading.Thread(target=_health_thread, args=(base, health_stop, stats), daemon=True)
     health.start()
     side = [asyncio.create_task(_rss_loop(server, stop, peak))]
+    side.append(asyncio.create_task(_lag_loop(stop, stats)))
     killer = asyncio.create_task(_killer(server, base, args, t_start)) if args.kill else None
     await asyncio.gather(*(_sensor_loop(base, sid, sensor, tok, args, t_start, stats)
                            for tok, sid, sensors in phones for sensor in sensors))
@@ -335,7 +358,14 @@ async def drive_phones(base: str, phones: list[tuple[str, str, list[str]]], args
     health_stop.set()
     await asyncio.gather(*side)
     health.join(timeout=15)
+    stats.api_cpu_s, stats.generator_cpu_s = server.cpu_s() - cpu0, _own_cpu_s() - gen0
     return stats, wall, peak[0]
+
+
+def _own_cpu_s() -> float:
+    """CPU seconds of this process (the phones and the /healthz thread), user + system."""
+    t = os.times()
+    return t.user + t.system
 
 
 async def saturate(base: str, path_for: list[tuple[str, str, str]], seconds: float, clients: int,
@@ -345,29 +375,32 @@ async def saturate(base: str, path_for: list[tuple[str, str, str]], seconds: flo
     acked = 0
     cpu0 = server.cpu_s()
     deadline = time.monotonic() + seconds
-    limits = httpx.Limits(max_connections=clients)
-    async with httpx.AsyncClient(base_url=base, timeout=30, limits=limits) as c:
 
-        async def sender(k: int) -> None:
-            nonlocal acked
-            url, sensor_id, token = path_for[k % len(path_for)]
-            rng = np.random.default_rng(k)
-            headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/json",
-                       "Content-Encoding": "gzip"}
-            seq = 100_000 + k * 100_000
+    async def sender(k: int) -> None:
+        nonlocal acked
+        url, sensor_id, token = path_for[k % len(path_for)]
+        rng = np.random.default_rng(k)
+        headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/json",
+                   "Content-Encoding": "gzip", "Accept-Encoding": "gzip"}
+        seq = 100_000 + k * 100_000
+        c = _connection(base)
+        try:
             while time.monotonic() < deadline:
                 try:
-                    r = await c.post(url, content=batch_bytes(sensor_id, seq, fs, rng), headers=headers)
-                except httpx.HTTPError:
+                    r = await c.request("POST", url, content=batch_bytes(sensor_id, seq, fs, rng), headers=headers)
+                except Http1Error:
+                    await asyncio.sleep(0.05)
                     continue
                 seq += 1
                 if r.status_code in (200, 201):
                     acked += 1
+        finally:
+            c.close()
 
-        t0 = time.monotonic()
-        await asyncio.gather(*(sender(k) for k in range(clients)))
-        rate = acked / (time.monotonic() - t0)
-        return rate, 1000 * (server.cpu_s() - cpu0) / max(acked, 1)
+    t0 = time.monotonic()
+    await asyncio.gather(*(sender(k) for k in range(clients)))
+    rate = acked / (time.monotonic() - t0)
+    return rate, 1000 * (server.cpu_s() - cpu0) / max(acked, 1)
 
 
 def db_check(url: str, stats: Stats) -> dict[str, int]:
@@ -474,8 +507,12 @@ def run(args: argparse.Namespace) -> dict:
                    ack_p50_ms=pct(stats.ack_latency_ms, 0.5), ack_p99_ms=pct(stats.ack_latency_ms, 0.99),
                    ack_max_ms=max(stats.ack_latency_ms, default=float("nan")),
                    refused_p99_ms=pct(stats.refused_latency_ms, 0.99),
-                   health_p99_ms=pct(stats.health_ms, 0.99), health_max_ms=max(stats.health_ms, default=0.0),
-                   health_fail=stats.health_fail, api_rss_peak_mb=peak, wall_s=wall, **check)
+                   health_p99_ms=pct(stats.health_ms, 0.99), generator_lag_p99_ms=pct(stats.loop_lag_ms, 0.99),
+                   generator_lag_max_ms=max(stats.loop_lag_ms, default=float("nan")),
+                   health_max_ms=max(stats.health_ms, default=0.0),
+                   health_fail=stats.health_fail, api_rss_peak_mb=peak, wall_s=wall,
+                   api_cpu_ms_per_ack=1000 * stats.api_cpu_s / max(acked, 1),
+                   api_cores=stats.api_cpu_s / wall, generator_cores=stats.generator_cpu_s / wall, **check)
         if args.saturate:
             targets = [(f"/v1/sessions/{sid}/batches", sensors[0], tok) for tok, sid, sensors in phones]
             out["gaitmon_batches_per_s"], out["gaitmon_cpu_ms"] = asyncio.run(
@@ -525,8 +562,12 @@ def _print(o: dict, args: argparse.Namespace) -> None:
     print(f"| ack latency p50 / p99 / max | {o['ack_p50_ms']:.0f} / {o['ack_p99_ms']:.0f} / {o['ack_max_ms']:.0f} ms |")
     print(f"| /healthz p99 / max (failures) | {o['health_p99_ms']:.0f} / {o['health_max_ms']:.0f} ms "
           f"({o['health_fail']}) |")
+    print(f"| load generator's own event-loop lag p99 / max | {o['generator_lag_p99_ms']:.0f} / "
+          f"{o['generator_lag_max_ms']:.0f} ms |")
     print(f"| lost / doubled batches (database) | {o['lost_batches']} / {o['doubled_batches']} |")
     print(f"| API peak RSS | {o['api_rss_peak_mb']:.0f} MB |")
+    print(f"| API CPU per acknowledged batch / cores used: API, load generator | {o['api_cpu_ms_per_ack']:.2f} ms / "
+          f"{o['api_cores']:.2f}, {o['generator_cores']:.2f} |")
     if "ratio" in o:
         print(f"| saturated: gaitmon / bare endpoint | {o['gaitmon_batches_per_s']:.0f} / "
               f"{o['bare_batches_per_s']:.0f} batches/s = {o['ratio']:.2f} |")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import gzip
 import json
 import time
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 from sqlalchemy import event, func, select, update
 
-from server.body_limit import _GzipInflater, _Reject
+from server.body_limit import INLINE_INFLATE_MAX_BYTES, BodyLimitMiddleware, _GzipInflater, _Reject
 from server.config import Settings
 from server.errors import ProblemError
 from server.sessions import ingest
@@ -168,6 +169,30 @@ def _bomb(inflated_bytes: int) -> bytes:
     block = b"0" * (1 << 20)
     parts = [comp.compress(block) for _ in range(inflated_bytes // len(block))]
     return b"".join(parts) + comp.flush()
+
+
+def test_gzip_body_past_the_inline_inflate_budget_is_inflated_in_full() -> None:
+    seen: list[bytes] = []
+
+    async def app(scope, receive, send) -> None:  # noqa: ANN001
+        seen.append((await receive())["body"])
+
+    body = json.dumps({"a": list(range(100_000))}).encode()
+    gz = gzip.compress(body)
+    assert len(gz) < INLINE_INFLATE_MAX_BYTES < len(body) < 1_000_000
+    middleware = BodyLimitMiddleware(app, max_body_bytes=1_000_000)
+    scope = {"type": "http", "method": "POST", "path": "/v1/x", "headers": [
+        (b"content-type", b"application/json"), (b"content-encoding", b"gzip"),
+        (b"content-length", str(len(gz)).encode())]}
+
+    async def receive() -> dict:
+        return {"type": "http.request", "body": gz, "more_body": False}
+
+    async def send(message: dict) -> None:
+        raise AssertionError(f"no answer expected from the middleware: {message}")
+
+    asyncio.run(middleware(scope, receive, send))
+    assert seen == [body]
 
 
 def test_gzip_bomb_gets_413_without_inflating(api: Api) -> None:
