@@ -87,10 +87,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # Outermost: an overloaded process refuses before reading a body or taking a thread.
     app.add_middleware(InFlightLimitMiddleware, max_in_flight=settings.max_in_flight,
                        retry_after_s=settings.retry_after_s)
+    # The sessions router first: the phones' uploads are most of the traffic, and routes are matched in order.
+    app.include_router(session_routes.router)
     app.include_router(health.router)
     app.include_router(auth_routes.router)
     app.include_router(patient_routes.router)
-    app.include_router(session_routes.router)
     app.include_router(result_routes.router)
     # Routers of other modules are included below this line (one line each).
     app.include_router(trend_routes.router)
