@@ -47,7 +47,11 @@ def _lm(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], np.
     """MINPACK's Levenberg-Marquardt with an analytic Jacobian (lmder), called as
     ``least_squares(fun, x0, jac=jac, method="lm", max_nfev=200)`` calls it (same tolerances and limits, so the same
     iterates and solution) without that wrapper's per-call set-up and per-evaluation bookkeeping, which cost more
-    than the residuals of a thousand samples."""
+    than the residuals of a thousand samples. The same iterates since SciPy 1.16 (whose ``least_squares`` scales
+    the variables as MINPACK does by default); raises ValueError like ``least_squares`` when ``fun(x0)`` is not
+    finite."""
+    if not np.isfinite(fun(x0)).all():
+        raise ValueError("residuals are not finite at the initial point")
     x, _, info, _, _ = leastsq(fun, x0, Dfun=jac, full_output=True, ftol=1e-8, xtol=1e-8, gtol=1e-8, maxfev=200)
     f = info["fvec"]
     return _Fit(x=x, cost=0.5 * float(np.dot(f, f)))

@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session as DbSession
 
 from server.codec import decode_trace
 from server.results.models import KneeAngleTrace, Stride
-from server.trends.summaries import stride_exclusions
+from server.trends.metrics import stride_exclusions
 
 CYCLE_POINTS = 101  # 0, 1, ..., 100 % of the gait cycle
 

@@ -172,6 +172,22 @@ class UploadRoute(APIRoute):
     validation. Path, parameters, responses and the OpenAPI document are the ones FastAPI derives from the endpoint.
     """
 
+    # What handle() calls by hand; anything else declared on the route would be documented but never run.
+    HANDLED = frozenset({"token_identity", "HTTPBearer", "get_app_settings"})
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        calls: list[Any] = []
+        pending = list(self.dependant.dependencies)
+        while pending:
+            dep = pending.pop()
+            calls.append(dep.call)
+            pending.extend(dep.dependencies)
+        names = {getattr(c, "__name__", type(c).__name__) for c in calls}
+        if self.dependencies or names != self.HANDLED:
+            raise TypeError(f"UploadRoute calls {sorted(self.HANDLED)} itself; the route declares {sorted(names)}"
+                            f" and {len(self.dependencies)} route dependencies")
+
     def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
         async def handle(request: Request) -> Response:
             caller = await token_identity(request, await bearer_scheme(request))

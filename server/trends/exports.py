@@ -39,9 +39,8 @@ from server.results.models import Stride
 from server.results.stride_record import STRIDE_UNITS, STRIDE_VALUE_FIELDS
 from server.sessions.models import Session
 from server.trends import stats
-from server.trends.metrics import METRICS, Metric
+from server.trends.metrics import METRICS, Metric, stride_exclusions
 from server.trends.models import TrendMetricValues, TrendSessionLeg
-from server.trends.summaries import stride_exclusions
 from server.trends.timeutil import local_date, local_midnight, zone
 from server.utc import as_utc, utcnow
 

@@ -8,7 +8,6 @@ summary is older than their last processing run).
 from __future__ import annotations
 
 import logging
-from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -71,32 +70,6 @@ def summarise_leg(columns: dict[str, np.ndarray], quality: np.ndarray, fallback:
         })
     leg_row["n_implausible"] = int(implausible.sum())
     return leg_row, metric_rows
-
-
-def stride_exclusions(rows: list[Any]) -> list[list[str]]:
-    """Per stride, why it does not count in the trends (empty: it counts): ``quality<0.5`` (and nothing else), or
-    ``implausible:<metric>`` for each metric whose value is outside its plausible range. The pages, the results API
-    and the CSV export all say why a stride is excluded from this one rule.
-
-    ``rows``: anything with ``quality`` and the metric columns as attributes (the results service's stride rows).
-    The rule of :func:`summarise_leg`, evaluated on whole columns with the same :class:`Metric` methods (per-stride
-    calls cost ~60 us each, too slow for a long session)."""
-    if not rows:
-        return []
-    metrics = [(name, metric) for name, metric in METRICS.items() if metric.column is not None]
-    # One attribute fetch per stride for every column at once (None becomes NaN in a float array).
-    table = np.array([attrgetter("quality", *(m.column for _, m in metrics))(r) for r in rows], dtype=np.float64)
-    table = table.reshape(len(rows), len(metrics) + 1)
-    out: list[list[str]] = [[] for _ in rows]
-    low = ~(table[:, 0] >= MIN_QUALITY)
-    for i in np.flatnonzero(low):
-        out[i].append(f"quality<{MIN_QUALITY:g}")
-    for j, (name, metric) in enumerate(metrics, start=1):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            bad = ~metric.plausible(metric.values(table[:, j])) & ~low
-        for i in np.flatnonzero(bad):
-            out[i].append(f"implausible:{name}")
-    return out
 
 
 def sensor_coverage(spans: dict[str, tuple[float, float]], sensor_legs: dict[str, str]) -> dict[str, float]:

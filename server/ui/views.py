@@ -17,8 +17,7 @@ from server.results import service as results_service
 from server.results.service import CYCLE_POINTS, Cycle, TraceWindow
 from server.sessions.models import Session
 from server.trends import service as trend_service
-from server.trends.metrics import METRICS
-from server.trends.summaries import stride_exclusions
+from server.trends.metrics import METRICS, stride_exclusions
 from server.trends.timeutil import zone
 from server.ui import data, plots, words
 from server.ui.plots import AFFECTED, OTHER, Axis, Band, HBand, Series

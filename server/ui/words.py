@@ -74,7 +74,7 @@ def reason(code: str) -> str:
 
 
 def exclusion(code: str) -> str:
-    """An exclusion of :func:`server.trends.summaries.stride_exclusions` in words."""
+    """An exclusion of :func:`server.trends.metrics.stride_exclusions` in words."""
     if code.startswith("quality<"):
         return f"quality below {code.split('<', 1)[1]}"
     if code.startswith("implausible:"):

@@ -13,6 +13,7 @@ from contextlib import contextmanager
 
 import numpy as np
 import pytest
+from fastapi import APIRouter, Depends
 from sqlalchemy import event, func, select, update
 
 from server.body_limit import INLINE_INFLATE_MAX_BYTES, BodyLimitMiddleware, _GzipInflater, _Reject
@@ -21,6 +22,7 @@ from server.errors import ProblemError
 from server.sessions import ingest
 from server.sessions.models import Batch, Session
 from server.sessions.rawdata import load_streams
+from server.sessions.routes import UploadRoute, upload_batch
 from server.sessions.schemas import BatchIn
 from tests.server.helpers import Api, batch_body, bearer, count_rows, open_api
 
@@ -300,6 +302,29 @@ def test_revoked_token_is_refused_at_once_even_with_its_identity_cached(api: Api
         r = api.upload(dev, sess["id"], batch_body("L-thigh", seq))
         assert r.status_code == 401 and r.headers["content-type"].startswith("application/problem+json")
     assert _batches(api) == 1
+
+
+def test_upload_without_a_valid_token_is_401_problem_and_stores_nothing(api: Api) -> None:
+    """The upload route authenticates by hand (UploadRoute): the same 401 as every other route."""
+    _, dev, sess = api.setup_device_session()
+    body = json.dumps(batch_body("L-thigh", 0)).encode()
+    for headers in ({}, {"Authorization": "Basic abc"}, {"Authorization": "Bearer "},
+                    bearer("gm_not-a-real-token")):
+        r = api.client.post(f"/v1/sessions/{sess['id']}/batches", content=body,
+                            headers={**headers, "Content-Type": "application/json"})
+        assert r.status_code == 401, headers
+        assert r.headers["content-type"].startswith("application/problem+json")
+        assert r.headers["www-authenticate"].startswith("Bearer")
+    assert _batches(api) == 0
+    assert api.upload(dev, sess["id"], batch_body("L-thigh", 0)).status_code == 201
+
+
+def test_upload_route_refuses_a_dependency_it_would_not_run() -> None:
+    """A dependency declared on the upload route would be documented but never called: refused at start-up."""
+    router = APIRouter()
+    with pytest.raises(TypeError, match="UploadRoute calls"):
+        router.add_api_route("/x/{session_id}", upload_batch, methods=["POST"], route_class_override=UploadRoute,
+                             dependencies=[Depends(lambda: None)])
 
 
 def test_other_patients_device_cannot_upload_into_a_session(api: Api) -> None:

@@ -7,8 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from server.trends.metrics import METRICS, MIN_QUALITY
-from server.trends.summaries import stride_exclusions
+from server.trends.metrics import METRICS, MIN_QUALITY, stride_exclusions
 from server.ui import plots
 
 
