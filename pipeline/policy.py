@@ -29,7 +29,7 @@ stride whose standing flexion was assumed rather than measured says so (``assume
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -324,12 +324,13 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     flags = _stride_flags(leg, go_diag, go_abs, cf_used, lo, hi)
     level = _level_reasons(leg)
     # a choice depends on the stride only through its flags: one per distinct combination, shared (frozen)
-    keys = np.column_stack([flags.go_complete, flags.no_crossing, flags.drifted, flags.saturated, flags.bridged,
-                            flags.mismatch, quiet_counts < p.min_quiet_samples]).tolist()
+    keys = np.column_stack([getattr(flags, f.name) for f in fields(_StrideFlags)]
+                           + [quiet_counts < p.min_quiet_samples]).tolist()
     made: dict[tuple[bool, ...], StrideChoice] = {}
-    choices = tuple(made.get(key) or made.setdefault(key, _choose(flags, k, absolute_ok, int(quiet_counts[k]), p,
-                                                                  leg.params.quality, level))
-                    for k, key in enumerate(map(tuple, keys)))
+    for k, key in enumerate(map(tuple, keys)):
+        if key not in made:
+            made[key] = _choose(flags, k, absolute_ok, int(quiet_counts[k]), p, leg.params.quality, level)
+    choices = tuple(made[key] for key in map(tuple, keys))
     use = np.array([c.estimator == "go" for c in choices])
     cover = np.zeros(n + 1, dtype=int)
     np.add.at(cover, lo[use], 1)
