@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 
 from fastapi import APIRouter, Query, Response
-from sqlalchemy import and_, or_, select
+from sqlalchemy import and_, or_
 
 from server.auth.service import get_patient_for, require_role
 from server.calibrations.models import KneeCalibration
@@ -21,7 +21,7 @@ from server.calibrations.schemas import (
     CalibrationOut,
     CalibrationPage,
 )
-from server.calibrations.service import affected_sessions, record
+from server.calibrations.service import affected_sessions, calibrations_of, record
 from server.db import storable_key
 from server.deps import Caller, Db
 from server.enums import Leg, Role
@@ -59,16 +59,13 @@ def list_calibrations(patient_id: str, db: Db, caller: Caller, leg: Leg | None =
                       ) -> CalibrationPage:
     """A patient's calibrations (optionally of one leg), newest measurement first, one page at a time."""
     patient = get_patient_for(db, caller, patient_id)
-    stmt = select(KneeCalibration).where(KneeCalibration.patient_id == patient.id)
-    if leg is not None:
-        stmt = stmt.where(KneeCalibration.leg == leg)
+    stmt = calibrations_of(patient.id, leg)
     if cursor:
         # Newest first: "after" the cursor means measured earlier, so the keyset condition is mirrored.
         measured, cid = decode_cursor(cursor)
         stmt = stmt.where(or_(KneeCalibration.measured_at < measured,
                               and_(KneeCalibration.measured_at == measured, KneeCalibration.id < cid)))
-    rows = db.scalars(stmt.order_by(KneeCalibration.measured_at.desc(), KneeCalibration.id.desc())
-                      .limit(limit + 1)).all()
+    rows = db.scalars(stmt.limit(limit + 1)).all()
     page = rows[:limit]
     next_cursor = encode_cursor(page[-1].measured_at, page[-1].id) if len(rows) > limit else None
     return CalibrationPage(items=[CalibrationOut.model_validate(c) for c in page], next_cursor=next_cursor)

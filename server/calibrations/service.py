@@ -13,7 +13,7 @@ from collections.abc import Iterable, Mapping
 from datetime import UTC, datetime
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import Select, select
 from sqlalchemy.orm import Session as DbSession
 
 from pipeline.types import KneeCalibration as PipelineCalibration
@@ -25,6 +25,18 @@ from server.utc import as_utc
 
 # The key of the processing summary that records, per leg, the calibration a session was processed with.
 SUMMARY_KEY = "calibration"
+
+
+# The order calibrations are listed in, by the API and the pages: newest measurement first (keyset: id breaks ties).
+LIST_ORDER = (KneeCalibration.measured_at.desc(), KneeCalibration.id.desc())
+
+
+def calibrations_of(patient_id: str, leg: Leg | None = None) -> Select[tuple[KneeCalibration]]:
+    """The patient's calibrations (optionally of one leg), in :data:`LIST_ORDER`."""
+    stmt = select(KneeCalibration).where(KneeCalibration.patient_id == patient_id)
+    if leg is not None:
+        stmt = stmt.where(KneeCalibration.leg == leg)
+    return stmt.order_by(*LIST_ORDER)
 
 
 def _newest_first(rows: Iterable[KneeCalibration]) -> list[KneeCalibration]:

@@ -12,7 +12,6 @@ from collections import OrderedDict
 from datetime import UTC, date, datetime
 from typing import Any
 
-from sqlalchemy import select
 from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
 
@@ -141,8 +140,7 @@ def local_today(patient: Patient) -> date:
 
 def calibrations(db: DbSession, patient: Patient) -> list[KneeCalibrationRow]:
     """The patient's knee calibrations, newest measurement first."""
-    return list(db.scalars(select(KneeCalibrationRow).where(KneeCalibrationRow.patient_id == patient.id)
-                           .order_by(KneeCalibrationRow.measured_at.desc(), KneeCalibrationRow.id.desc())))
+    return list(db.scalars(calibration_service.calibrations_of(patient.id)))
 
 
 def record_calibration(db: DbSession, principal: Principal, patient: Patient, body: CalibrationIn) -> int:
