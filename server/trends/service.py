@@ -97,20 +97,22 @@ def default_leg(db: DbSession, patient: Patient, activity: str = StrideActivity.
     return legs[0] if legs else None
 
 
-def latest_session_means(db: DbSession, patient_ids: list[str], metrics: tuple[str, ...]
+def latest_session_means(db: DbSession, patient_ids: list[str], metrics: tuple[str, ...],
+                         activity: str = StrideActivity.walking
                          ) -> dict[str, dict[str, dict[str, dict[str, Any]]]]:
-    """{patient: {leg: {metric: {mean, at}}}}: per patient, leg and metric, the mean of the included strides of the
-    most recent session that has any, in one query for a list of patients (read along the summaries'
-    (patient, metric, leg, time) index)."""
+    """{patient: {leg: {metric: {mean, at}}}}: per patient, leg and metric, the mean of the included strides of one
+    activity in the most recent session that has any, in one query for a list of patients (read along the
+    summaries' (patient, metric, leg, activity, time) index). Activities are never pooled, as in the trends."""
     if not patient_ids:
         return {}
     m = TrendMetricValues
     last = (select(m.patient_id, m.metric, m.leg, func.max(m.started_at).label("t"))
-            .where(m.patient_id.in_(patient_ids), m.metric.in_(metrics), m.n_included > 0)
+            .where(m.patient_id.in_(patient_ids), m.metric.in_(metrics), m.activity == activity,
+                   m.n_included > 0)
             .group_by(m.patient_id, m.metric, m.leg).subquery())
     rows = db.execute(select(m.patient_id, m.leg, m.metric, m.mean, m.started_at).join(
         last, (last.c.patient_id == m.patient_id) & (last.c.metric == m.metric) & (last.c.leg == m.leg)
-        & (last.c.t == m.started_at)).where(m.n_included > 0)).all()
+        & (last.c.t == m.started_at)).where(m.activity == activity, m.n_included > 0)).all()
     out: dict[str, dict[str, dict[str, dict[str, Any]]]] = {}
     for pid, leg, metric, mean, at in rows:
         if mean is not None:
@@ -121,13 +123,16 @@ def latest_session_means(db: DbSession, patient_ids: list[str], metrics: tuple[s
 def session_medians(db: DbSession, session_ids: list[str], metric_name: str
                     ) -> dict[str, dict[str, tuple[int, float | None]]]:
     """{session: {leg: (included strides, their median)}} of one metric from the trend summaries (so a stride that
-    does not count in the trends does not count here either)."""
+    does not count in the trends does not count here either). A session holding both activities (uploaded as
+    ``unknown``) gives its walking strides' figures: activities are never pooled, and walking is what the
+    clinician's trends show first."""
     m = TrendMetricValues
     out: dict[str, dict[str, tuple[int, float | None]]] = {}
     if not session_ids:
         return out
-    for sid, leg, n, median in db.execute(select(m.session_id, m.leg, m.n_included, m.median).where(
-            m.session_id.in_(session_ids), m.metric == metric_name)):
+    rows = db.execute(select(m.session_id, m.leg, m.activity, m.n_included, m.median).where(
+        m.session_id.in_(session_ids), m.metric == metric_name)).all()
+    for sid, leg, _, n, median in sorted(rows, key=lambda r: r[2] == StrideActivity.walking):
         out.setdefault(sid, {})[leg] = (int(n), None if median is None else float(median))
     return out
 

@@ -386,6 +386,23 @@ def test_latest_session_means_and_per_session_medians_count_only_trustworthy_str
         assert service.session_medians(db, [], "peak_swing_flexion_deg") == {}
 
 
+def test_latest_means_and_session_medians_never_pool_or_mix_activities(factory) -> None:
+    with factory() as db:
+        p = _patient(db)
+        walk = add_session(db, p.id, NOW - timedelta(days=1), {"left": {"n": 3, "peak_swing_flexion_deg": 60.0}})
+        # A later session uploaded as `unknown`: walking and running strides in one session, running listed first.
+        mixed = add_session(db, p.id, NOW, {"left": {
+            "n": 6, "peak_swing_flexion_deg": [80, 80, 80, 55, 55, 55],
+            "activity": ["running"] * 3 + ["walking"] * 3}})
+        db.commit()
+        latest = service.latest_session_means(db, [p.id], ("peak_swing_flexion_deg",))
+        assert latest[p.id]["left"]["peak_swing_flexion_deg"] == {"mean": pytest.approx(55.0), "at": NOW}
+        running = service.latest_session_means(db, [p.id], ("peak_swing_flexion_deg",), activity="running")
+        assert running[p.id]["left"]["peak_swing_flexion_deg"]["mean"] == pytest.approx(80.0)
+        medians = service.session_medians(db, [walk, mixed], "peak_swing_flexion_deg")
+        assert medians == {walk: {"left": (3, 60.0)}, mixed: {"left": (3, 55.0)}}
+
+
 def test_numbered_session_pages_and_the_first_processed_session(factory) -> None:
     from server.patients import service as patient_service
 
