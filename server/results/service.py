@@ -109,15 +109,17 @@ class Cycle:
 
 
 def gait_cycles(db: DbSession, session_id: str, rows: list[Any] | None = None,
-                excluded: list[list[str]] | None = None) -> dict[str, Cycle]:
+                excluded: list[list[str]] | None = None,
+                stored: dict[str, KneeAngleTrace] | None = None) -> dict[str, Cycle]:
     """Per leg: each included stride's stored angle trace resampled to 0..100 % between its heel strikes, then
     mean and SD across strides at every percent.
 
     ``rows`` are the session's :func:`strides`, ``excluded`` per stride why it does not count in the trends (empty:
-    it counts; :func:`server.trends.summaries.stride_exclusions`); both are read here when the caller has not.
-    Excluded strides and strides that cross a gap in the trace are left out. A session without a stored trace has
-    no cycle, and its strides are not read at all (a patient's first session may be one)."""
-    stored = traces(db, session_id)
+    it counts; :func:`server.trends.summaries.stride_exclusions`), ``stored`` its :func:`traces`; each is read here
+    when the caller has not. Excluded strides and strides that cross a gap in the trace are left out. A session
+    without a stored trace has no cycle, and its strides are not read at all (a patient's first session may be one)."""
+    if stored is None:
+        stored = traces(db, session_id)
     if not stored:
         return {}
     if rows is None:

@@ -23,6 +23,7 @@ from server.calibrations.schemas import CalibrationIn
 from server.patients.models import Patient
 from server.results import compare as compare_service
 from server.results import service as results_service
+from server.results.models import KneeAngleTrace
 from server.results.schemas import CompareOut
 from server.results.service import TraceWindow
 from server.sessions.models import Session
@@ -101,11 +102,12 @@ def symmetry(db: DbSession, patient: Patient, metric: str, bucket: Bucket) -> di
                                                          start=None, end=None))
 
 
-def knee_angle(db: DbSession, session: Session, *, start_s: float | None = None, end_s: float | None = None,
+def knee_angle(stored: dict[str, KneeAngleTrace], *, start_s: float | None = None, end_s: float | None = None,
                max_points: int = 1600) -> list[TraceWindow]:
-    """The continuous knee angle of each leg in [start_s, end_s], min/max down-sampled as the API does."""
+    """The continuous knee angle of each leg of a session's stored traces (:func:`server.results.service.traces`)
+    in [start_s, end_s], min/max down-sampled as the API does."""
     out = []
-    for _, row in sorted(results_service.traces(db, session.id).items()):
+    for _, row in sorted(stored.items()):
         if row.n:
             out.append(results_service.trace_window(row, start_s=start_s, end_s=end_s, max_points=max_points))
     return out

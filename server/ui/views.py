@@ -325,7 +325,8 @@ def session_page(db: DbSession, patient: Patient, session: Session, *, start: fl
     is_first = first is None or first.id == session.id
     rows = results_service.strides(db, session.id)
     excluded = stride_exclusions(rows)
-    this_cycles = results_service.gait_cycles(db, session.id, rows, excluded)
+    stored = results_service.traces(db, session.id)
+    this_cycles = results_service.gait_cycles(db, session.id, rows, excluded, stored)
     first_cycles = results_service.gait_cycles(db, first.id) if first is not None and not is_first else {}
     first_when = words.local_date(first.started_at, tz) if first is not None else ""
     for leg in sorted(set(this_cycles) | set(first_cycles)):
@@ -333,10 +334,10 @@ def session_page(db: DbSession, patient: Patient, session: Session, *, start: fl
                                                             first_cycles.get(leg), first_when, is_first),
                               "n": this_cycles[leg].n_strides if leg in this_cycles else 0})
     ctx["is_first"] = is_first
-    traces = data.knee_angle(db, session, start_s=start, end_s=end)
+    traces = data.knee_angle(stored, start_s=start, end_s=end)
     if traces and max(t.n_total for t in traces) < 2:  # a window outside the recording: show all of it
         start = end = None
-        traces = data.knee_angle(db, session)
+        traces = data.knee_angle(stored)
     if traces:
         t_first = min(t.t_first_s for t in traces)
         t_last = max(t.t_last_s for t in traces)
@@ -344,7 +345,7 @@ def session_page(db: DbSession, patient: Patient, session: Session, *, start: fl
         b = t_last if end is None else min(t_last, end)
         if b <= a:
             a, b = t_first, t_last
-            traces = data.knee_angle(db, session)
+            traces = data.knee_angle(stored)
         ctx["trace"] = {"svg": trace_chart(traces, patient, a, b), "links": zoom_links(t_first, t_last, a, b),
                         "start": round(a, 2), "end": round(b, 2), "t_first": round(t_first, 2),
                         "t_last": round(t_last, 2)}
