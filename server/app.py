@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -33,6 +34,8 @@ from server.trends import routes as trend_routes
 from server.ui import routes as ui_routes
 
 log = logging.getLogger("gaitmon.api")
+# Whether this process has moved its start-up objects out of the collector's sight (gc.freeze) yet.
+_FROZEN: list[bool] = []
 
 DESCRIPTION = """Gait monitoring backend: tele-rehabilitation apps upload thigh and shank IMU batches, the server
 computes knee flexion per stride, clinicians read results and longitudinal trends.
@@ -64,6 +67,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             from server.processing import embedded
 
             handle = embedded.start(app.state.sessionmaker, settings)
+        # Everything imported and built so far lives as long as the process: out of the collector's sight, a
+        # full collection scans only what requests allocate (with ~1M start-up objects in view, each took
+        # 0.1-0.3 s every 3-5 s at 200 uploads/s, holding the event loop and every thread).
+        # Once per process (a test suite starts many apps).
+        if not _FROZEN:
+            _FROZEN.append(True)
+            gc.collect()
+            gc.freeze()
         try:
             yield
         finally:
