@@ -446,6 +446,10 @@ def _env(tmp: Path, args: argparse.Namespace) -> tuple[dict[str, str], str]:
     env["GAITMON_DATA_DIR"] = str(tmp / "data")
     env["GAITMON_LOG_LEVEL"] = "WARNING"
     env["PYTHONPATH"] = str(args.server_repo or REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    # Every simulated phone connects from 127.0.0.1; real phones have addresses of their own, so the per-address
+    # limit (GAITMON_RATE_LIMIT_PER_IP, 200/s by default) would refuse here what it never would in a clinic.
+    # The per-token limit applies as configured. --env GAITMON_RATE_LIMIT_PER_IP=... overrides this.
+    env["GAITMON_RATE_LIMIT_PER_IP"] = "1000000/minute"
     for kv in args.env:
         k, _, v = kv.partition("=")
         env[k] = v

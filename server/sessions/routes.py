@@ -206,7 +206,8 @@ async def upload_batch(session_id: str, request: Request, response: Response, ca
     rates = app_cache(request, "session_sensor_rates", SENSOR_RATES_TTL_S)
     # Parse, validate and store in one thread hop; the connection is back in the pool before the answer.
     outcome = await anyio.to_thread.run_sync(_upload, request.app.state.sessionmaker, _autocommit(request), rates,
-                                             caller, session_id, raw, settings.max_samples_per_batch)
+                                             caller, session_id, raw, settings.max_samples_per_batch,
+                                             limiter=_upload_limiter(request, settings))
     response.status_code = 201 if outcome.created else 200
     ops_metrics.batch_ingested(outcome.samples, stored=outcome.created)
     log.debug("batch session=%s sensor=%s seq=%d samples=%d -> %s", session_id, outcome.sensor_id, outcome.seq,
@@ -238,6 +239,15 @@ def _visible_sensor_rates(db: DbSession, caller: Principal, session_id: str) -> 
                       .where(Session.id == session_id, session_visible_to(caller))).all()
     db.rollback()
     return {r.sensor_id: r.sample_rate_hz for r in rows}
+
+
+def _upload_limiter(request: Request, settings: Settings) -> anyio.CapacityLimiter:
+    # Uploads get threads of their own (Settings.upload_threads): a few, so that parsing in threads never starves
+    # the event loop of the GIL, and the other routes keep theirs under a flood of uploads.
+    limiter = getattr(request.app.state, "upload_limiter", None)
+    if limiter is None:
+        limiter = request.app.state.upload_limiter = anyio.CapacityLimiter(settings.upload_thread_count)
+    return limiter
 
 
 def _autocommit(request: Request) -> Engine:

@@ -474,3 +474,16 @@ def test_time_jumps_count_as_gaps_by_the_pipelines_rule(api: Api, jump_periods: 
     assert api.upload(dev, sess["id"], body).status_code == 201
     rec = api.client.get(f"/v1/sessions/{sess['id']}", headers=bearer(dev)).json()["received"]
     assert rec["L-shank"]["gaps"] == gaps
+
+
+def test_uploads_run_on_threads_of_their_own_within_the_pool(settings: Settings) -> None:
+    s = settings.model_copy(update={"db_pool_size": 20, "db_max_overflow": 10, "upload_threads": 8})
+    # The upload threads and the other routes' threads together never outnumber the pooled connections.
+    assert (s.upload_thread_count, s.api_threads) == (8, 22)
+    tight = settings.model_copy(update={"db_pool_size": 3, "db_max_overflow": 0, "upload_threads": 8})
+    assert tight.upload_thread_count == 1
+    with open_api(s) as api:
+        _, dev, sess = api.setup_device_session()
+        assert api.upload(dev, sess["id"], batch_body("L-shank", 0, n=40)).status_code == 201
+        limiter = api.client.app.state.upload_limiter
+        assert limiter.total_tokens == 8 and limiter.borrowed_tokens == 0
