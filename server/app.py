@@ -21,7 +21,7 @@ from server.auth import routes as auth_routes
 from server.body_limit import BodyLimitMiddleware
 from server.calibrations import routes as calibration_routes
 from server.config import Settings, get_settings
-from server.db import make_engine, make_sessionmaker
+from server.db import make_engine, make_sessionmaker, make_upload_engine
 from server.errors import install_error_handlers
 from server.openapi import install as install_openapi
 from server.openapi import operation_id
@@ -56,6 +56,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     """The FastAPI application: routers, error handlers, body limits and, with SQLite, the embedded job runner."""
     settings = settings or get_settings()
     engine = make_engine(settings.resolved_database_url, settings)
+    upload_engine = make_upload_engine(settings.resolved_database_url, settings)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -81,6 +82,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if handle is not None:
                 handle.stop()
             engine.dispose()
+            if upload_engine is not None:
+                upload_engine.dispose()
 
     # /docs and /redoc with Swagger UI and ReDoc from the fastapi-offline package: no CDN, works offline.
     app = FastAPIOffline(title="gaitmon", version="1.0.0", description=DESCRIPTION, openapi_tags=TAGS,
@@ -88,6 +91,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                          swagger_ui_parameters={"validatorUrl": None})
     app.state.settings = settings
     app.state.engine = engine
+    app.state.upload_engine = upload_engine
     app.state.sessionmaker = make_sessionmaker(engine)
     install_error_handlers(app)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes)

@@ -13,7 +13,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.routing import APIRoute
 from pydantic import ValidationError
 from sqlalchemy import Engine, Executable, String, bindparam, func, select
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import DBAPIError, IntegrityError
 from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
 
@@ -252,7 +252,8 @@ def _upload_limiter(request: Request, settings: Settings) -> anyio.CapacityLimit
 
 def _autocommit(request: Request) -> Engine:
     # The guarded insert is one statement: run alone it needs no BEGIN/COMMIT round trips.
-    engine = getattr(request.app.state, "autocommit_engine", None)
+    engine = getattr(request.app.state, "upload_engine", None) or getattr(request.app.state, "autocommit_engine",
+                                                                           None)
     if engine is None:
         engine = request.app.state.engine.execution_options(isolation_level="AUTOCOMMIT")
         request.app.state.autocommit_engine = engine
@@ -298,15 +299,30 @@ def _store(sm: sessionmaker[DbSession], autocommit: Engine, rates_cache: TtlCach
     if body.sensor_id in rates:
         prepared = prepare_batch(rates, body, max_samples=max_samples)
         params = {**insert_params(session_id, prepared), **visibility_params(caller), "live_token_id": caller.token_id}
-        with autocommit.connect() as conn:
-            if insert_batch(conn, _upload_insert(conn.dialect.name, caller.role), params):
-                return IngestOutcome(created=True, sensor_id=prepared.sensor_id, seq=prepared.seq,
-                                     samples=prepared.n_samples)
+        if _insert_once_more_on_a_dead_connection(autocommit, _upload_insert(autocommit.dialect.name, caller.role),
+                                                  params):
+            return IngestOutcome(created=True, sensor_id=prepared.sensor_id, seq=prepared.seq,
+                                 samples=prepared.n_samples)
     with sm() as db:
         if not db.scalar(select(token_is_live(caller.token_id))):
             raise unauthorized_token()
         session = get_session_for(db, caller, session_id)
         return ingest_batch(db, session, body, max_samples=max_samples)
+
+
+def _insert_once_more_on_a_dead_connection(autocommit: Engine, stmt: Executable, params: dict[str, object]) -> bool:
+    """The guarded insert; once more when its pooled connection turned out dead (the upload engine has no
+    pre-ping). Safe: had the first attempt stored the batch, the second stores nothing and the caller's full
+    checks answer it as a replay."""
+    try:
+        with autocommit.connect() as conn:
+            return insert_batch(conn, stmt, params)
+    except DBAPIError as exc:
+        if not exc.connection_invalidated:
+            raise
+        log.warning("upload: pooled connection was dead (%s); once more on a new one", type(exc.orig).__name__)
+    with autocommit.connect() as conn:
+        return insert_batch(conn, stmt, params)
 
 
 @router.post("/{session_id}/complete", status_code=202, response_model=SessionOut,
