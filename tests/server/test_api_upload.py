@@ -264,11 +264,15 @@ def _statements(api: Api) -> Iterator[list[str]]:
     def record(_conn, _cursor, statement, _params, _context, _many) -> None:  # noqa: ANN001
         seen.append(" ".join(statement.split()).upper())
 
-    event.listen(api.engine, "before_cursor_execute", record)
+    # On PostgreSQL the upload's INSERT runs on an engine of its own (server.db.make_upload_engine).
+    engines = [e for e in (api.engine, api.client.app.state.upload_engine) if e is not None]
+    for engine in engines:
+        event.listen(engine, "before_cursor_execute", record)
     try:
         yield seen
     finally:
-        event.remove(api.engine, "before_cursor_execute", record)
+        for engine in engines:
+            event.remove(engine, "before_cursor_execute", record)
 
 
 def test_new_batch_is_one_statement_and_replay_checks_only_after_the_insert(api: Api) -> None:
