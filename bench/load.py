@@ -7,6 +7,7 @@ from the database the samples lost (acknowledged but not stored) and doubled (st
     .venv/bin/python -m bench.load --postgres --api-workers 2 --phones 200 --seconds 30
     .venv/bin/python -m bench.load --postgres --phones 50 --seconds 40 --kill   # kill -9 API and worker twice
     .venv/bin/python -m bench.load --memory                          # 8 x 8 MB bodies at once: API RSS
+    .venv/bin/python -m bench.load --postgres --phones 200 --probe DIR  # + where slow uploads wait (bench.load_probe)
 
 Each phone is an asyncio task per sensor (``--sensors`` per phone, default 2: thigh and shank of one leg) sending
 one gzip'd batch per second (``--fs`` samples) in seq order, as the app's upload queue does: a 503 or 429 is retried
