@@ -7,9 +7,10 @@ from the database the samples lost (acknowledged but not stored) and doubled (st
     .venv/bin/python -m bench.load --postgres --api-workers 2 --phones 200 --seconds 30
     .venv/bin/python -m bench.load --postgres --phones 50 --seconds 40 --kill   # kill -9 API and worker twice
     .venv/bin/python -m bench.load --memory                          # 8 x 8 MB bodies at once: API RSS
+    .venv/bin/python -m bench.load --postgres --phones 200 --probe DIR  # + where slow uploads wait (bench.load_probe)
 
 Each phone is an asyncio task per sensor (``--sensors`` per phone, default 2: thigh and shank of one leg) sending
-one gzip'd batch per second (``--fs`` samples) in seq order, as the app's upload queue does: a 503 is retried
+one gzip'd batch per second (``--fs`` samples) in seq order, as the app's upload queue does: a 503 or 429 is retried
 after its ``Retry-After``, a dropped connection after a short back-off, until ``--seconds`` plus a drain of at
 most ``--drain-s``. The phones use the lean keep-alive client of :mod:`bench.http1` (a connection each), and the
 generator reports its own event-loop lag: that much of every latency it measures is its own, not the server's.
@@ -54,6 +55,10 @@ from bench.ingest import _free_port, _fresh_pg, _gaitmon, _log, _wait_healthy
 from server.sessions.schemas import BatchIn
 
 REPO = Path(__file__).resolve().parents[1]
+# The longest Retry-After a phone honours here (the app's client honours up to 120 s; the run is shorter).
+MAX_RETRY_AFTER_S = 10.0
+# --probe: every upload carries its wall-clock send time (bench.load_probe lines it up with the server's records).
+PROBE_SEND_TIME = False
 SEGMENTS = [("left", "thigh"), ("left", "shank"), ("right", "thigh"), ("right", "shank")]
 
 
@@ -93,6 +98,8 @@ class Stats:
     # CPU seconds while the phones ran: the API processes, and this load generator (same 2 cores)
     api_cpu_s: float = 0.0
     generator_cpu_s: float = 0.0
+    # --probe: (wall-clock send time, ms, status) of every answer slower than bench.load_probe.SLOW_S
+    slow: list[tuple[float, float, int]] = field(default_factory=list)
 
 
 _SAMPLES_JSON: dict[tuple[float, int], bytes] = {}
@@ -200,23 +207,30 @@ class Server:
 
 async def _retrying(client: httpx.AsyncClient | Http1Connection, method: str, url: str, stats: Stats,
                     deadline: float, **kw) -> httpx.Response | None:  # noqa: ANN003
-    """Send until a non-503 answer or the deadline; 503 waits Retry-After, a dropped connection 0.5-1 s."""
+    """Send until an answer other than 429/503 or the deadline; those wait Retry-After, a dropped connection 0.5-1 s."""
     while time.monotonic() < deadline:
         t0 = time.perf_counter()
+        wall0 = time.time()
+        if PROBE_SEND_TIME and "headers" in kw:
+            kw["headers"] = {**kw["headers"], "X-Probe-Sent": f"{wall0:.6f}"}
         try:
             r = await client.request(method, url, **kw)
         except (httpx.HTTPError, Http1Error):
             stats.conn_errors += 1
+            stats.slow.append((wall0, 1000 * (time.perf_counter() - t0), 0))
             await asyncio.sleep(0.5 + random.random() * 0.5)
             continue
         ms = 1000 * (time.perf_counter() - t0)
         stats.statuses[r.status_code] += 1
-        if r.status_code == 503:
+        if ms >= 250:
+            stats.slow.append((wall0, ms, r.status_code))
+        if r.status_code in (429, 503):
+            # "Not now", nothing was done: retried after Retry-After, as the app's client does.
             stats.refused_latency_ms.append(ms)
             ra = r.headers.get("retry-after")
             if ra is None:
                 stats.retry_after_missing += 1
-            await asyncio.sleep(min(float(ra or 1), 5.0) * (0.5 + random.random()))
+            await asyncio.sleep(min(float(ra or 1), MAX_RETRY_AFTER_S) * (0.5 + random.random()))
             continue
         if r.status_code in (200, 201):
             stats.ack_latency_ms.append(ms)
@@ -433,6 +447,10 @@ def _env(tmp: Path, args: argparse.Namespace) -> tuple[dict[str, str], str]:
     env["GAITMON_DATA_DIR"] = str(tmp / "data")
     env["GAITMON_LOG_LEVEL"] = "WARNING"
     env["PYTHONPATH"] = str(args.server_repo or REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    # Every simulated phone connects from 127.0.0.1; real phones have addresses of their own, so the per-address
+    # limit (GAITMON_RATE_LIMIT_PER_IP, 200/s by default) would refuse here what it never would in a clinic.
+    # The per-token limit applies as configured. --env GAITMON_RATE_LIMIT_PER_IP=... overrides this.
+    env["GAITMON_RATE_LIMIT_PER_IP"] = "1000000/minute"
     for kv in args.env:
         k, _, v = kv.partition("=")
         env[k] = v
@@ -482,10 +500,26 @@ def run(args: argparse.Namespace) -> dict:
     env, url = _env(tmp, args)
     port = _free_port()
     base = f"http://127.0.0.1:{port}"
+    probe_dir: Path | None = args.probe
+    if probe_dir is not None:
+        global PROBE_SEND_TIME  # noqa: PLW0603 - the phones' coroutines read it
+        PROBE_SEND_TIME = True
+        probe_dir.mkdir(parents=True, exist_ok=True)
+        env["GAITMON_PROBE_FILE"] = str(probe_dir / "server.jsonl")
     server = Server(env, port, args.api_workers, args.postgres, tmp / "server.log",
+                    app="bench.load_probe:create_app" if probe_dir is not None else "server.app:create_app",
                     cwd=(args.server_repo or REPO).resolve())
     out: dict = {}
     try:
+        if probe_dir is not None and args.postgres:
+            # This benchmark database only: slow statements in the server log, WAL write/fsync times counted.
+            admin = create_engine(args.pg_url, isolation_level="AUTOCOMMIT")
+            with admin.connect() as conn:
+                name = url.rsplit("/", 1)[1]
+                conn.execute(text(f'ALTER DATABASE "{name}" SET log_min_duration_statement = 200'))
+                conn.execute(text(f'ALTER DATABASE "{name}" SET log_lock_waits = on'))
+                conn.execute(text(f'ALTER DATABASE "{name}" SET track_wal_io_timing = on'))
+            admin.dispose()
         subprocess.run(_gaitmon() + ["migrate"], env=env, check=True, capture_output=True, timeout=180, cwd=REPO)
         admin = _admin_token(env)
         server.start()
@@ -496,13 +530,34 @@ def run(args: argparse.Namespace) -> dict:
             print(json.dumps(out["memory"], indent=1))
             return out
         _log(f"{args.phones} phones x {args.sensors} sensors, 1 batch/s of {args.fs:g} samples, {args.seconds} s")
+        sampler_stop = threading.Event()
+        samplers: list[threading.Thread] = []
+        if probe_dir is not None:
+            from bench.load_probe import pg_sampler, proc_sampler
+
+            pids = {"worker": server.worker.pid if server.worker else None, "api": server.api.pid if server.api
+                    else None}
+            samplers.append(threading.Thread(target=proc_sampler, args=(pids, str(probe_dir / "procs.jsonl"),
+                                                                        sampler_stop), daemon=True))
+            if args.postgres:
+                samplers.append(threading.Thread(target=pg_sampler, args=(url, str(probe_dir / "pg.jsonl"),
+                                                                          sampler_stop), daemon=True))
+            for th in samplers:
+                th.start()
+        _log(f"phones start at {time.time():.3f} (epoch s)")
         stats, wall, peak = asyncio.run(drive_phones(base, phones, args, server))
+        sampler_stop.set()
+        for th in samplers:
+            th.join(timeout=10)
+        if probe_dir is not None:
+            (probe_dir / "client_slow.json").write_text(json.dumps(stats.slow))
         check = db_check(url, stats)
         acked = sum(len(v) for v in stats.acked.values())
         five = sum(v for k, v in stats.statuses.items() if k >= 500 and k != 503)
         out.update(phones=args.phones, sensors=args.sensors, seconds=args.seconds, acked=acked,
                    sent=sum(len(v) for v in stats.sent.values()), statuses=dict(stats.statuses),
-                   five_xx_not_503=five, refused_503=stats.statuses.get(503, 0), conn_errors=stats.conn_errors,
+                   five_xx_not_503=five, refused_503=stats.statuses.get(503, 0),
+                   refused_429=stats.statuses.get(429, 0), conn_errors=stats.conn_errors,
                    unfinished=stats.unfinished, retry_after_missing=stats.retry_after_missing,
                    ack_p50_ms=pct(stats.ack_latency_ms, 0.5), ack_p99_ms=pct(stats.ack_latency_ms, 0.99),
                    ack_max_ms=max(stats.ack_latency_ms, default=float("nan")),
@@ -556,7 +611,8 @@ def _print(o: dict, args: argparse.Namespace) -> None:
     print(f"| batches sent / acknowledged | {o['sent']} / {o['acked']} |")
     print(f"| answers | {', '.join(f'{k}: {v}' for k, v in sorted(o['statuses'].items()))} |")
     print(f"| 5xx other than 503 | {o['five_xx_not_503']} |")
-    print(f"| 503 (refused, retried) / p99 answer time | {o['refused_503']} / {o['refused_p99_ms']:.0f} ms |")
+    print(f"| 503 / 429 (refused, retried) / p99 answer time | {o['refused_503']} / {o['refused_429']} / "
+          f"{o['refused_p99_ms']:.0f} ms |")
     print(f"| dropped connections (retried) | {o['conn_errors']} |")
     print(f"| batches given up at the deadline | {o['unfinished']} |")
     print(f"| ack latency p50 / p99 / max | {o['ack_p50_ms']:.0f} / {o['ack_p99_ms']:.0f} / {o['ack_max_ms']:.0f} ms |")
@@ -595,6 +651,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--server-repo", type=Path, default=None,
                     help="serve the code of another checkout (to compare with an earlier version)")
     ap.add_argument("--json", action="store_true", help="also print the figures as JSON")
+    ap.add_argument("--probe", type=Path, default=None,
+                    help="directory for bench.load_probe's records: the server's event-loop lag, thread pool, "
+                         "pool checkouts, GC pauses and slow uploads, PostgreSQL's waits, the phones' slow answers")
     return ap.parse_args(argv)
 
 

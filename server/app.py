@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -20,7 +21,7 @@ from server.auth import routes as auth_routes
 from server.body_limit import BodyLimitMiddleware
 from server.calibrations import routes as calibration_routes
 from server.config import Settings, get_settings
-from server.db import make_engine, make_sessionmaker
+from server.db import make_engine, make_sessionmaker, make_upload_engine
 from server.errors import install_error_handlers
 from server.openapi import install as install_openapi
 from server.openapi import operation_id
@@ -33,6 +34,8 @@ from server.trends import routes as trend_routes
 from server.ui import routes as ui_routes
 
 log = logging.getLogger("gaitmon.api")
+# Whether this process has moved its start-up objects out of the collector's sight (gc.freeze) yet.
+_FROZEN: list[bool] = []
 
 DESCRIPTION = """Gait monitoring backend: tele-rehabilitation apps upload thigh and shank IMU batches, the server
 computes knee flexion per stride, clinicians read results and longitudinal trends.
@@ -53,6 +56,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     """The FastAPI application: routers, error handlers, body limits and, with SQLite, the embedded job runner."""
     settings = settings or get_settings()
     engine = make_engine(settings.resolved_database_url, settings)
+    upload_engine = make_upload_engine(settings.resolved_database_url, settings)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -64,12 +68,22 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             from server.processing import embedded
 
             handle = embedded.start(app.state.sessionmaker, settings)
+        # Everything imported and built so far lives as long as the process: out of the collector's sight, a
+        # full collection scans only what requests allocate (with ~1M start-up objects in view, each took
+        # 0.1-0.3 s every 3-5 s at 200 uploads/s, holding the event loop and every thread).
+        # Once per process (a test suite starts many apps).
+        if not _FROZEN:
+            _FROZEN.append(True)
+            gc.collect()
+            gc.freeze()
         try:
             yield
         finally:
             if handle is not None:
                 handle.stop()
             engine.dispose()
+            if upload_engine is not None:
+                upload_engine.dispose()
 
     # /docs and /redoc with Swagger UI and ReDoc from the fastapi-offline package: no CDN, works offline.
     app = FastAPIOffline(title="gaitmon", version="1.0.0", description=DESCRIPTION, openapi_tags=TAGS,
@@ -77,6 +91,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                          swagger_ui_parameters={"validatorUrl": None})
     app.state.settings = settings
     app.state.engine = engine
+    app.state.upload_engine = upload_engine
     app.state.sessionmaker = make_sessionmaker(engine)
     install_error_handlers(app)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes)

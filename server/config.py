@@ -51,6 +51,11 @@ class Settings(BaseSettings):
     db_pool_size: int = 20
     db_max_overflow: int = 10
     db_pool_timeout_s: float = 5.0
+    # Threads that parse and store uploaded batches (their own share of the pool's connections, see
+    # upload_thread_count). Each spends ~1 ms of CPU and waits for PostgreSQL's commit; a few keep up with what one
+    # process can parse, more only contend for the GIL with the event loop (30 busy threads held it off for
+    # 100-300 ms at a time, and new connections waited seconds to be accepted).
+    upload_threads: int = 8
     # SQLite: how long a writer waits for the single write lock before the request is answered 503.
     sqlite_busy_timeout_s: float = 5.0
     # Requests in progress in one API process (health checks excluded) beyond which new ones get 503 at once.
@@ -74,9 +79,14 @@ class Settings(BaseSettings):
 
     @property
     def api_threads(self) -> int:
-        """Worker threads for sync routes: no more than the connections the pool can hand out at once, so a
-        thread never waits for a connection another request holds while waiting for a thread."""
-        return max(4, self.db_pool_size + self.db_max_overflow)
+        """Worker threads for sync routes: with the upload threads no more than the connections the pool can hand
+        out at once, so a thread never waits for a connection another request holds while waiting for a thread."""
+        return max(4, self.db_pool_size + self.db_max_overflow - self.upload_thread_count)
+
+    @property
+    def upload_thread_count(self) -> int:
+        """Threads for batch uploads: ``upload_threads``, leaving at least 4 connections to the other routes."""
+        return max(1, min(self.upload_threads, self.db_pool_size + self.db_max_overflow - 4))
 
     @property
     def is_sqlite(self) -> bool:

@@ -66,3 +66,19 @@ def make_engine(url: str, settings: Settings | None = None) -> Engine:
 def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:
     """Sessions whose objects stay readable after commit (responses are built after the commit)."""
     return sessionmaker(bind=engine, expire_on_commit=False)
+
+
+def make_upload_engine(url: str, settings: Settings) -> Engine | None:
+    """PostgreSQL: the engine of the batch upload's single statement, ``None`` elsewhere (SQLite shares one).
+
+    Its connections are in autocommit from the start, so a checkout neither switches the isolation level nor
+    resets it on return, and it has no pre-ping: the three round trips around each INSERT were a third of the
+    upload's database work. A connection found dead by its statement invalidates the pool and the upload retries
+    once (:func:`server.sessions.routes._store`; the INSERT is idempotent). One connection per upload thread.
+    """
+    if url.startswith("sqlite"):
+        return None
+    size = settings.upload_thread_count
+    return create_engine(url, isolation_level="AUTOCOMMIT", pool_pre_ping=False, pool_reset_on_return=None,
+                         pool_size=size, max_overflow=0, pool_timeout=settings.db_pool_timeout_s,
+                         connect_args={"connect_timeout": CONNECT_TIMEOUT_S})

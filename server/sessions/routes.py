@@ -13,7 +13,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.routing import APIRoute
 from pydantic import ValidationError
 from sqlalchemy import Engine, Executable, String, bindparam, func, select
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import DBAPIError, IntegrityError
 from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
 
@@ -206,7 +206,8 @@ async def upload_batch(session_id: str, request: Request, response: Response, ca
     rates = app_cache(request, "session_sensor_rates", SENSOR_RATES_TTL_S)
     # Parse, validate and store in one thread hop; the connection is back in the pool before the answer.
     outcome = await anyio.to_thread.run_sync(_upload, request.app.state.sessionmaker, _autocommit(request), rates,
-                                             caller, session_id, raw, settings.max_samples_per_batch)
+                                             caller, session_id, raw, settings.max_samples_per_batch,
+                                             limiter=_upload_limiter(request, settings))
     response.status_code = 201 if outcome.created else 200
     ops_metrics.batch_ingested(outcome.samples, stored=outcome.created)
     log.debug("batch session=%s sensor=%s seq=%d samples=%d -> %s", session_id, outcome.sensor_id, outcome.seq,
@@ -240,9 +241,19 @@ def _visible_sensor_rates(db: DbSession, caller: Principal, session_id: str) -> 
     return {r.sensor_id: r.sample_rate_hz for r in rows}
 
 
+def _upload_limiter(request: Request, settings: Settings) -> anyio.CapacityLimiter:
+    # Uploads get threads of their own (Settings.upload_threads): a few, so that parsing in threads never starves
+    # the event loop of the GIL, and the other routes keep theirs under a flood of uploads.
+    limiter = getattr(request.app.state, "upload_limiter", None)
+    if limiter is None:
+        limiter = request.app.state.upload_limiter = anyio.CapacityLimiter(settings.upload_thread_count)
+    return limiter
+
+
 def _autocommit(request: Request) -> Engine:
     # The guarded insert is one statement: run alone it needs no BEGIN/COMMIT round trips.
-    engine = getattr(request.app.state, "autocommit_engine", None)
+    engine = getattr(request.app.state, "upload_engine", None) or getattr(request.app.state, "autocommit_engine",
+                                                                           None)
     if engine is None:
         engine = request.app.state.engine.execution_options(isolation_level="AUTOCOMMIT")
         request.app.state.autocommit_engine = engine
@@ -288,15 +299,30 @@ def _store(sm: sessionmaker[DbSession], autocommit: Engine, rates_cache: TtlCach
     if body.sensor_id in rates:
         prepared = prepare_batch(rates, body, max_samples=max_samples)
         params = {**insert_params(session_id, prepared), **visibility_params(caller), "live_token_id": caller.token_id}
-        with autocommit.connect() as conn:
-            if insert_batch(conn, _upload_insert(conn.dialect.name, caller.role), params):
-                return IngestOutcome(created=True, sensor_id=prepared.sensor_id, seq=prepared.seq,
-                                     samples=prepared.n_samples)
+        if _insert_once_more_on_a_dead_connection(autocommit, _upload_insert(autocommit.dialect.name, caller.role),
+                                                  params):
+            return IngestOutcome(created=True, sensor_id=prepared.sensor_id, seq=prepared.seq,
+                                 samples=prepared.n_samples)
     with sm() as db:
         if not db.scalar(select(token_is_live(caller.token_id))):
             raise unauthorized_token()
         session = get_session_for(db, caller, session_id)
         return ingest_batch(db, session, body, max_samples=max_samples)
+
+
+def _insert_once_more_on_a_dead_connection(autocommit: Engine, stmt: Executable, params: dict[str, object]) -> bool:
+    """The guarded insert; once more when its pooled connection turned out dead (the upload engine has no
+    pre-ping). Safe: had the first attempt stored the batch, the second stores nothing and the caller's full
+    checks answer it as a replay."""
+    try:
+        with autocommit.connect() as conn:
+            return insert_batch(conn, stmt, params)
+    except DBAPIError as exc:
+        if not exc.connection_invalidated:
+            raise
+        log.warning("upload: pooled connection was dead (%s); once more on a new one", type(exc.orig).__name__)
+    with autocommit.connect() as conn:
+        return insert_batch(conn, stmt, params)
 
 
 @router.post("/{session_id}/complete", status_code=202, response_model=SessionOut,

@@ -14,7 +14,7 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 from fastapi import APIRouter, Depends
-from sqlalchemy import event, func, select, update
+from sqlalchemy import event, func, select, text, update
 
 from server.body_limit import INLINE_INFLATE_MAX_BYTES, BodyLimitMiddleware, _GzipInflater, _Reject
 from server.config import Settings
@@ -264,11 +264,15 @@ def _statements(api: Api) -> Iterator[list[str]]:
     def record(_conn, _cursor, statement, _params, _context, _many) -> None:  # noqa: ANN001
         seen.append(" ".join(statement.split()).upper())
 
-    event.listen(api.engine, "before_cursor_execute", record)
+    # On PostgreSQL the upload's INSERT runs on an engine of its own (server.db.make_upload_engine).
+    engines = [e for e in (api.engine, api.client.app.state.upload_engine) if e is not None]
+    for engine in engines:
+        event.listen(engine, "before_cursor_execute", record)
     try:
         yield seen
     finally:
-        event.remove(api.engine, "before_cursor_execute", record)
+        for engine in engines:
+            event.remove(engine, "before_cursor_execute", record)
 
 
 def test_new_batch_is_one_statement_and_replay_checks_only_after_the_insert(api: Api) -> None:
@@ -474,3 +478,42 @@ def test_time_jumps_count_as_gaps_by_the_pipelines_rule(api: Api, jump_periods: 
     assert api.upload(dev, sess["id"], body).status_code == 201
     rec = api.client.get(f"/v1/sessions/{sess['id']}", headers=bearer(dev)).json()["received"]
     assert rec["L-shank"]["gaps"] == gaps
+
+
+def test_uploads_run_on_threads_of_their_own_within_the_pool(settings: Settings) -> None:
+    s = settings.model_copy(update={"db_pool_size": 20, "db_max_overflow": 10, "upload_threads": 8})
+    # The upload threads and the other routes' threads together never outnumber the pooled connections.
+    assert (s.upload_thread_count, s.api_threads) == (8, 22)
+    tight = settings.model_copy(update={"db_pool_size": 3, "db_max_overflow": 0, "upload_threads": 8})
+    assert tight.upload_thread_count == 1
+    with open_api(s) as api:
+        _, dev, sess = api.setup_device_session()
+        assert api.upload(dev, sess["id"], batch_body("L-shank", 0, n=40)).status_code == 201
+        limiter = api.client.app.state.upload_limiter
+        assert limiter.total_tokens == 8 and limiter.borrowed_tokens == 0
+
+
+def test_an_upload_on_a_dead_pooled_connection_is_stored_once_on_a_new_one(postgres_url: str, tmp_path,  # noqa: ANN001
+                                                                          caplog: pytest.LogCaptureFixture) -> None:
+    # The upload engine has no pre-ping: a connection PostgreSQL dropped (restart, idle timeout) is found dead by
+    # the INSERT itself, which then runs once more; the batch is stored once and answered 201.
+    from tests.conftest import _truncate_all
+
+    _truncate_all(postgres_url)
+    s = Settings(database_url=postgres_url, data_dir=tmp_path / "data", job_runner="manual")
+    with open_api(s) as api:
+        _, dev, sess = api.setup_device_session()
+        assert api.upload(dev, sess["id"], batch_body("L-shank", 0, n=40)).status_code == 201
+        upload_engine = api.client.app.state.upload_engine
+        assert upload_engine.pool.checkedin() >= 1
+        with api.engine.connect() as conn:
+            killed = conn.execute(text("SELECT count(pg_terminate_backend(pid)) FROM pg_stat_activity WHERE "
+                                       "datname = current_database() AND pid <> pg_backend_pid() AND state = 'idle'"
+                                       )).scalar_one()
+            conn.commit()
+        assert killed >= 1
+        r = api.upload(dev, sess["id"], batch_body("L-shank", 1, n=40))
+        assert r.status_code == 201, r.text
+        assert "pooled connection was dead" in caplog.text
+        assert api.upload(dev, sess["id"], batch_body("L-shank", 1, n=40)).status_code == 200
+        assert _batches(api) == 2
