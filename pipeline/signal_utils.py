@@ -90,6 +90,29 @@ def lowpass_runs_many(xs: Sequence[np.ndarray], valid: np.ndarray, cutoff_hz: fl
     return res
 
 
+def lowpass_runs_zeroed(xs: Sequence[np.ndarray], valid: np.ndarray, cutoff_hz: float, fs_hz: float,
+                        order: int = 2) -> list[np.ndarray]:
+    """``np.nan_to_num`` of each :func:`lowpass_runs_many` output (masked samples 0, NaN-free), for the fits: the
+    masked samples are zeroed directly instead of being set to NaN and then searched for NaN and infinities (four
+    passes over each output). Filtering finite input gives finite output, so the values are the same; should a
+    filter ever overflow, the general path decides."""
+    xs = [np.asarray(x, dtype=float) for x in xs]
+    block = np.hstack([x.reshape(x.shape[0], -1) for x in xs])
+    ok = np.asarray(valid, dtype=bool)
+    if np.isfinite(block).all():
+        out = lowpass(fill_invalid(block, ok), cutoff_hz, fs_hz, order)
+        out[~ok] = 0.0
+        if np.isfinite(out).all():
+            res, c = [], 0
+            for x in xs:
+                w = 1 if x.ndim == 1 else x.shape[1]
+                # contiguous copies, as lowpass_runs_many's
+                res.append(np.ascontiguousarray(out[:, c] if x.ndim == 1 else out[:, c:c + w]))
+                c += w
+            return res
+    return [np.nan_to_num(x) for x in lowpass_runs_many(xs, valid, cutoff_hz, fs_hz, order)]
+
+
 def row_norm(x: np.ndarray) -> np.ndarray:
     """Euclidean norm of each row of an (N, 3) array. Bit-identical to ``np.linalg.norm(x, axis=1)`` (whose
     reduction over a length-3 axis adds the squares in the same left-to-right order) and about five times faster."""
