@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.constants import G_MPS2
+from pipeline.kernels import central_slopes, hermite_eval
 from pipeline.params import WALKING, PrepareParams
 from pipeline.types import RawSensorStream
 
@@ -138,24 +139,25 @@ def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray, max_bridge_
     if n < 4:
         return np.column_stack([np.interp(t_new, t, x[:, k]) for k in range(x.shape[1])])
     dt = np.diff(t)
-
-    def one_sided(k: np.ndarray | int) -> np.ndarray:
-        """Slope of interval ``k`` (``x[k] -> x[k + 1]``), only where it is needed."""
-        return (x[k + 1] - x[k]) / np.asarray(dt[k])[..., None]
-
+    long_gap = dt > max_bridge_s
+    n_new = t_new.shape[0]
+    out = np.empty((n_new, x.shape[1]))
+    if hermite_eval is not None and central_slopes is not None and np.isfinite(t_new).all():
+        x = np.ascontiguousarray(x, dtype=float)
+        t = np.ascontiguousarray(t, dtype=float)
+        m = np.empty_like(x)
+        central_slopes(t, x, m)
+        _one_sided_slopes(m, x, dt, long_gap)
+        i_all = np.empty(n_new, dtype=np.int64)
+        hermite_eval(np.ascontiguousarray(t_new, dtype=float), t, x, m, dt, i_all, out)
+        return _straight_across_gaps(out, t_new, t, x, dt, long_gap, i_all)
     # slopes: central differences inside, one-sided at the ends and next to long gaps
     m = np.empty_like(x)
     for a in range(1, n - 1, _INTERP_BLOCK):
         b = min(a + _INTERP_BLOCK, n - 1)
         m[a:b] = (x[a + 1:b + 1] - x[a - 1:b - 1]) / (t[a + 1:b + 1] - t[a - 1:b - 1])[:, None]
-    m[0], m[-1] = one_sided(0), one_sided(n - 2)
-    long_gap = dt > max_bridge_s
-    g = np.flatnonzero(long_gap)
-    m[g] = one_sided(np.maximum(g - 1, 0))  # one-sided: the data before the gap
-    m[g + 1] = one_sided(np.minimum(g + 1, n - 2))  # and after it
+    _one_sided_slopes(m, x, dt, long_gap)
     i_all = np.clip(np.searchsorted(t, t_new, side="right") - 1, 0, n - 2)
-    n_new = t_new.shape[0]
-    out = np.empty((n_new, x.shape[1]))
     scratch = np.empty((min(_INTERP_BLOCK, n_new), x.shape[1]))
     for a in range(0, n_new, _INTERP_BLOCK):
         b = min(a + _INTERP_BLOCK, n_new)
@@ -177,6 +179,26 @@ def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray, max_bridge_
         np.take(m, i + 1, axis=0, out=tmp)
         tmp *= ((u3 - u2) * h)[:, None]
         o += tmp
+    return _straight_across_gaps(out, t_new, t, x, dt, long_gap, i_all)
+
+
+def _one_sided_slopes(m: np.ndarray, x: np.ndarray, dt: np.ndarray, long_gap: np.ndarray) -> None:
+    """One-sided slopes in ``m`` at both ends and next to long gaps (from the data on the gap's own side)."""
+    n = x.shape[0]
+
+    def one_sided(k: np.ndarray | int) -> np.ndarray:
+        """Slope of interval ``k`` (``x[k] -> x[k + 1]``), only where it is needed."""
+        return (x[k + 1] - x[k]) / np.asarray(dt[k])[..., None]
+
+    m[0], m[-1] = one_sided(0), one_sided(n - 2)
+    g = np.flatnonzero(long_gap)
+    m[g] = one_sided(np.maximum(g - 1, 0))  # one-sided: the data before the gap
+    m[g + 1] = one_sided(np.minimum(g + 1, n - 2))  # and after it
+
+
+def _straight_across_gaps(out: np.ndarray, t_new: np.ndarray, t: np.ndarray, x: np.ndarray, dt: np.ndarray,
+                          long_gap: np.ndarray, i_all: np.ndarray) -> np.ndarray:
+    """``out`` with the grid samples inside long gaps on the straight line between the gap's edge samples."""
     lin = long_gap[i_all]
     if lin.any():
         il = i_all[lin]

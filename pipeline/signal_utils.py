@@ -6,12 +6,20 @@ from collections.abc import Sequence
 from functools import lru_cache
 
 import numpy as np
-from scipy.signal import butter, sosfiltfilt
+from scipy.signal import butter, sosfilt_zi, sosfiltfilt
+
+from pipeline.kernels import filtfilt_columns
 
 
 @lru_cache(maxsize=64)
 def _butter_sos(order: int, cutoff_hz: float, fs_hz: float) -> np.ndarray:
     return butter(order, cutoff_hz / (0.5 * fs_hz), output="sos")
+
+
+@lru_cache(maxsize=64)
+def _sos_zi(order: int, cutoff_hz: float, fs_hz: float) -> np.ndarray:
+    """Steady-state initial conditions of :func:`_butter_sos`'s sections, as ``sosfiltfilt`` computes them."""
+    return sosfilt_zi(_butter_sos(order, cutoff_hz, fs_hz))
 
 
 def lowpass(x: np.ndarray, cutoff_hz: float, fs_hz: float, order: int = 2) -> np.ndarray:
@@ -22,7 +30,12 @@ def lowpass(x: np.ndarray, cutoff_hz: float, fs_hz: float, order: int = 2) -> np
         return x.copy()
     sos = _butter_sos(order, float(cutoff_hz), float(fs_hz))
     padlen = min(x.shape[0] - 1, 3 * (2 * len(sos) + 1))
-    return sosfiltfilt(sos, x, axis=0, padlen=padlen)
+    if filtfilt_columns is None or x.ndim > 2:
+        return sosfiltfilt(sos, x, axis=0, padlen=padlen)
+    cols = x.reshape(x.shape[0], -1)
+    out = np.empty(cols.shape)
+    filtfilt_columns(sos, _sos_zi(order, float(cutoff_hz), float(fs_hz)), cols, int(padlen), out)
+    return out.reshape(x.shape)
 
 
 def true_runs(mask: np.ndarray) -> list[tuple[int, int]]:

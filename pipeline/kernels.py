@@ -1,0 +1,114 @@
+"""Compiled loops for the two hottest array passes of the pipeline (numba, when installed), each computing exactly
+the numpy/scipy expression it replaces, operation for operation, so results are bit-identical either way:
+
+- :func:`filtfilt_columns`: ``scipy.signal.sosfiltfilt(sos, x, axis=0, padlen=padlen)`` with odd padding, column by
+  column in one buffer (scipy copies the columns into rows, pads, filters, reverses and copies back, one array pass
+  each; the filter's own recursion is a small part of the time);
+- :func:`central_slopes`, :func:`hermite_eval`: the slopes, interval search and cubic Hermite evaluation of
+  :func:`pipeline.prepare._interp_columns` in one pass each instead of a dozen array passes.
+
+Floating-point contraction (fused multiply-add) and reassociation stay off (numba's default without ``fastmath``),
+which is what keeps each value the same as numpy's. ``cache=True``: a worker loads the compiled code from the
+package's ``__pycache__`` instead of compiling again (compiling takes a few seconds, once per installation). The
+signatures are given, so the compiled code is loaded when this module is imported (about 0.1 s CPU, once per
+worker process) rather than at the first call inside a session.
+Without numba both names are None and the callers use the numpy paths.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+try:
+    import numba
+except ImportError:  # pragma: no cover - numba is a declared dependency; the numpy paths stay exact without it
+    numba = None
+
+filtfilt_columns: Callable[..., None] | None = None
+hermite_eval: Callable[..., None] | None = None
+central_slopes: Callable[..., None] | None = None
+
+if numba is not None:
+
+    @numba.njit("void(f8[:, ::1], f8[:, ::1], f8[:, :], i8, f8[:, ::1])", cache=True, nogil=True)
+    def _filtfilt_columns(sos: np.ndarray, zi: np.ndarray, x: np.ndarray, padlen: int, out: np.ndarray) -> None:
+        """``out[:, c]`` = sosfiltfilt of ``x[:, c]`` (scipy's odd extension by ``padlen``, initial state ``zi`` times
+        the first sample of each pass, direct-form II transposed sections as in scipy's ``_sosfilt``). The columns
+        are filtered side by side, sample by sample: each column's recursion is a chain of dependent
+        multiply-adds, and independent chains interleaved keep the processor busy."""
+        n, k = x.shape
+        n_sec = sos.shape[0]
+        m = n + 2 * padlen
+        e = np.empty((m, k))
+        z = np.empty((n_sec, 2, k))
+        for j in range(padlen):
+            for c in range(k):
+                e[j, c] = 2.0 * x[0, c] - x[padlen - j, c]
+                e[n + padlen + j, c] = 2.0 * x[n - 1, c] - x[n - 2 - j, c]
+        e[padlen:padlen + n] = x
+        for rev in range(2):
+            # forward pass with state zi * ext[0]; then backward over its output, state zi * its last sample
+            first = 0 if rev == 0 else m - 1
+            for s in range(n_sec):
+                for c in range(k):
+                    z[s, 0, c] = zi[s, 0] * e[first, c]
+                    z[s, 1, c] = zi[s, 1] * e[first, c]
+            for jj in range(m):
+                j = jj if rev == 0 else m - 1 - jj
+                for c in range(k):
+                    x_cur = e[j, c]
+                    for s in range(n_sec):
+                        x_new = sos[s, 0] * x_cur + z[s, 0, c]
+                        z[s, 0, c] = sos[s, 1] * x_cur - sos[s, 4] * x_new + z[s, 1, c]
+                        z[s, 1, c] = sos[s, 2] * x_cur - sos[s, 5] * x_new
+                        x_cur = x_new
+                    e[j, c] = x_cur
+        out[:] = e[padlen:padlen + n]
+
+    @numba.njit("void(f8[::1], f8[:, ::1], f8[:, ::1])", cache=True, nogil=True)
+    def _central_slopes(t: np.ndarray, x: np.ndarray, m: np.ndarray) -> None:
+        """``m[a] = (x[a + 1] - x[a - 1]) / (t[a + 1] - t[a - 1])`` for the inner samples ``0 < a < n - 1``."""
+        for a in range(1, t.shape[0] - 1):
+            h = t[a + 1] - t[a - 1]
+            for c in range(x.shape[1]):
+                m[a, c] = (x[a + 1, c] - x[a - 1, c]) / h
+
+    @numba.njit("void(f8[::1], f8[::1], f8[:, ::1], f8[:, ::1], f8[::1], i8[::1], f8[:, ::1])", cache=True,
+                nogil=True)
+    def _hermite_eval(t_new: np.ndarray, t: np.ndarray, x: np.ndarray, m: np.ndarray, dt: np.ndarray,
+                      i_all: np.ndarray, out: np.ndarray) -> None:
+        """``i_all[r]`` = ``clip(searchsorted(t, t_new[r], "right") - 1, 0, n - 2)`` (by merging, restarted
+        wherever ``t_new`` steps back; ``t_new`` finite) and ``out[r]`` = h00 x[i] + h10 h m[i] + h01 x[i+1] +
+        h11 h m[i+1], the basis and the sums in :func:`pipeline.prepare._interp_columns`'s order: h00 =
+        (2u^3 - 3u^2) + 1, h10 h = ((u^3 - 2u^2) + u) h, h01 = -2u^3 + 3u^2, h11 h = (u^3 - u^2) h, u^3 = (u u) u."""
+        n = t.shape[0]
+        k = x.shape[1]
+        j = 0
+        for r in range(t_new.shape[0]):
+            tn = t_new[r]
+            if r > 0 and tn < t_new[r - 1]:
+                j = 0
+            while j < n and t[j] <= tn:
+                j += 1
+            i = min(max(j - 1, 0), n - 2)
+            i_all[r] = i
+            h = dt[i]
+            u = (tn - t[i]) / h
+            u2 = u * u
+            u3 = u * u * u
+            w0 = 2.0 * u3 - 3.0 * u2 + 1.0
+            w1 = (u3 - 2.0 * u2 + u) * h
+            w2 = -2.0 * u3 + 3.0 * u2
+            w3 = (u3 - u2) * h
+            for c in range(k):
+                acc = w0 * x[i, c]
+                acc += m[i, c] * w1
+                acc += x[i + 1, c] * w2
+                acc += m[i + 1, c] * w3
+                out[r, c] = acc
+
+    central_slopes = _central_slopes
+    filtfilt_columns = _filtfilt_columns
+    hermite_eval = _hermite_eval

@@ -1,0 +1,61 @@
+"""The compiled loops (:mod:`pipeline.kernels`) give the numpy/scipy paths' values bit for bit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.signal import sosfiltfilt
+
+from pipeline import kernels, prepare, signal_utils
+
+
+def test_kernels_are_compiled() -> None:
+    """numba is a dependency: the speed targets rest on these loops."""
+    assert kernels.filtfilt_columns is not None
+    assert kernels.hermite_eval is not None
+    assert kernels.central_slopes is not None
+
+
+@pytest.mark.parametrize("shape", [(180_000, 6), (5_000, 3), (5_000, 1), (4_001,), (19,), (40, 2)])
+@pytest.mark.parametrize(("cutoff_hz", "fs_hz"), [(10.0, 100.0), (4.0, 100.0), (15.0, 100.0), (6.0, 52.0)])
+def test_lowpass_equals_sosfiltfilt(shape: tuple[int, ...], cutoff_hz: float, fs_hz: float) -> None:
+    x = np.random.default_rng(len(shape) * 1000 + shape[0]).standard_normal(shape) * 300.0
+    sos = signal_utils._butter_sos(2, cutoff_hz, fs_hz)
+    padlen = min(x.shape[0] - 1, 3 * (2 * len(sos) + 1))
+    expected = sosfiltfilt(sos, x, axis=0, padlen=padlen)
+    got = signal_utils.lowpass(x, cutoff_hz, fs_hz)
+    assert got.shape == expected.shape
+    assert np.array_equal(got, expected)
+
+
+def test_lowpass_of_a_strided_view_equals_sosfiltfilt() -> None:
+    x = np.random.default_rng(3).standard_normal((3_000, 6))[:, ::2]
+    sos = signal_utils._butter_sos(2, 10.0, 100.0)
+    assert np.array_equal(signal_utils.lowpass(x, 10.0, 100.0), sosfiltfilt(sos, x, axis=0, padlen=9))
+
+
+def _irregular(seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    t = np.sort(np.arange(n) / 100.0 + rng.normal(0.0, 0.0004, n))
+    t = np.delete(t, np.r_[np.arange(500, n, 3_000), np.arange(1_200, 1_260)])  # short and one long gap
+    return t, rng.standard_normal((t.size, 6)) * 50.0
+
+
+@pytest.mark.parametrize("grid", ["uniform", "beyond_both_ends", "unsorted"])
+def test_interpolation_equals_numpy_path(grid: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    t, x = _irregular(7, 20_000)
+    if grid == "uniform":
+        t_new = t[0] + np.arange(19_000) / 100.0
+    elif grid == "beyond_both_ends":
+        t_new = np.linspace(t[0] - 0.5, t[-1] + 0.5, 25_000)
+    else:
+        t_new = np.random.default_rng(1).uniform(t[0], t[-1], 50_000)
+    got = prepare._interp_columns(t_new, t, x, 0.1)
+    monkeypatch.setattr(prepare, "hermite_eval", None)
+    expected = prepare._interp_columns(t_new, t, x, 0.1)
+    assert np.array_equal(got, expected)
+    g = int(np.argmax(np.diff(t)))  # the long gap: a straight line across, no cubic overshoot
+    inside = (t_new > t[g]) & (t_new < t[g + 1])
+    assert inside.any()
+    lo, hi = np.minimum(x[g], x[g + 1]), np.maximum(x[g], x[g + 1])
+    assert np.all((got[inside] >= lo - 1e-9) & (got[inside] <= hi + 1e-9))
