@@ -5,7 +5,9 @@ the numpy/scipy expression it replaces, operation for operation, so results are 
   column in one buffer (scipy copies the columns into rows, pads, filters, reverses and copies back, one array pass
   each; the filter's own recursion is a small part of the time);
 - :func:`central_slopes`, :func:`hermite_eval`: the slopes, interval search and cubic Hermite evaluation of
-  :func:`pipeline.prepare._interp_columns` in one pass each instead of a dozen array passes.
+  :func:`pipeline.prepare._interp_columns` in one pass each instead of a dozen array passes;
+- :func:`row_norm`, :func:`cross_rows`: :func:`pipeline.signal_utils.row_norm` and ``cross_rows`` row by row
+  (numpy makes a temporary array per product and sum).
 
 Floating-point contraction (fused multiply-add) and reassociation stay off (numba's default without ``fastmath``),
 which is what keeps each value the same as numpy's. ``cache=True``: a worker loads the compiled code from the
@@ -29,6 +31,8 @@ except ImportError:  # pragma: no cover - numba is a declared dependency; the nu
 filtfilt_columns: Callable[..., None] | None = None
 hermite_eval: Callable[..., None] | None = None
 central_slopes: Callable[..., None] | None = None
+row_norm: Callable[..., None] | None = None
+cross_rows: Callable[..., None] | None = None
 
 if numba is not None:
 
@@ -109,6 +113,27 @@ if numba is not None:
                 acc += m[i + 1, c] * w3
                 out[r, c] = acc
 
+    @numba.njit("void(f8[:, :], f8[::1])", cache=True, nogil=True)
+    def _row_norm(x: np.ndarray, out: np.ndarray) -> None:
+        """``out[i] = sqrt((x0 x0 + x1 x1) + x2 x2)`` of each row."""
+        for i in range(x.shape[0]):
+            x0, x1, x2 = x[i, 0], x[i, 1], x[i, 2]
+            out[i] = np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+
+    @numba.njit("void(f8[:, :], f8[:, :], f8[:, ::1])", cache=True, nogil=True)
+    def _cross_rows(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+        """``out[i] = a[i] x b[i]`` (``b`` of one row: the same vector for every ``i``), ``a1 b2 - a2 b1``, ..."""
+        one = b.shape[0] == 1
+        for i in range(a.shape[0]):
+            k = 0 if one else i
+            a0, a1, a2 = a[i, 0], a[i, 1], a[i, 2]
+            b0, b1, b2 = b[k, 0], b[k, 1], b[k, 2]
+            out[i, 0] = a1 * b2 - a2 * b1
+            out[i, 1] = a2 * b0 - a0 * b2
+            out[i, 2] = a0 * b1 - a1 * b0
+
     central_slopes = _central_slopes
+    row_norm = _row_norm
+    cross_rows = _cross_rows
     filtfilt_columns = _filtfilt_columns
     hermite_eval = _hermite_eval

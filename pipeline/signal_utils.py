@@ -8,6 +8,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.signal import butter, sosfilt_zi, sosfiltfilt
 
+from pipeline import kernels
 from pipeline.kernels import filtfilt_columns
 
 
@@ -107,21 +108,18 @@ def lowpass_runs_zeroed(xs: Sequence[np.ndarray], valid: np.ndarray, cutoff_hz: 
                         order: int = 2) -> list[np.ndarray]:
     """``np.nan_to_num`` of each :func:`lowpass_runs_many` output (masked samples 0, NaN-free), for the fits: the
     masked samples are zeroed directly instead of being set to NaN and then searched for NaN and infinities (four
-    passes over each output). Filtering finite input gives finite output, so the values are the same; should a
-    filter ever overflow, the general path decides."""
+    passes over each output). The filter runs column by column, so filtering each signal on its own gives the
+    stacked call's values without stacking the inputs and splitting the outputs. Filtering finite input gives
+    finite output, so the values are the same; should a filter ever overflow, the general path decides."""
     xs = [np.asarray(x, dtype=float) for x in xs]
-    block = np.hstack([x.reshape(x.shape[0], -1) for x in xs])
     ok = np.asarray(valid, dtype=bool)
-    if np.isfinite(block).all():
-        out = lowpass(fill_invalid(block, ok), cutoff_hz, fs_hz, order)
-        out[~ok] = 0.0
-        if np.isfinite(out).all():
-            res, c = [], 0
-            for x in xs:
-                w = 1 if x.ndim == 1 else x.shape[1]
-                # contiguous copies, as lowpass_runs_many's
-                res.append(np.ascontiguousarray(out[:, c] if x.ndim == 1 else out[:, c:c + w]))
-                c += w
+    if all(np.isfinite(x).all() for x in xs):
+        res = []
+        for x in xs:
+            out = lowpass(fill_invalid(x, ok), cutoff_hz, fs_hz, order)
+            out[~ok] = 0.0
+            res.append(np.ascontiguousarray(out))
+        if all(np.isfinite(r).all() for r in res):
             return res
     return [np.nan_to_num(x) for x in lowpass_runs_many(xs, valid, cutoff_hz, fs_hz, order)]
 
@@ -130,6 +128,10 @@ def row_norm(x: np.ndarray) -> np.ndarray:
     """Euclidean norm of each row of an (N, 3) array. Bit-identical to ``np.linalg.norm(x, axis=1)`` (whose
     reduction over a length-3 axis adds the squares in the same left-to-right order) and about five times faster."""
     x = np.asarray(x, dtype=float)
+    if kernels.row_norm is not None and x.ndim == 2 and x.shape[1] == 3:
+        out = np.empty(x.shape[0])
+        kernels.row_norm(x, out)
+        return out
     x0, x1, x2 = x[:, 0], x[:, 1], x[:, 2]
     return np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
 
@@ -140,6 +142,10 @@ def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     cost more than the arithmetic at these sizes)."""
     a = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float)
+    if kernels.cross_rows is not None and a.ndim == 2 and a.shape[1] == 3 and b.shape in ((3,), a.shape):
+        out = np.empty((a.shape[0], 3))
+        kernels.cross_rows(a, b.reshape(-1, 3), out)
+        return out
     a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
     out = np.empty((a.shape[0], 3))

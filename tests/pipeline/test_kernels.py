@@ -59,3 +59,15 @@ def test_interpolation_equals_numpy_path(grid: str, monkeypatch: pytest.MonkeyPa
     assert inside.any()
     lo, hi = np.minimum(x[g], x[g + 1]), np.maximum(x[g], x[g + 1])
     assert np.all((got[inside] >= lo - 1e-9) & (got[inside] <= hi + 1e-9))
+
+
+@pytest.mark.parametrize("layout", ["contiguous", "strided"])
+def test_row_norm_and_cross_rows_equal_numpy(layout: str) -> None:
+    rng = np.random.default_rng(11)
+    a = rng.standard_normal((20_000, 6)) * 7.0
+    b = rng.standard_normal((20_000, 6)) * 3.0
+    a, b = (a[:, :3], b[:, 3:]) if layout == "strided" else (np.ascontiguousarray(a[:, :3]), b[:, 3:].copy())
+    assert np.array_equal(signal_utils.row_norm(a), np.linalg.norm(a, axis=1))
+    assert np.array_equal(signal_utils.cross_rows(a, b), np.cross(a, b))
+    v = np.array([0.3, -0.8, 0.52])
+    assert np.array_equal(signal_utils.cross_rows(a, v), np.cross(a, v))
