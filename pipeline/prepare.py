@@ -64,24 +64,44 @@ def to_si(stream: RawSensorStream) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not (t.shape[0] == gyr.shape[0] == acc.shape[0]):
         raise ValueError(f"sensor {stream.sensor_id}: t_s, gyr and acc have different lengths "
                          f"({t.shape[0]}, {gyr.shape[0]}, {acc.shape[0]})")
-    if stream.gyro_unit == "deg/s":
-        gyr = np.deg2rad(gyr)
-    elif stream.gyro_unit != "rad/s":
+    if stream.gyro_unit not in ("deg/s", "rad/s"):
         raise ValueError(f"sensor {stream.sensor_id}: unknown gyro unit {stream.gyro_unit!r}")
-    if stream.acc_unit == "g":
-        acc = acc * G_MPS2
-    elif stream.acc_unit != "m/s2":
+    if stream.acc_unit not in ("g", "m/s2"):
         raise ValueError(f"sensor {stream.sensor_id}: unknown accelerometer unit {stream.acc_unit!r}")
-    # whole-array finiteness first: the row-wise all(axis=1) over (N, 3) is slow and rarely needed
-    if not (np.isfinite(t).all() and np.isfinite(gyr).all() and np.isfinite(acc).all()):
-        finite = np.isfinite(t) & np.isfinite(gyr).all(axis=1) & np.isfinite(acc).all(axis=1)
-        t, gyr, acc = t[finite], gyr[finite], acc[finite]
+    # both converted into the halves of one (N, 6) array, the layout the resampling takes (:func:`_channels`),
+    # so that neither the conversion nor the resampling needs a copy of its own
+    both = np.empty((t.shape[0], 6))
+    if stream.gyro_unit == "deg/s":
+        np.deg2rad(gyr, out=both[:, :3])
+    else:
+        both[:, :3] = gyr
+    if stream.acc_unit == "g":
+        np.multiply(acc, G_MPS2, out=both[:, 3:])
+    else:
+        both[:, 3:] = acc
+    # whole-array finiteness first: the row-wise all(axis=1) over (N, 6) is slow and rarely needed
+    if not (np.isfinite(t).all() and np.isfinite(both).all()):
+        finite = np.isfinite(t) & np.isfinite(both).all(axis=1)
+        t, both = t[finite], both[finite]
     if t.shape[0] < 2 or np.all(np.diff(t) > 0):
-        return t, gyr, acc  # the usual case: already sorted and unique (or nothing to sort)
+        return t, both[:, :3], both[:, 3:]  # the usual case: already sorted and unique (or nothing to sort)
     order = np.argsort(t, kind="stable")
-    t, gyr, acc = t[order], gyr[order], acc[order]
+    t, both = t[order], both[order]
     keep = np.concatenate(([True], np.diff(t) > 0))
-    return t[keep], gyr[keep], acc[keep]
+    t, both = t[keep], both[keep]
+    return t, both[:, :3], both[:, 3:]
+
+
+def _channels(gyr: np.ndarray, acc: np.ndarray) -> np.ndarray:
+    """``np.hstack([gyr, acc])``: the (N, 6) array of :func:`to_si` itself when ``gyr`` and ``acc`` are still its two
+    halves (no copy), else the stacked copy."""
+    base = gyr.base
+    if (isinstance(base, np.ndarray) and base is acc.base and base.dtype == np.float64 and base.flags.c_contiguous
+            and base.shape == (gyr.shape[0], 6) and gyr.shape == acc.shape == (base.shape[0], 3)
+            and gyr.__array_interface__["data"][0] == base.__array_interface__["data"][0]
+            and acc.__array_interface__["data"][0] == base.__array_interface__["data"][0] + 3 * base.itemsize):
+        return base
+    return np.hstack([gyr, acc])
 
 
 def nominal_fs(stream: RawSensorStream, t_s: np.ndarray) -> float:
@@ -362,11 +382,11 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
     else:
         gaps1, br1, noted1 = find_gaps(t1, fs1, params)
         thigh6, filled1, gaps1 = periodic_fill(
-            t_grid, _interp_columns(t_grid, t1, np.hstack([g1, a1]), params.max_bridge_s), gaps1, fs_hz, params)
+            t_grid, _interp_columns(t_grid, t1, _channels(g1, a1), params.max_bridge_s), gaps1, fs_hz, params)
         br1 += len(filled1)
         gyr_thigh, acc_thigh = thigh6[:, :3], thigh6[:, 3:]
     shank6, filled2, gaps2 = periodic_fill(
-        t_grid, _interp_columns(t_grid, t2, np.hstack([g2, a2]), params.max_bridge_s), gaps2, fs_hz, params)
+        t_grid, _interp_columns(t_grid, t2, _channels(g2, a2), params.max_bridge_s), gaps2, fs_hz, params)
     br2 += len(filled2)
     gaps = sorted(gaps1 + gaps2)
     valid = ~_mask_intervals(t_grid, gaps)
