@@ -134,11 +134,14 @@ def saturation_mask(gyr: np.ndarray, params: PrepareParams = WALKING.prepare) ->
     samples in a row (clipped sensor)."""
     run_len = params.saturation_run
     out = np.zeros(gyr.shape[0], dtype=bool)
+    # the peaks first, all axes in one pass: most recordings never come near a clipping range, and then no axis
+    # needs more (the maximum is exact, so the same peaks)
+    peaks = np.abs(gyr).max(axis=0, initial=0.0)
     for axis in range(3):
-        g = np.abs(gyr[:, axis])
-        peak = g.max(initial=0.0)
+        peak = peaks[axis]
         if np.rad2deg(peak) < params.saturation_min_dps:
             continue
+        g = np.abs(gyr[:, axis])
         at_peak = g >= peak * 0.999
         run = np.convolve(at_peak.astype(int), np.ones(run_len, dtype=int), mode="same") >= run_len
         if run.any():

@@ -56,7 +56,14 @@ def fill_invalid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
     # row-wise all() over (N, 3) is slow; the usual all-finite case needs no per-row test
     if not fin.all():
         ok = ok & (fin if x.ndim == 1 else fin.all(axis=1))
-    if ok.all() or not ok.any():
+    return _fill_invalid_finite(x, ok)
+
+
+def _fill_invalid_finite(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """:func:`fill_invalid` once the non-finite samples are in ``~ok``."""
+    if ok.all():
+        return x.copy()  # every sample finite: what np.nan_to_num would return, without its four searches
+    if not ok.any():
         return np.nan_to_num(x)
     # only the invalid samples are interpolated: np.interp returns a node's own value exactly, so the valid ones
     # would come back unchanged anyway (same result as interpolating every sample, far fewer points). An invalid
@@ -71,7 +78,7 @@ def fill_invalid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
         return out
     good = x[xp]
     for k in range(x.shape[1]):
-        out[bad, k] = np.interp(at, xp, good[:, k])
+        out[at, k] = np.interp(at, xp, good[:, k])  # the same samples as out[bad, k], by index: faster
     return out
 
 
@@ -116,7 +123,7 @@ def lowpass_runs_zeroed(xs: Sequence[np.ndarray], valid: np.ndarray, cutoff_hz: 
     if all(np.isfinite(x).all() for x in xs):
         res = []
         for x in xs:
-            out = lowpass(fill_invalid(x, ok), cutoff_hz, fs_hz, order)
+            out = lowpass(_fill_invalid_finite(x, ok), cutoff_hz, fs_hz, order)  # finite: ok is the mask as is
             out[~ok] = 0.0
             res.append(np.ascontiguousarray(out))
         if all(np.isfinite(r).all() for r in res):
