@@ -6,6 +6,8 @@ the numpy/scipy expression it replaces, operation for operation, so results are 
   each; the filter's own recursion is a small part of the time);
 - :func:`central_slopes`, :func:`hermite_eval`: the slopes, interval search and cubic Hermite evaluation of
   :func:`pipeline.prepare._interp_columns` in one pass each instead of a dozen array passes;
+- :func:`shifted_context`: the shifted, masked context rows of :func:`pipeline.prepare._periodic_hole` (the
+  correlation sums stay numpy's own);
 - :func:`row_norm`, :func:`cross_rows`: :func:`pipeline.signal_utils.row_norm` and ``cross_rows`` row by row
   (numpy makes a temporary array per product and sum).
 
@@ -31,6 +33,7 @@ except ImportError:  # pragma: no cover - numba is a declared dependency; the nu
 filtfilt_columns: Callable[..., None] | None = None
 hermite_eval: Callable[..., None] | None = None
 central_slopes: Callable[..., None] | None = None
+shifted_context: Callable[..., None] | None = None
 row_norm: Callable[..., None] | None = None
 cross_rows: Callable[..., None] | None = None
 
@@ -132,7 +135,26 @@ if numba is not None:
             out[i, 1] = a2 * b0 - a0 * b2
             out[i, 2] = a0 * b1 - a1 * b0
 
+    @numba.njit("void(f8[:, :], b1[::1], i8[::1], i8[::1], i8, f8[::1], f8[:, :, ::1], b1[:, ::1])", cache=True,
+                nogil=True)
+    def _shifted_context(g: np.ndarray, bad: np.ndarray, c: np.ndarray, lags: np.ndarray, sign: int,
+                         mean: np.ndarray, b: np.ndarray, ok: np.ndarray) -> None:
+        """``src = c + sign * lag``: ``ok[l, j]`` = src inside the signal and not masked, ``b[l, j]`` =
+        ``(g[clip(src)] - mean) * ok`` (the rows :func:`pipeline.prepare._periodic_hole` correlates)."""
+        n = g.shape[0]
+        for li in range(lags.shape[0]):
+            for j in range(c.shape[0]):
+                src = c[j] + sign * lags[li]
+                inside = src >= 0 and src < n
+                okv = inside and not bad[src]
+                ok[li, j] = okv
+                row = min(max(src, 0), n - 1)
+                w = 1.0 if okv else 0.0
+                for d in range(g.shape[1]):
+                    b[li, j, d] = (g[row, d] - mean[d]) * w
+
     central_slopes = _central_slopes
+    shifted_context = _shifted_context
     row_norm = _row_norm
     cross_rows = _cross_rows
     filtfilt_columns = _filtfilt_columns

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.constants import G_MPS2
-from pipeline.kernels import central_slopes, hermite_eval
+from pipeline.kernels import central_slopes, hermite_eval, shifted_context
 from pipeline.params import WALKING, PrepareParams
 from pipeline.types import RawSensorStream
 
@@ -287,15 +287,24 @@ def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.nd
     a = g[c] - mean
     a2 = a ** 2
     score = np.full(lags.size, -np.inf)
+    fast = shifted_context is not None and bad.dtype == np.bool_ and bad.flags.c_contiguous
     for sign in (-1, 1):
-        src = c[None, :] + sign * lags[:, None]  # (lags, context)
-        ok = (src >= 0) & (src < n)
-        ok[ok] = ~bad[src[ok]]
-        b = g[np.clip(src, 0, n - 1)]  # (lags, context, 3)
-        b -= mean
-        w = ok[:, :, None]
-        # w is 0 or 1, so w * b * b == (w * b) ** 2 and w * a * b == a * (w * b) exactly: the masked terms in place
-        b *= w
+        if fast:
+            b = np.empty((lags.size, c.size, 3))
+            ok = np.empty((lags.size, c.size), dtype=bool)
+            shifted_context(g, bad, c.astype(np.int64, copy=False), lags.astype(np.int64, copy=False), sign,
+                            np.ascontiguousarray(mean, dtype=float), b, ok)
+            w = ok[:, :, None]
+        else:
+            src = c[None, :] + sign * lags[:, None]  # (lags, context)
+            ok = (src >= 0) & (src < n)
+            ok[ok] = ~bad[src[ok]]
+            b = g[np.clip(src, 0, n - 1)]  # (lags, context, 3)
+            b -= mean
+            w = ok[:, :, None]
+            # w is 0 or 1, so w * b * b == (w * b) ** 2 and w * a * b == a * (w * b) exactly: the masked terms
+            # in place
+            b *= w
         num = np.sum(a[None] * b, axis=(1, 2))
         den = np.sqrt(np.sum(w * a2[None], axis=(1, 2)) * np.sum(np.square(b, out=b), axis=(1, 2)))
         with np.errstate(invalid="ignore", divide="ignore"):

@@ -71,3 +71,18 @@ def test_row_norm_and_cross_rows_equal_numpy(layout: str) -> None:
     assert np.array_equal(signal_utils.cross_rows(a, b), np.cross(a, b))
     v = np.array([0.3, -0.8, 0.52])
     assert np.array_equal(signal_utils.cross_rows(a, v), np.cross(a, v))
+
+
+def test_periodic_fill_equals_numpy_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    fs = 100.0
+    t = np.arange(6_000) / fs
+    rng = np.random.default_rng(5)
+    x = np.column_stack([np.sin(2 * np.pi * t / 1.1 + k) * (3 + k) for k in range(6)])
+    x += rng.normal(0.0, 0.05, x.shape)
+    gaps = [(t[2_000], t[2_030]), (t[4_000], t[4_012]), (t[100], t[140])]
+    got, filled, kept = prepare.periodic_fill(t, x, gaps, fs)
+    monkeypatch.setattr(prepare, "shifted_context", None)
+    expected, filled0, kept0 = prepare.periodic_fill(t, x, gaps, fs)
+    assert filled == filled0 and kept == kept0 and len(filled) >= 2
+    assert np.array_equal(got, expected)
+    assert not np.array_equal(got[2_001:2_030], x[2_001:2_030])  # the hole was really filled
