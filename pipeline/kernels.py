@@ -8,6 +8,8 @@ numpy/scipy expression it replaces, operation for operation, so results are bit-
   :func:`pipeline.prepare._interp_columns` in one pass each instead of a dozen array passes;
 - :func:`shifted_context`: the shifted, masked context rows of :func:`pipeline.prepare._periodic_hole` (the
   correlation sums stay numpy's own);
+- :func:`si_block`: the unit conversion and the finiteness and order checks of :func:`pipeline.prepare.to_si` in
+  one pass;
 - :func:`row_norm`, :func:`cross_rows`: :func:`pipeline.signal_utils.row_norm` and ``cross_rows`` row by row
   (numpy makes a temporary array per product and sum).
 
@@ -38,6 +40,7 @@ if numba is not None and numba.config.DISABLE_JIT:
 filtfilt_columns: Callable[..., None] | None = None
 hermite_eval: Callable[..., None] | None = None
 central_slopes: Callable[..., None] | None = None
+si_block: Callable[..., bool] | None = None
 shifted_context: Callable[..., None] | None = None
 row_norm: Callable[..., None] | None = None
 cross_rows: Callable[..., None] | None = None
@@ -158,7 +161,29 @@ if numba is not None:
                 for d in range(g.shape[1]):
                     b[li, j, d] = (g[row, d] - mean[d]) * w
 
+    @numba.njit("b1(f8[::1], f8[:, :], f8[:, :], f8, f8, f8[:, ::1])", cache=True, nogil=True)
+    def _si_block(t: np.ndarray, gyr: np.ndarray, acc: np.ndarray, gyr_scale: float, acc_scale: float,
+                  out: np.ndarray) -> bool:
+        """``out = [gyr * gyr_scale | acc * acc_scale]`` (a scale of 1.0: a copy, which ``x * 1.0`` is), and whether
+        every time stamp and value is finite and the stamps strictly increase: the usual case, nothing to drop
+        or sort (:func:`pipeline.prepare.to_si`)."""
+        n = t.shape[0]
+        clean = True
+        for i in range(n):
+            ti = t[i]
+            if not np.isfinite(ti) or (i > 0 and not ti - t[i - 1] > 0.0):
+                clean = False
+            for c in range(3):
+                g = gyr[i, c] * gyr_scale
+                a = acc[i, c] * acc_scale
+                out[i, c] = g
+                out[i, 3 + c] = a
+                if not (np.isfinite(g) and np.isfinite(a)):
+                    clean = False
+        return clean
+
     central_slopes = _central_slopes
+    si_block = _si_block
     shifted_context = _shifted_context
     row_norm = _row_norm
     cross_rows = _cross_rows

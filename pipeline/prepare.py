@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.constants import G_MPS2
-from pipeline.kernels import central_slopes, hermite_eval, shifted_context
+from pipeline.kernels import central_slopes, hermite_eval, shifted_context, si_block
 from pipeline.params import WALKING, PrepareParams
 from pipeline.types import RawSensorStream
 
@@ -71,14 +71,20 @@ def to_si(stream: RawSensorStream) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     # both converted into the halves of one (N, 6) array, the layout the resampling takes (:func:`_channels`),
     # so that neither the conversion nor the resampling needs a copy of its own
     both = np.empty((t.shape[0], 6))
-    if stream.gyro_unit == "deg/s":
-        np.deg2rad(gyr, out=both[:, :3])
-    else:
-        both[:, :3] = gyr
-    if stream.acc_unit == "g":
-        np.multiply(acc, G_MPS2, out=both[:, 3:])
-    else:
-        both[:, 3:] = acc
+    fast = si_block is not None and t.shape[0] >= 2
+    # deg2rad is the product with pi / 180 (as numpy computes it); a scale of 1.0 copies
+    if fast and si_block(np.ascontiguousarray(t), gyr, acc, np.pi / 180.0 if stream.gyro_unit == "deg/s" else 1.0,
+                         G_MPS2 if stream.acc_unit == "g" else 1.0, both):
+        return t, both[:, :3], both[:, 3:]  # the usual case: finite, sorted and unique
+    if not fast:
+        if stream.gyro_unit == "deg/s":
+            np.deg2rad(gyr, out=both[:, :3])
+        else:
+            both[:, :3] = gyr
+        if stream.acc_unit == "g":
+            np.multiply(acc, G_MPS2, out=both[:, 3:])
+        else:
+            both[:, 3:] = acc
     # whole-array finiteness first: the row-wise all(axis=1) over (N, 6) is slow and rarely needed
     if not (np.isfinite(t).all() and np.isfinite(both).all()):
         finite = np.isfinite(t) & np.isfinite(both).all(axis=1)

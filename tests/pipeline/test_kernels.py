@@ -7,6 +7,7 @@ import pytest
 from scipy.signal import sosfiltfilt
 
 from pipeline import kernels, prepare, signal_utils
+from pipeline.types import RawSensorStream
 
 
 def test_kernels_are_compiled() -> None:
@@ -86,3 +87,27 @@ def test_periodic_fill_equals_numpy_path(monkeypatch: pytest.MonkeyPatch) -> Non
     assert filled == filled0 and kept == kept0 and len(filled) >= 2
     assert np.array_equal(got, expected)
     assert not np.array_equal(got[2_001:2_030], x[2_001:2_030])  # the hole was really filled
+
+
+@pytest.mark.parametrize("units", [("deg/s", "g"), ("rad/s", "m/s2")])
+@pytest.mark.parametrize("damage", ["none", "nan", "unsorted"])
+def test_to_si_equals_numpy_path(units: tuple[str, str], damage: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    rng = np.random.default_rng(2)
+    n = 5_000
+    t = np.arange(n) / 100.0
+    gyr = rng.standard_normal((n, 3)) * np.array([1.0, 300.0, 1e-3])
+    acc = rng.standard_normal((n, 3)) * np.array([1e-5, 2.0, 40.0])
+    if damage == "nan":
+        gyr[100, 1] = np.nan
+        acc[200, 2] = np.inf
+    elif damage == "unsorted":
+        t[300], t[301] = t[301], t[300]
+        t[400] = t[399]
+    s = RawSensorStream(sensor_id="x", leg="left", segment="thigh", fs_hz=100.0, t_s=t, gyr=gyr, acc=acc,
+                        gyro_unit=units[0], acc_unit=units[1])
+    got = prepare.to_si(s)
+    monkeypatch.setattr(prepare, "si_block", None)
+    expected = prepare.to_si(s)
+    for a, b in zip(got, expected, strict=True):
+        assert np.array_equal(a, b)
+    assert got[0].size == (n if damage == "none" else n - 2 if damage == "nan" else n - 1)
