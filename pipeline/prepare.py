@@ -50,6 +50,8 @@ class PreparedLeg:
     thigh_filled_s: list[tuple[float, float]] = field(default_factory=list)
     thigh_noted_s: list[tuple[float, float]] = field(default_factory=list)
     shank_bridged: int = 0
+    thigh_saturated: np.ndarray | None = None  # the thigh's part of ``saturated``, for the same reuse
+    shank_saturated_raw: np.ndarray | None = None  # the shank's saturated raw samples (its own stamps)
 
     @property
     def n(self) -> int:
@@ -389,9 +391,14 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
     if keep_grid:
         t_grid, t_start = reuse.t_s, float(reuse.t_s[0])
     gaps2, br2, noted2 = find_gaps(t2, fs2, params)
-    sat1 = saturation_mask(g1, params)
-    sat2 = saturation_mask(g2, params)
-    saturated = (np.interp(t_grid, t1, sat1.astype(float)) > 0) | (np.interp(t_grid, t2, sat2.astype(float)) > 0)
+    if keep_grid and reuse.thigh_saturated is not None:
+        sat_thigh = reuse.thigh_saturated  # same stamps, same grid: the same samples
+    else:
+        sat_thigh = np.interp(t_grid, t1, saturation_mask(g1, params).astype(float)) > 0
+    # the shank's samples are the same in a re-stamped pass (only their stamps moved): the same raw mask
+    sat_shank = reuse.shank_saturated_raw if reuse is not None and reuse.shank_saturated_raw is not None \
+        and reuse.shank_saturated_raw.shape[0] == g2.shape[0] else saturation_mask(g2, params)
+    saturated = sat_thigh | (np.interp(t_grid, t2, sat_shank.astype(float)) > 0)
     if keep_grid:
         # the first pass's arrays themselves (never modified in place): same values and memory layout
         gyr_thigh, acc_thigh = reuse.gyr_thigh_rps, reuse.acc_thigh_mps2
@@ -415,6 +422,7 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
         valid=valid, saturated=saturated, gaps_s=_merge_intervals(gaps), bridged_gaps=br1 + br2,
         bridged_s=_merge_intervals(noted1 + noted2), filled_s=_merge_intervals(filled1 + filled2),
         thigh_gaps_s=gaps1, thigh_filled_s=filled1, thigh_noted_s=noted1, shank_bridged=br2,
+        thigh_saturated=sat_thigh, shank_saturated_raw=sat_shank,
     )
 
 
