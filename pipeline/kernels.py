@@ -8,6 +8,7 @@ numpy/scipy expression it replaces, operation for operation, so results are bit-
   :func:`pipeline.prepare._interp_columns` in one pass each instead of a dozen array passes;
 - :func:`shifted_context`: the shifted, masked context rows of :func:`pipeline.prepare._periodic_hole` (the
   correlation sums stay numpy's own);
+- :func:`saturated_runs`: the clipped-gyro run tests of :func:`pipeline.prepare.saturation_mask`;
 - :func:`si_block`: the unit conversion and the finiteness and order checks of :func:`pipeline.prepare.to_si` in
   one pass;
 - :func:`row_norm`, :func:`cross_rows`: :func:`pipeline.signal_utils.row_norm` and ``cross_rows`` row by row
@@ -40,6 +41,7 @@ if numba is not None and numba.config.DISABLE_JIT:
 filtfilt_columns: Callable[..., None] | None = None
 hermite_eval: Callable[..., None] | None = None
 central_slopes: Callable[..., None] | None = None
+saturated_runs: Callable[..., None] | None = None
 si_block: Callable[..., bool] | None = None
 shifted_context: Callable[..., None] | None = None
 row_norm: Callable[..., None] | None = None
@@ -182,7 +184,38 @@ if numba is not None:
                     clean = False
         return clean
 
+    @numba.njit("void(f8[:, :], f8[::1], i8, b1[::1])", cache=True, nogil=True)
+    def _saturated_runs(gyr: np.ndarray, thr: np.ndarray, run_len: int, out: np.ndarray) -> None:
+        """``out[i] |= `` some axis with a threshold (``thr`` not NaN) has ``run_len`` samples with
+        ``|g| >= thr`` in the window ``[j - run_len // 2, j + (run_len - 1) // 2]`` of some ``j`` whose own window
+        holds ``i``: the two ``np.convolve(..., np.ones(run_len), mode="same")`` tests of
+        :func:`pipeline.prepare.saturation_mask`, as window counts (integers: exact)."""
+        n = gyr.shape[0]
+        lo, hi = run_len // 2, (run_len - 1) // 2
+        at = np.empty(n, dtype=np.int64)
+        run = np.zeros(n + 1, dtype=np.int64)  # prefix counts of the samples that end a full run
+        for axis in range(gyr.shape[1]):
+            t = thr[axis]
+            if np.isnan(t):
+                continue
+            for i in range(n):
+                at[i] = 1 if abs(gyr[i, axis]) >= t else 0
+            cnt = 0
+            for i in range(min(hi, n)):
+                cnt += at[i]
+            for j in range(n):
+                if j + hi < n:
+                    cnt += at[j + hi]
+                if j - lo - 1 >= 0:
+                    cnt -= at[j - lo - 1]
+                run[j + 1] = run[j] + (1 if cnt >= run_len else 0)
+            for i in range(n):
+                a, b = max(i - lo, 0), min(i + hi, n - 1)
+                if run[b + 1] - run[a] > 0:
+                    out[i] = True
+
     central_slopes = _central_slopes
+    saturated_runs = _saturated_runs
     si_block = _si_block
     shifted_context = _shifted_context
     row_norm = _row_norm

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.constants import G_MPS2
-from pipeline.kernels import central_slopes, hermite_eval, shifted_context, si_block
+from pipeline.kernels import central_slopes, hermite_eval, saturated_runs, shifted_context, si_block
 from pipeline.params import WALKING, PrepareParams
 from pipeline.types import RawSensorStream
 
@@ -145,6 +145,11 @@ def saturation_mask(gyr: np.ndarray, params: PrepareParams = WALKING.prepare) ->
     # the peaks first, all axes in one pass: most recordings never come near a clipping range, and then no axis
     # needs more (the maximum is exact, so the same peaks)
     peaks = np.abs(gyr).max(axis=0, initial=0.0)
+    if saturated_runs is not None and gyr.shape[0] >= run_len:
+        # the axes worth testing get their threshold (peak * 0.999, as below), the others none
+        thr = np.where(np.rad2deg(peaks) < params.saturation_min_dps, np.nan, peaks * 0.999)
+        saturated_runs(gyr, thr, int(run_len), out)
+        return out
     for axis in range(3):
         peak = peaks[axis]
         if np.rad2deg(peak) < params.saturation_min_dps:

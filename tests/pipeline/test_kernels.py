@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.signal import sosfiltfilt
 
 from pipeline import kernels, prepare, signal_utils
+from pipeline.params import WALKING
 from pipeline.types import RawSensorStream
 
 
@@ -111,3 +114,21 @@ def test_to_si_equals_numpy_path(units: tuple[str, str], damage: str, monkeypatc
     for a, b in zip(got, expected, strict=True):
         assert np.array_equal(a, b)
     assert got[0].size == (n if damage == "none" else n - 2 if damage == "nan" else n - 1)
+
+
+@pytest.mark.parametrize("run_len", [1, 2, 3, 4, 5])
+def test_saturation_mask_equals_numpy_path(run_len: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    rng = np.random.default_rng(run_len)
+    gyr = rng.uniform(-3.0, 3.0, (4_000, 3))
+    gyr[:, 1] *= 3.0  # the other axes stay below the clipping threshold
+    peak = np.abs(gyr[:, 1]).max()
+    for start in rng.integers(0, 3_990, 40):  # clipped runs of 1-6 samples, a few at the ends
+        gyr[start:start + rng.integers(1, 7), 1] = peak * np.sign(rng.standard_normal())
+    gyr[:2, 1] = peak
+    gyr[-3:, 1] = -peak
+    params = dataclasses.replace(WALKING.prepare, saturation_run=run_len)
+    got = prepare.saturation_mask(gyr, params)
+    monkeypatch.setattr(prepare, "saturated_runs", None)
+    expected = prepare.saturation_mask(gyr, params)
+    assert expected.any() and not expected.all()
+    assert np.array_equal(got, expected)
