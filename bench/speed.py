@@ -39,8 +39,6 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from pipeline.params import WALKING  # noqa: E402
-from pipeline.session import process_session  # noqa: E402
-from pipeline.simulate import SimConfig, simulate_session  # noqa: E402
 
 TARGET_S = 0.3
 
@@ -97,6 +95,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.lengths:
         return scaling(args)
+    # imported here, not at the top: a --child reference run must not load gaitmon's pipeline (and its compiled
+    # kernels, ~140 MB), which would count in the reference's peak RSS
+    from pipeline.session import process_session
+    from pipeline.simulate import SimConfig, simulate_session
 
     t0 = time.perf_counter()
     sim = simulate_session(SimConfig(pattern="normal", fs_hz=args.fs, seed=args.seed,
@@ -145,6 +147,8 @@ def write_session(path: Path, length_s: float, fs: float, seed: int, pool: int) 
     """A session of ``length_s`` written piece by piece (never whole in memory): per sensor ``<id>.t`` float64,
     ``<id>.gyr`` / ``<id>.acc`` float32 (N, 3). Pieces are simulated with aligned mountings and no clock error,
     then given one random mounting and timestamp offset per sensor, so the session looks like one recording."""
+    from pipeline.simulate import SimConfig, simulate_session  # not at the top: see main()
+
     rng = np.random.default_rng([seed, 99])
     piece_s = min(PIECE_S, length_s)
     n_pieces = max(1, int(np.ceil(length_s / piece_s - 1e-9)))

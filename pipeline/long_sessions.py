@@ -121,6 +121,16 @@ def process_source(source: StreamSource, activity: str = "walking", estimator: s
     return merged.result(activity)
 
 
+def _renumbered(s: StrideMetrics, index: int) -> StrideMetrics:
+    """``dataclasses.replace(s, index=index)`` without its keyword round trip through ``__init__`` (a day holds tens
+    of thousands of strides): StrideMetrics is a plain frozen dataclass (no ``__post_init__``, no slots), so copying
+    its fields is the same object."""
+    out = object.__new__(StrideMetrics)
+    out.__dict__.update(s.__dict__)
+    out.__dict__["index"] = index
+    return out
+
+
 def _clock(t_s: float) -> str:
     t = max(0, int(round(t_s)))
     return f"{t // 3600:02d}:{t // 60 % 60:02d}:{t % 60:02d}"
@@ -153,9 +163,15 @@ class _LegTrace:
         ok = np.abs(t[i] - tg) <= 0.5 / lr.fs_hz + 1e-9
         self.angle[lo:hi][ok] = lr.angle_deg[i[ok]]
         est = np.asarray(lr.estimator)[i[ok]]
-        names, inv = np.unique(est, return_inverse=True)
-        lookup = np.array([self._code(str(x)) for x in names], dtype=np.uint8)
-        self.codes[lo:hi][ok] = lookup[inv]
+        # a handful of distinct names: one comparison pass per name instead of np.unique's sort of every string
+        codes = np.zeros(est.size, dtype=np.uint8)
+        todo = np.ones(est.size, dtype=bool)
+        while todo.any():
+            name = str(est[int(np.argmax(todo))])
+            hit = est == name
+            codes[hit] = self._code(name)
+            todo &= ~hit
+        self.codes[lo:hi][ok] = codes
 
     def _code(self, name: str) -> int:
         if name not in self.names:
@@ -252,7 +268,7 @@ class _Merged:
         for name in sorted(self.legs):
             leg = self.legs[name]
             assert leg.best is not None and leg.trace is not None
-            strides = [dataclasses.replace(s, index=i) for i, s in enumerate(leg.strides)]
+            strides = [_renumbered(s, i) for i, s in enumerate(leg.strides)]
             t_s, angle, est = leg.trace.arrays()
             diag = leg.best.diagnostics
             if diag is not None:

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.constants import G_MPS2
+from pipeline.kernels import central_slopes, hermite_eval, saturated_runs, shifted_context, si_block
 from pipeline.params import WALKING, PrepareParams
 from pipeline.types import RawSensorStream
 
@@ -49,6 +50,8 @@ class PreparedLeg:
     thigh_filled_s: list[tuple[float, float]] = field(default_factory=list)
     thigh_noted_s: list[tuple[float, float]] = field(default_factory=list)
     shank_bridged: int = 0
+    thigh_saturated: np.ndarray | None = None  # the thigh's part of ``saturated``, for the same reuse
+    shank_saturated_raw: np.ndarray | None = None  # the shank's saturated raw samples (its own stamps)
 
     @property
     def n(self) -> int:
@@ -63,24 +66,50 @@ def to_si(stream: RawSensorStream) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not (t.shape[0] == gyr.shape[0] == acc.shape[0]):
         raise ValueError(f"sensor {stream.sensor_id}: t_s, gyr and acc have different lengths "
                          f"({t.shape[0]}, {gyr.shape[0]}, {acc.shape[0]})")
-    if stream.gyro_unit == "deg/s":
-        gyr = np.deg2rad(gyr)
-    elif stream.gyro_unit != "rad/s":
+    if stream.gyro_unit not in ("deg/s", "rad/s"):
         raise ValueError(f"sensor {stream.sensor_id}: unknown gyro unit {stream.gyro_unit!r}")
-    if stream.acc_unit == "g":
-        acc = acc * G_MPS2
-    elif stream.acc_unit != "m/s2":
+    if stream.acc_unit not in ("g", "m/s2"):
         raise ValueError(f"sensor {stream.sensor_id}: unknown accelerometer unit {stream.acc_unit!r}")
-    # whole-array finiteness first: the row-wise all(axis=1) over (N, 3) is slow and rarely needed
-    if not (np.isfinite(t).all() and np.isfinite(gyr).all() and np.isfinite(acc).all()):
-        finite = np.isfinite(t) & np.isfinite(gyr).all(axis=1) & np.isfinite(acc).all(axis=1)
-        t, gyr, acc = t[finite], gyr[finite], acc[finite]
+    # both converted into the halves of one (N, 6) array, the layout the resampling takes (:func:`_channels`),
+    # so that neither the conversion nor the resampling needs a copy of its own
+    both = np.empty((t.shape[0], 6))
+    fast = si_block is not None and t.shape[0] >= 2
+    # deg2rad is the product with pi / 180 (as numpy computes it); a scale of 1.0 copies
+    if fast and si_block(np.ascontiguousarray(t), gyr, acc, np.pi / 180.0 if stream.gyro_unit == "deg/s" else 1.0,
+                         G_MPS2 if stream.acc_unit == "g" else 1.0, both):
+        return t, both[:, :3], both[:, 3:]  # the usual case: finite, sorted and unique
+    if not fast:
+        if stream.gyro_unit == "deg/s":
+            np.deg2rad(gyr, out=both[:, :3])
+        else:
+            both[:, :3] = gyr
+        if stream.acc_unit == "g":
+            np.multiply(acc, G_MPS2, out=both[:, 3:])
+        else:
+            both[:, 3:] = acc
+    # whole-array finiteness first: the row-wise all(axis=1) over (N, 6) is slow and rarely needed
+    if not (np.isfinite(t).all() and np.isfinite(both).all()):
+        finite = np.isfinite(t) & np.isfinite(both).all(axis=1)
+        t, both = t[finite], both[finite]
     if t.shape[0] < 2 or np.all(np.diff(t) > 0):
-        return t, gyr, acc  # the usual case: already sorted and unique (or nothing to sort)
+        return t, both[:, :3], both[:, 3:]  # the usual case: already sorted and unique (or nothing to sort)
     order = np.argsort(t, kind="stable")
-    t, gyr, acc = t[order], gyr[order], acc[order]
+    t, both = t[order], both[order]
     keep = np.concatenate(([True], np.diff(t) > 0))
-    return t[keep], gyr[keep], acc[keep]
+    t, both = t[keep], both[keep]
+    return t, both[:, :3], both[:, 3:]
+
+
+def _channels(gyr: np.ndarray, acc: np.ndarray) -> np.ndarray:
+    """``np.hstack([gyr, acc])``: the (N, 6) array of :func:`to_si` itself when ``gyr`` and ``acc`` are still its two
+    halves (no copy), else the stacked copy."""
+    base = gyr.base
+    if (isinstance(base, np.ndarray) and base is acc.base and base.dtype == np.float64 and base.flags.c_contiguous
+            and base.shape == (gyr.shape[0], 6) and gyr.shape == acc.shape == (base.shape[0], 3)
+            and gyr.__array_interface__["data"][0] == base.__array_interface__["data"][0]
+            and acc.__array_interface__["data"][0] == base.__array_interface__["data"][0] + 3 * base.itemsize):
+        return base
+    return np.hstack([gyr, acc])
 
 
 def nominal_fs(stream: RawSensorStream, t_s: np.ndarray) -> float:
@@ -113,11 +142,19 @@ def saturation_mask(gyr: np.ndarray, params: PrepareParams = WALKING.prepare) ->
     samples in a row (clipped sensor)."""
     run_len = params.saturation_run
     out = np.zeros(gyr.shape[0], dtype=bool)
+    # the peaks first, all axes in one pass: most recordings never come near a clipping range, and then no axis
+    # needs more (the maximum is exact, so the same peaks)
+    peaks = np.abs(gyr).max(axis=0, initial=0.0)
+    if saturated_runs is not None and gyr.shape[0] >= run_len:
+        # the axes worth testing get their threshold (peak * 0.999, as below), the others none
+        thr = np.where(np.rad2deg(peaks) < params.saturation_min_dps, np.nan, peaks * 0.999)
+        saturated_runs(gyr, thr, int(run_len), out)
+        return out
     for axis in range(3):
-        g = np.abs(gyr[:, axis])
-        peak = g.max(initial=0.0)
+        peak = peaks[axis]
         if np.rad2deg(peak) < params.saturation_min_dps:
             continue
+        g = np.abs(gyr[:, axis])
         at_peak = g >= peak * 0.999
         run = np.convolve(at_peak.astype(int), np.ones(run_len, dtype=int), mode="same") >= run_len
         if run.any():
@@ -138,24 +175,25 @@ def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray, max_bridge_
     if n < 4:
         return np.column_stack([np.interp(t_new, t, x[:, k]) for k in range(x.shape[1])])
     dt = np.diff(t)
-
-    def one_sided(k: np.ndarray | int) -> np.ndarray:
-        """Slope of interval ``k`` (``x[k] -> x[k + 1]``), only where it is needed."""
-        return (x[k + 1] - x[k]) / np.asarray(dt[k])[..., None]
-
+    long_gap = dt > max_bridge_s
+    n_new = t_new.shape[0]
+    out = np.empty((n_new, x.shape[1]))
+    if hermite_eval is not None and central_slopes is not None and np.isfinite(t_new).all():
+        x = np.ascontiguousarray(x, dtype=float)
+        t = np.ascontiguousarray(t, dtype=float)
+        m = np.empty_like(x)
+        central_slopes(t, x, m)
+        _one_sided_slopes(m, x, dt, long_gap)
+        i_all = np.empty(n_new, dtype=np.int64)
+        hermite_eval(np.ascontiguousarray(t_new, dtype=float), t, x, m, dt, i_all, out)
+        return _straight_across_gaps(out, t_new, t, x, dt, long_gap, i_all)
     # slopes: central differences inside, one-sided at the ends and next to long gaps
     m = np.empty_like(x)
     for a in range(1, n - 1, _INTERP_BLOCK):
         b = min(a + _INTERP_BLOCK, n - 1)
         m[a:b] = (x[a + 1:b + 1] - x[a - 1:b - 1]) / (t[a + 1:b + 1] - t[a - 1:b - 1])[:, None]
-    m[0], m[-1] = one_sided(0), one_sided(n - 2)
-    long_gap = dt > max_bridge_s
-    g = np.flatnonzero(long_gap)
-    m[g] = one_sided(np.maximum(g - 1, 0))  # one-sided: the data before the gap
-    m[g + 1] = one_sided(np.minimum(g + 1, n - 2))  # and after it
+    _one_sided_slopes(m, x, dt, long_gap)
     i_all = np.clip(np.searchsorted(t, t_new, side="right") - 1, 0, n - 2)
-    n_new = t_new.shape[0]
-    out = np.empty((n_new, x.shape[1]))
     scratch = np.empty((min(_INTERP_BLOCK, n_new), x.shape[1]))
     for a in range(0, n_new, _INTERP_BLOCK):
         b = min(a + _INTERP_BLOCK, n_new)
@@ -177,6 +215,26 @@ def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray, max_bridge_
         np.take(m, i + 1, axis=0, out=tmp)
         tmp *= ((u3 - u2) * h)[:, None]
         o += tmp
+    return _straight_across_gaps(out, t_new, t, x, dt, long_gap, i_all)
+
+
+def _one_sided_slopes(m: np.ndarray, x: np.ndarray, dt: np.ndarray, long_gap: np.ndarray) -> None:
+    """One-sided slopes in ``m`` at both ends and next to long gaps (from the data on the gap's own side)."""
+    n = x.shape[0]
+
+    def one_sided(k: np.ndarray | int) -> np.ndarray:
+        """Slope of interval ``k`` (``x[k] -> x[k + 1]``), only where it is needed."""
+        return (x[k + 1] - x[k]) / np.asarray(dt[k])[..., None]
+
+    m[0], m[-1] = one_sided(0), one_sided(n - 2)
+    g = np.flatnonzero(long_gap)
+    m[g] = one_sided(np.maximum(g - 1, 0))  # one-sided: the data before the gap
+    m[g + 1] = one_sided(np.minimum(g + 1, n - 2))  # and after it
+
+
+def _straight_across_gaps(out: np.ndarray, t_new: np.ndarray, t: np.ndarray, x: np.ndarray, dt: np.ndarray,
+                          long_gap: np.ndarray, i_all: np.ndarray) -> np.ndarray:
+    """``out`` with the grid samples inside long gaps on the straight line between the gap's edge samples."""
     lin = long_gap[i_all]
     if lin.any():
         il = i_all[lin]
@@ -242,15 +300,24 @@ def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.nd
     a = g[c] - mean
     a2 = a ** 2
     score = np.full(lags.size, -np.inf)
+    fast = shifted_context is not None and bad.dtype == np.bool_ and bad.flags.c_contiguous
     for sign in (-1, 1):
-        src = c[None, :] + sign * lags[:, None]  # (lags, context)
-        ok = (src >= 0) & (src < n)
-        ok[ok] = ~bad[src[ok]]
-        b = g[np.clip(src, 0, n - 1)]  # (lags, context, 3)
-        b -= mean
-        w = ok[:, :, None]
-        # w is 0 or 1, so w * b * b == (w * b) ** 2 and w * a * b == a * (w * b) exactly: the masked terms in place
-        b *= w
+        if fast:
+            b = np.empty((lags.size, c.size, 3))
+            ok = np.empty((lags.size, c.size), dtype=bool)
+            shifted_context(g, bad, c.astype(np.int64, copy=False), lags.astype(np.int64, copy=False), sign,
+                            np.ascontiguousarray(mean, dtype=float), b, ok)
+            w = ok[:, :, None]
+        else:
+            src = c[None, :] + sign * lags[:, None]  # (lags, context)
+            ok = (src >= 0) & (src < n)
+            ok[ok] = ~bad[src[ok]]
+            b = g[np.clip(src, 0, n - 1)]  # (lags, context, 3)
+            b -= mean
+            w = ok[:, :, None]
+            # w is 0 or 1, so w * b * b == (w * b) ** 2 and w * a * b == a * (w * b) exactly: the masked terms
+            # in place
+            b *= w
         num = np.sum(a[None] * b, axis=(1, 2))
         den = np.sqrt(np.sum(w * a2[None], axis=(1, 2)) * np.sum(np.square(b, out=b), axis=(1, 2)))
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -329,9 +396,14 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
     if keep_grid:
         t_grid, t_start = reuse.t_s, float(reuse.t_s[0])
     gaps2, br2, noted2 = find_gaps(t2, fs2, params)
-    sat1 = saturation_mask(g1, params)
-    sat2 = saturation_mask(g2, params)
-    saturated = (np.interp(t_grid, t1, sat1.astype(float)) > 0) | (np.interp(t_grid, t2, sat2.astype(float)) > 0)
+    if keep_grid and reuse.thigh_saturated is not None:
+        sat_thigh = reuse.thigh_saturated  # same stamps, same grid: the same samples
+    else:
+        sat_thigh = np.interp(t_grid, t1, saturation_mask(g1, params).astype(float)) > 0
+    # the shank's samples are the same in a re-stamped pass (only their stamps moved): the same raw mask
+    sat_shank = reuse.shank_saturated_raw if reuse is not None and reuse.shank_saturated_raw is not None \
+        and reuse.shank_saturated_raw.shape[0] == g2.shape[0] else saturation_mask(g2, params)
+    saturated = sat_thigh | (np.interp(t_grid, t2, sat_shank.astype(float)) > 0)
     if keep_grid:
         # the first pass's arrays themselves (never modified in place): same values and memory layout
         gyr_thigh, acc_thigh = reuse.gyr_thigh_rps, reuse.acc_thigh_mps2
@@ -340,11 +412,11 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
     else:
         gaps1, br1, noted1 = find_gaps(t1, fs1, params)
         thigh6, filled1, gaps1 = periodic_fill(
-            t_grid, _interp_columns(t_grid, t1, np.hstack([g1, a1]), params.max_bridge_s), gaps1, fs_hz, params)
+            t_grid, _interp_columns(t_grid, t1, _channels(g1, a1), params.max_bridge_s), gaps1, fs_hz, params)
         br1 += len(filled1)
         gyr_thigh, acc_thigh = thigh6[:, :3], thigh6[:, 3:]
     shank6, filled2, gaps2 = periodic_fill(
-        t_grid, _interp_columns(t_grid, t2, np.hstack([g2, a2]), params.max_bridge_s), gaps2, fs_hz, params)
+        t_grid, _interp_columns(t_grid, t2, _channels(g2, a2), params.max_bridge_s), gaps2, fs_hz, params)
     br2 += len(filled2)
     gaps = sorted(gaps1 + gaps2)
     valid = ~_mask_intervals(t_grid, gaps)
@@ -355,6 +427,7 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
         valid=valid, saturated=saturated, gaps_s=_merge_intervals(gaps), bridged_gaps=br1 + br2,
         bridged_s=_merge_intervals(noted1 + noted2), filled_s=_merge_intervals(filled1 + filled2),
         thigh_gaps_s=gaps1, thigh_filled_s=filled1, thigh_noted_s=noted1, shank_bridged=br2,
+        thigh_saturated=sat_thigh, shank_saturated_raw=sat_shank,
     )
 
 

@@ -6,12 +6,21 @@ from collections.abc import Sequence
 from functools import lru_cache
 
 import numpy as np
-from scipy.signal import butter, sosfiltfilt
+from scipy.signal import butter, sosfilt_zi, sosfiltfilt
+
+from pipeline import kernels
+from pipeline.kernels import filtfilt_columns
 
 
 @lru_cache(maxsize=64)
 def _butter_sos(order: int, cutoff_hz: float, fs_hz: float) -> np.ndarray:
     return butter(order, cutoff_hz / (0.5 * fs_hz), output="sos")
+
+
+@lru_cache(maxsize=64)
+def _sos_zi(order: int, cutoff_hz: float, fs_hz: float) -> np.ndarray:
+    """Steady-state initial conditions of :func:`_butter_sos`'s sections, as ``sosfiltfilt`` computes them."""
+    return sosfilt_zi(_butter_sos(order, cutoff_hz, fs_hz))
 
 
 def lowpass(x: np.ndarray, cutoff_hz: float, fs_hz: float, order: int = 2) -> np.ndarray:
@@ -22,7 +31,12 @@ def lowpass(x: np.ndarray, cutoff_hz: float, fs_hz: float, order: int = 2) -> np
         return x.copy()
     sos = _butter_sos(order, float(cutoff_hz), float(fs_hz))
     padlen = min(x.shape[0] - 1, 3 * (2 * len(sos) + 1))
-    return sosfiltfilt(sos, x, axis=0, padlen=padlen)
+    if filtfilt_columns is None or x.ndim > 2:
+        return sosfiltfilt(sos, x, axis=0, padlen=padlen)
+    cols = x.reshape(x.shape[0], -1)
+    out = np.empty(cols.shape)
+    filtfilt_columns(sos, _sos_zi(order, float(cutoff_hz), float(fs_hz)), cols, int(padlen), out)
+    return out.reshape(x.shape)
 
 
 def true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -42,7 +56,14 @@ def fill_invalid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
     # row-wise all() over (N, 3) is slow; the usual all-finite case needs no per-row test
     if not fin.all():
         ok = ok & (fin if x.ndim == 1 else fin.all(axis=1))
-    if ok.all() or not ok.any():
+    return _fill_invalid_finite(x, ok)
+
+
+def _fill_invalid_finite(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """:func:`fill_invalid` once the non-finite samples are in ``~ok``."""
+    if ok.all():
+        return x.copy()  # every sample finite: what np.nan_to_num would return, without its four searches
+    if not ok.any():
         return np.nan_to_num(x)
     # only the invalid samples are interpolated: np.interp returns a node's own value exactly, so the valid ones
     # would come back unchanged anyway (same result as interpolating every sample, far fewer points). An invalid
@@ -57,7 +78,7 @@ def fill_invalid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
         return out
     good = x[xp]
     for k in range(x.shape[1]):
-        out[bad, k] = np.interp(at, xp, good[:, k])
+        out[at, k] = np.interp(at, xp, good[:, k])  # the same samples as out[bad, k], by index: faster
     return out
 
 
@@ -90,10 +111,34 @@ def lowpass_runs_many(xs: Sequence[np.ndarray], valid: np.ndarray, cutoff_hz: fl
     return res
 
 
+def lowpass_runs_zeroed(xs: Sequence[np.ndarray], valid: np.ndarray, cutoff_hz: float, fs_hz: float,
+                        order: int = 2) -> list[np.ndarray]:
+    """``np.nan_to_num`` of each :func:`lowpass_runs_many` output (masked samples 0, NaN-free), for the fits: the
+    masked samples are zeroed directly instead of being set to NaN and then searched for NaN and infinities (four
+    passes over each output). The filter runs column by column, so filtering each signal on its own gives the
+    stacked call's values without stacking the inputs and splitting the outputs. Filtering finite input gives
+    finite output, so the values are the same; should a filter ever overflow, the general path decides."""
+    xs = [np.asarray(x, dtype=float) for x in xs]
+    ok = np.asarray(valid, dtype=bool)
+    if all(np.isfinite(x).all() for x in xs):
+        res = []
+        for x in xs:
+            out = lowpass(_fill_invalid_finite(x, ok), cutoff_hz, fs_hz, order)  # finite: ok is the mask as is
+            out[~ok] = 0.0
+            res.append(np.ascontiguousarray(out))
+        if all(np.isfinite(r).all() for r in res):
+            return res
+    return [np.nan_to_num(x) for x in lowpass_runs_many(xs, valid, cutoff_hz, fs_hz, order)]
+
+
 def row_norm(x: np.ndarray) -> np.ndarray:
     """Euclidean norm of each row of an (N, 3) array. Bit-identical to ``np.linalg.norm(x, axis=1)`` (whose
     reduction over a length-3 axis adds the squares in the same left-to-right order) and about five times faster."""
     x = np.asarray(x, dtype=float)
+    if kernels.row_norm is not None and x.ndim == 2 and x.shape[1] == 3:
+        out = np.empty(x.shape[0])
+        kernels.row_norm(x, out)
+        return out
     x0, x1, x2 = x[:, 0], x[:, 1], x[:, 2]
     return np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
 
@@ -104,6 +149,10 @@ def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     cost more than the arithmetic at these sizes)."""
     a = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float)
+    if kernels.cross_rows is not None and a.ndim == 2 and a.shape[1] == 3 and b.shape in ((3,), a.shape):
+        out = np.empty((a.shape[0], 3))
+        kernels.cross_rows(a, b.reshape(-1, 3), out)
+        return out
     a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
     out = np.empty((a.shape[0], 3))

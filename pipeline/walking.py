@@ -22,17 +22,16 @@ from pipeline.leg_input import LegInput
 from pipeline.params import PipelineParams
 from pipeline.phases import GaitEvents, detect_gait_events
 from pipeline.prepare import PreparedLeg
-from pipeline.signal_utils import lowpass_runs_many
+from pipeline.signal_utils import lowpass_runs_zeroed
 
 
 def fit_gyros(prep: PreparedLeg, cutoff_hz: float, thigh: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Thigh and shank gyros (N, 3) [rad/s] low-passed at ``cutoff_hz`` for the fits, NaN-free. ``thigh``: the
     thigh's already, from :func:`reusable_thigh_fit`; then only the shank is filtered."""
     if thigh is not None:
-        (g2,) = lowpass_runs_many((prep.gyr_shank_rps,), prep.valid, cutoff_hz, prep.fs_hz)
-        return thigh, np.nan_to_num(g2)
-    g1, g2 = (np.nan_to_num(g) for g in lowpass_runs_many((prep.gyr_thigh_rps, prep.gyr_shank_rps), prep.valid,
-                                                            cutoff_hz, prep.fs_hz))
+        (g2,) = lowpass_runs_zeroed((prep.gyr_shank_rps,), prep.valid, cutoff_hz, prep.fs_hz)
+        return thigh, g2
+    g1, g2 = lowpass_runs_zeroed((prep.gyr_thigh_rps, prep.gyr_shank_rps), prep.valid, cutoff_hz, prep.fs_hz)
     return g1, g2
 
 
@@ -85,8 +84,7 @@ def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: Joi
         axes = dataclasses.replace(axes, j1=j1)
         rate = np.rad2deg(prep.gyr_thigh_rps @ axes.j1 - prep.gyr_shank_rps @ axes.j2)
         rate[~valid] = np.nan
-    a1, a2 = (np.nan_to_num(a) for a in lowpass_runs_many((prep.acc_thigh_mps2, prep.acc_shank_mps2), valid,
-                                                            cutoff, fs))
+    a1, a2 = lowpass_runs_zeroed((prep.acc_thigh_mps2, prep.acc_shank_mps2), valid, cutoff, fs)
     gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)
     # joint centres only tell standing from sitting (upright test of the standing reference, pipeline.posture):
     # their in-plane directions are too uncertain for the absolute zero itself.

@@ -34,7 +34,7 @@ from pipeline.estimators.kf import (
 )
 from pipeline.filter_inputs import debiased_rate, r_scale, run_per_segment, update_mask
 from pipeline.leg_input import LegInput
-from pipeline.signal_utils import lowpass_runs_many
+from pipeline.signal_utils import lowpass_runs_zeroed
 
 DEG2_TO_RAD2 = math.radians(1.0) ** 2
 
@@ -161,9 +161,9 @@ def plane_accelerations(leg: LegInput) -> tuple[np.ndarray, np.ndarray]:
     if leg.prefiltered:
         g1, g2, a1, a2 = prep.gyr_thigh_rps, prep.gyr_shank_rps, prep.acc_thigh_mps2, prep.acc_shank_mps2
     else:
-        g1, g2, a1, a2 = (np.nan_to_num(x) for x in lowpass_runs_many(
+        g1, g2, a1, a2 = lowpass_runs_zeroed(
             (prep.gyr_thigh_rps, prep.gyr_shank_rps, prep.acc_thigh_mps2, prep.acc_shank_mps2), prep.valid,
-            leg.params.axes.fit_cutoff_hz, fs))
+            leg.params.axes.fit_cutoff_hz, fs)
     centres = leg.centres
     j1, j2 = leg.axes.j1, leg.axes.j2
     x1, x2 = joint_plane_frames(centres, j1, j2)
