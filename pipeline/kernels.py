@@ -1,5 +1,6 @@
-"""Compiled loops for the hottest array passes of the pipeline (numba, when installed), each computing exactly the
-numpy/scipy expression it replaces, operation for operation, so results are bit-identical either way:
+"""Compiled loops for the hottest array passes of the pipeline (numba, when installed: the optional `fast` extra),
+each computing exactly the numpy/scipy expression it replaces, operation for operation, so results are
+bit-identical either way:
 
 - :func:`filtfilt_columns`: ``scipy.signal.sosfiltfilt(sos, x, axis=0, padlen=padlen)`` with odd padding, column by
   column in one buffer (scipy copies the columns into rows, pads, filters, reverses and copies back, one array pass
@@ -33,7 +34,7 @@ import numpy as np
 
 try:
     import numba
-except ImportError:  # pragma: no cover - numba is a declared dependency; the numpy paths stay exact without it
+except ImportError:  # numba is optional (extra `fast`): the numpy paths give the same values
     numba = None
 if numba is not None and numba.config.DISABLE_JIT:
     numba = None  # NUMBA_DISABLE_JIT=1 would run these loops as Python, far slower than the numpy paths

@@ -14,7 +14,8 @@ from pipeline.types import RawSensorStream
 
 
 def test_kernels_are_compiled() -> None:
-    """numba is a dependency: the speed targets rest on these loops."""
+    """The test environment installs numba (the `fast` extra is part of `dev`), so the compiled loops are what the
+    suite runs and what the tests below compare with the numpy paths; without it they would be silently absent."""
     assert kernels.filtfilt_columns is not None
     assert kernels.hermite_eval is not None
     assert kernels.central_slopes is not None
