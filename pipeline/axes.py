@@ -13,8 +13,9 @@ Sign convention (the knee flexion rate ``g1.j1 - g2.j2`` is positive for flexion
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import leastsq
@@ -65,6 +66,10 @@ class JointCentres:
     o2: np.ndarray  # position of the shank sensor relative to the knee centre, shank frame [m]
     rms_residual_mps2: float
     absolute: bool  # True when both in-plane sensor->knee directions are well defined (absolute angle possible)
+    # constant accelerometer biases fitted with the centres (thigh / shank frame) [m/s^2]: nuisance parameters that
+    # keep the centres from absorbing the biases (:func:`fit_joint_centres`), not applied to the angles
+    b1: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    b2: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 def select_fit_samples(g1: np.ndarray, g2: np.ndarray, valid: np.ndarray,
@@ -295,18 +300,31 @@ def gamma_matrices(g: np.ndarray, gd: np.ndarray) -> np.ndarray:
 
 def _centre_split(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray,
                   m2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return a1 - np.einsum("nij,j->ni", m1, x[:3]), a2 - np.einsum("nij,j->ni", m2, x[3:])
+    """``a - b - M o`` of both segments; ``x`` = (o1, o2) or (o1, o2, b1, b2)."""
+    v1, v2 = a1 - np.einsum("nij,j->ni", m1, x[:3]), a2 - np.einsum("nij,j->ni", m2, x[3:6])
+    if x.size == 12:
+        v1, v2 = v1 - x[6:9], v2 - x[9:12]
+    return v1, v2
 
 
 class _CentreProblem:
     """Seel Eq. 5 residual and Jacobian on one sample set, sharing ``a - M o`` and its norms between the two (MINPACK
-    evaluates the Jacobian where it last evaluated the residuals); same arithmetic, same result."""
+    evaluates the Jacobian where it last evaluated the residuals); same arithmetic, same result.
 
-    def __init__(self, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray, centre_reg: float) -> None:
+    With ``bias_weight`` the unknowns are (o1, o2, b1, b2): each accelerometer's constant bias b_i is taken off its
+    samples (``||a1 - b1 - Gamma1 o1|| - ||a2 - b2 - Gamma2 o2||``) and pulled towards 0 by the rows
+    ``bias_weight * b``, a Gaussian prior on the bias (:func:`fit_joint_centres`)."""
+
+    def __init__(self, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray, centre_reg: float,
+                 bias_weight: float | None = None) -> None:
         self.args = (a1, m1, a2, m2)
         self.centre_reg = centre_reg
         self.reg = centre_reg * np.sqrt(a1.shape[0])
-        self._reg_rows = self.centre_reg * np.sqrt(a1.shape[0]) * np.eye(6)  # the pull's rows of the Jacobian
+        self.k = 6 if bias_weight is None else 12
+        self.w = np.full(self.k, self.reg)
+        if bias_weight is not None:
+            self.w[6:] = bias_weight
+        self._reg_rows = np.diag(self.w)  # the pulls' rows of the Jacobian
         self._x: np.ndarray | None = None
         self._parts: tuple[np.ndarray, ...] = ()
 
@@ -318,37 +336,42 @@ class _CentreProblem:
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         _, _, n1, n2 = self._eval(x)
-        n = n1.shape[0]
-        out = np.empty(n + 6)
+        n, k = n1.shape[0], self.k
+        out = np.empty(n + k)
         np.subtract(n1, n2, out=out[:n])
-        np.multiply(self.reg, x, out=out[n:])
+        np.multiply(self.w, x, out=out[n:])
         return out
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         v1, v2, n1, n2 = self._eval(x)
         _, m1, _, m2 = self.args
-        n = n1.shape[0]
+        n, k = n1.shape[0], self.k
         n1, n2 = np.maximum(n1, _EPS)[:, None], np.maximum(n2, _EPS)[:, None]
         # written into one preallocated array: the values of the stacked blocks, without the stacking copies
-        out = np.empty((n + 6, 6))
-        out[:n, :3] = np.einsum("ni,nij->nj", v1 / n1, m1)
+        out = np.empty((n + k, k))
+        u1, u2 = v1 / n1, v2 / n2
+        out[:n, :3] = np.einsum("ni,nij->nj", u1, m1)
         np.negative(out[:n, :3], out=out[:n, :3])
-        out[:n, 3:] = np.einsum("ni,nij->nj", v2 / n2, m2)
+        out[:n, 3:6] = np.einsum("ni,nij->nj", u2, m2)
+        if k == 12:
+            np.negative(u1, out=out[:n, 6:9])
+            out[:n, 9:12] = u2
         out[n:] = self._reg_rows
         return out
 
 
-def _centre_resid(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray,
-                  centre_reg: float) -> np.ndarray:
-    """Seel Eq. 5 residual: ||a1 - Gamma1(o1)|| - ||a2 - Gamma2(o2)|| per sample, plus a weak pull of o towards 0:
-    the cost is flat when both centres slide along the axis (Eq. 5's final projection), and without the pull the
-    solver can wander along that valley to metres."""
-    return _CentreProblem(a1, m1, a2, m2, centre_reg).residuals(x)
+def _centre_resid(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray) -> np.ndarray:
+    """Seel Eq. 5 residual per sample: ||a1 - Gamma1(o1)|| - ||a2 - Gamma2(o2)|| (with ``x`` of 12 entries, the
+    biases b_i taken off a_i first). The pull rows are left off: the cost is flat when both centres slide along the
+    axis (Eq. 5's final projection), and the fit's weak pull of o towards 0 keeps the solver from wandering along
+    that valley to metres."""
+    return np.subtract(*(row_norm(v) for v in _centre_split(x, a1, m1, a2, m2)))
 
 
 def _lsq_centres(x0: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray,
-                 centre_reg: float) -> _Fit:
-    prob = _CentreProblem(a1, m1, a2, m2, centre_reg)
+                 centre_reg: float, bias_weight: float | None = None) -> _Fit:
+    """Eq. 5 least squares from ``x0``: (o1, o2), or (o1, o2, b1, b2) with ``bias_weight`` (:class:`_CentreProblem`)."""
+    prob = _CentreProblem(a1, m1, a2, m2, centre_reg, bias_weight)
     return _lm(prob.residuals, prob.jacobian, x0)
 
 
@@ -357,6 +380,18 @@ def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.nd
                       ) -> JointCentres:
     """Joint-centre positions by Seel's Eq. 5 (Rhudy et al. 2024, Eq. 5), least squares with analytic Jacobian,
     then shifted along the axes as in Eq. 5 (the cost is blind to sliding both along j). Inputs: a bounded sample set.
+
+    Eq. 5 assumes bias-free accelerometers. A constant bias b_i of a few 0.01 g adds ``b1.u1 - b2.u2`` to the
+    residual (u_i: direction of the knee-centre acceleration, mostly gravity, in sensor i's frame), which the
+    centres would otherwise absorb, centimetres off in the joint plane. So the fit is refined once more with both
+    biases as six more unknowns under a zero-mean Gaussian prior of SD ``AxesParams.centre_bias_prior_mps2``
+    (maximum a posteriori: residual rows and prior rows ``(sigma_r / sigma_b) b`` in one least-squares problem,
+    sigma_r the residual RMS of the fit without biases). In-plane components are observable wherever the segments
+    tilt against gravity (stance to swing, sitting); the components along the axis and the part common to both
+    segments' gravity directions hardly are, and the prior holds those near 0. The biases are nuisance parameters:
+    their in-plane estimates are as uncertain as the biases are large (sweep tune seeds: error ~0.1-0.4 m/s^2 for
+    biases of ~0.1), so they correct the centres, not the angles (taken off the accelerometer angle too, they
+    made 8 jumps in a row worse, peak bias -1.4 -> -2.2 deg).
     """
     m1, m2 = gamma_matrices(g1, gd1), gamma_matrices(g2, gd2)
     # MINPACK Levenberg-Marquardt (a 6-parameter problem; the trust-region solver's SVDs cost far more here).
@@ -371,23 +406,28 @@ def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.nd
     # the two best subset solutions refined on all samples: the subset alone can prefer a mirrored minimum
     sol = min((_lsq_centres(t.x, a1, m1, a2, m2, reg) for t in trials[:2]), key=lambda r: r.cost)
     # one trimming pass: a few samples (next to gaps, impacts) can carry metres-per-second-squared of misfit
-    r = _centre_resid(sol.x, a1, m1, a2, m2, reg)[:-6]
+    r = _centre_resid(sol.x, a1, m1, a2, m2)
     mad = float(np.median(np.abs(r - np.median(r)))) + 1e-9
     keep = np.abs(r - np.median(r)) < 6.0 * mad
     if keep.sum() >= 50 and not keep.all():
         a1, m1, a2, m2 = a1[keep], m1[keep], a2[keep], m2[keep]
         sol = _lsq_centres(sol.x, a1, m1, a2, m2, reg)
-    o1h, o2h = sol.x[:3], sol.x[3:]
+    x = sol.x
+    if params.centre_bias_prior_mps2 > 0:
+        sigma_r = float(np.sqrt(np.mean(_centre_resid(x, a1, m1, a2, m2) ** 2)))
+        x = _lsq_centres(np.concatenate([x, np.zeros(6)]), a1, m1, a2, m2, reg,
+                         bias_weight=max(sigma_r, _EPS) / params.centre_bias_prior_mps2).x
+    b1, b2 = (x[6:9], x[9:12]) if x.size == 12 else (np.zeros(3), np.zeros(3))
+    o1h, o2h = x[:3], x[3:6]
     shift = (o1h @ j1 + o2h @ j2) / 2.0
     o1, o2 = o1h - j1 * shift, o2h - j2 * shift
-    r = _centre_resid(sol.x, a1, m1, a2, m2, reg)[:-6]
+    r = _centre_resid(x, a1, m1, a2, m2)
+    rms = float(np.sqrt(np.mean(r ** 2)))
     if max(np.linalg.norm(o1), np.linalg.norm(o2)) > params.max_lever_m:
         # not a body-worn sensor position: no lever-arm correction rather than a wrong one
-        return JointCentres(o1=np.zeros(3), o2=np.zeros(3), rms_residual_mps2=float(np.sqrt(np.mean(r ** 2))),
-                            absolute=False)
+        return JointCentres(o1=np.zeros(3), o2=np.zeros(3), rms_residual_mps2=rms, absolute=False)
     in_plane = min(np.linalg.norm(o1 - (o1 @ j1) * j1), np.linalg.norm(o2 - (o2 @ j2) * j2))
-    return JointCentres(o1=o1, o2=o2, rms_residual_mps2=float(np.sqrt(np.mean(r ** 2))),
-                        absolute=bool(in_plane > 0.03))
+    return JointCentres(o1=o1, o2=o2, rms_residual_mps2=rms, absolute=bool(in_plane > 0.03), b1=b1, b2=b2)
 
 
 def fit_margin_mask(valid: np.ndarray, fs_hz: float, params: AxesParams = WALKING.axes) -> np.ndarray:
@@ -419,6 +459,10 @@ def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: n
     idx = select_fit_samples(g1, g2, inner, params)
     if idx.size < 10 * k_max:
         return None
+    # no accelerometer biases in the profile: refitted at every lag they absorb part of the offset (straight walking,
+    # 15 ms injected: 18.9 ms read; none injected: -8 ms invented), and held at the zero-lag fit's values they carry
+    # that fit's timing misfit (15 ms read as 4.9)
+    params = dataclasses.replace(params, centre_bias_prior_mps2=0.0)
     centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], j1, j2, params)
     x0 = np.concatenate([centres.o1, centres.o2])
     m1 = gamma_matrices(g1[idx], gd1[idx])

@@ -67,6 +67,14 @@ class AxesParams:
     centre_reg: float = 0.05
     """Pull of the centres towards 0 [m/s^2 per m, per sample]: negligible against real misfit, fixes the flat
     valley of Eq. 5 along the axis."""
+    centre_bias_prior_mps2: float = 0.0
+    """SD [m/s^2] of the zero-mean prior on each accelerometer axis's constant bias, fitted with the joint centres
+    as a nuisance parameter (:func:`pipeline.axes.fit_joint_centres`); 0 fits no bias. Off: at 0.3 (~0.03 g, the
+    zero-g offset class of consumer MEMS accelerometers) the centres are right to ~1 cm where biases pulled them
+    5-20 cm off, and most sweep rows improve (report seeds: 0 g peak LoA -2.1 .. 3.6 -> -2.1 .. 3.3, sit-to-stand
+    -2.3 .. 4.4 -> -1.4 .. 3.6), but the weakly observable bias combinations follow the misfit, not the bias: fast
+    walking's peak bias -1.56 -> -1.80 deg, one fast-walking leg -4.7 -> -6.0, and a 12-minute session processed in
+    blocks no longer matches itself in one block (peak median difference 2.2 deg, 0.5 allowed)."""
 
 
 @dataclass(frozen=True)

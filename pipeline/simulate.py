@@ -843,7 +843,8 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
                 gyr=np.degrees(gyr[keep]) * gyro_scale, acc=acc[keep] * acc_scale,
                 gyro_unit=cfg.gyro_unit, acc_unit=cfg.acc_unit))
             info["sensors"][sid] = {"mounting": r_mount.tolist(), "lever_arm_m": lever.tolist(),
-                                    "gyro_bias_dps": np.degrees(gbias).tolist(), "dropped": int((~keep).sum()),
+                                    "gyro_bias_dps": np.degrees(gbias).tolist(),
+                                    "acc_bias_mps2": abias.tolist(), "dropped": int((~keep).sum()),
                                     **clock}
     activity = "running" if cfg.pattern == "running" else "walking"
     return SimSession(cfg, activity, float(t[-1]), streams, truth, info)
