@@ -279,7 +279,7 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
 
 def _strides(leg: str, data: LegInput, result: PolicyResult) -> list[StrideMetrics]:
     """Metrics of every stride whose angle is finite throughout, with the policy's choice for it and the data's
-    own reasons (:mod:`pipeline.quality`: filled gaps, unsteady bout edges)."""
+    own reasons (:mod:`pipeline.quality`: filled gaps and long bridges, unsteady bout edges)."""
     angle, t_s = result.angle_deg, data.prep.t_s
     events = data.events
     out: list[StrideMetrics] = []
