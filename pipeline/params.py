@@ -293,6 +293,18 @@ class QualityParams:
     trend threshold."""
     untrusted_cap: float = 0.3
     """Quality ceiling of a stride with an untrusted reason."""
+    peak_lead_s: float = 0.15
+    """A hole that ends up to this long [s] before a stride's swing peak counts as under the peak
+    (``peak_in_gap``): the peak closes the swing-flexion rise (~0.15 s from toe-off, at 300-400 deg/s), and the
+    integrated estimate carries any error of a modelled rise into the peak. Holes cut into every other stride of
+    loss-free tune sessions (100 Hz, seeds 0-2, ~235 strides per case): fills of 0.15-0.2 s centred 0.1-0.2 s
+    before the peak moved it by up to 9-11 deg (p95 2-7 deg; uncut strides <= 3 deg) and were never flagged."""
+    bridged_peak_s: float = 0.1
+    """A hole bridged by the cubic (``pipeline.prepare``, up to ``PrepareParams.max_bridge_s``) longer than this
+    [s] at or within ``peak_lead_s`` before the swing peak makes the peak a model as well. Same experiment, holes
+    centred 0-0.2 s before the peak: steps of ~0.10 s moved it by <= 1.5 deg (max), 0.11-0.12 s by <= 2.5 deg,
+    0.13-0.14 s by <= 3.9 deg (p95 3.5); the uncut strides of the same runs moved by <= 0.4-1.5 deg. The knee's
+    swing peak itself is a smooth maximum: a hole centred on it moves it no more than the uncut strides move."""
     unmeasured_level: tuple[str, ...] = ("assumed_level",)
     """Reasons that leave the stride's absolute level an assumption (no calibration): its shape and ROM are
     measured, its peak and minimum flexion carry the unknown standing flexion (0-15 deg in patients), so it may

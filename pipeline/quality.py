@@ -10,7 +10,8 @@ reasons come from :mod:`pipeline.policy`; the data's reasons from here:
 - ``bridged_gap``: the stride holds a hole filled from the neighbouring strides
   (:func:`pipeline.prepare.periodic_fill`);
 - ``event_in_gap``: a heel strike or toe-off lies in such a hole (its timing is the neighbours', not measured);
-- ``peak_in_gap``: the stride's swing peak or minimum of the angle lies in it (the metric itself is a model);
+- ``peak_in_gap``: the stride's swing peak or minimum of the angle lies in it, or the swing-flexion rise just
+  before the peak does, or a cubic bridge too long to keep that rise (the metric itself is a model);
 - ``bout_edge``: the first or last stride of a bout is not steady (gait initiation and termination change stride
   time and swing speed: Jian et al. 1993, steady state within ~2 strides).
 """
@@ -34,34 +35,52 @@ def stride_quality(reasons: Sequence[str], params: QualityParams = WALKING.quali
     return round(q, 3)
 
 
+def _hole_mask(t_s: np.ndarray, holes: Sequence[tuple[float, float]], margin: int, lead_s: float = 0.0
+               ) -> np.ndarray:
+    """True for the samples of ``t_s`` in any hole ``(t_last_before, t_first_after)`` or up to ``lead_s`` [s]
+    after it, widened by ``margin`` samples on either side."""
+    n = t_s.shape[0]
+    marks = np.zeros(n + 1, dtype=int)
+    for g0, g1 in holes:
+        i0 = max(int(np.searchsorted(t_s, g0, side="right")) - margin, 0)
+        i1 = min(int(np.searchsorted(t_s, g1 + lead_s, side="left")) + margin, n)
+        if i1 > i0:
+            marks[i0] += 1
+            marks[i1] -= 1
+    return np.cumsum(marks)[:-1] > 0
+
+
 def gap_reasons(t_s: np.ndarray, filled_s: Sequence[tuple[float, float]], angle_deg: np.ndarray,
-                strides: Sequence[tuple[int, int, int]], margin: int = 1) -> list[tuple[str, ...]]:
+                strides: Sequence[tuple[int, int, int]], margin: int = 1,
+                bridged_s: Sequence[tuple[float, float]] = (), peak_lead_s: float = 0.0
+                ) -> list[tuple[str, ...]]:
     """The gap reasons of each stride ``(hs, to, hs_next)`` (sample indices of ``t_s``) against the filled holes
     ``filled_s`` (``(t_last_before, t_first_after)`` [s]). ``angle_deg`` (N,): finite on the strides. An event or
-    extremum within ``margin`` samples of a hole counts as inside (the fill is matched to its edge samples)."""
-    if not filled_s or not strides:
+    extremum within ``margin`` samples of a hole counts as inside (the fill is matched to its edge samples).
+
+    The swing peak is also ``peak_in_gap`` when it lies up to ``peak_lead_s`` [s] after a hole (a modelled part of
+    the swing-flexion rise sets the peak's level) and for the holes ``bridged_s`` as well (bridged by the cubic
+    but too long for it to keep the rise; their other reasons come from the policy): see
+    ``QualityParams.peak_lead_s`` and ``QualityParams.bridged_peak_s``."""
+    if not (filled_s or bridged_s) or not strides:
         return [() for _ in strides]
-    n = t_s.shape[0]
-    holes = np.zeros(n + 1, dtype=int)
-    for g0, g1 in filled_s:
-        i0 = max(int(np.searchsorted(t_s, g0, side="right")) - margin, 0)
-        i1 = min(int(np.searchsorted(t_s, g1, side="left")) + margin, n)
-        if i1 > i0:
-            holes[i0] += 1
-            holes[i1] -= 1
-    inside = np.cumsum(holes)[:-1] > 0
+    inside = _hole_mask(t_s, filled_s, margin)
+    near = _hole_mask(t_s, [*filled_s, *bridged_s], margin, peak_lead_s)
     cum = np.concatenate(([0], np.cumsum(inside)))
+    cum_near = np.concatenate(([0], np.cumsum(near)))
     out: list[tuple[str, ...]] = []
     for a, t, b in strides:
-        if cum[b + 1] == cum[a]:
+        if cum_near[b + 1] == cum_near[a]:
             out.append(())
             continue
-        reasons = ["bridged_gap"]
-        if inside[a] or inside[t] or inside[b]:
-            reasons.append("event_in_gap")
+        reasons = []
+        if cum[b + 1] != cum[a]:
+            reasons.append("bridged_gap")
+            if inside[a] or inside[t] or inside[b]:
+                reasons.append("event_in_gap")
         peak = t + int(np.argmax(angle_deg[t:b + 1]))
         low = a + int(np.argmin(angle_deg[a:b + 1]))
-        if inside[peak] or inside[low]:
+        if near[peak] or inside[low]:
             reasons.append("peak_in_gap")
         out.append(tuple(reasons))
     return out

@@ -279,7 +279,7 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
 
 def _strides(leg: str, data: LegInput, result: PolicyResult) -> list[StrideMetrics]:
     """Metrics of every stride whose angle is finite throughout, with the policy's choice for it and the data's
-    own reasons (:mod:`pipeline.quality`: filled gaps, unsteady bout edges)."""
+    own reasons (:mod:`pipeline.quality`: filled gaps and long bridges, unsteady bout edges)."""
     angle, t_s = result.angle_deg, data.prep.t_s
     events = data.events
     out: list[StrideMetrics] = []
@@ -287,12 +287,14 @@ def _strides(leg: str, data: LegInput, result: PolicyResult) -> list[StrideMetri
     bad_cum = np.concatenate(([0], np.cumsum(~np.isfinite(angle))))
     kept = [(s, c) for s, c in zip(events.strides, result.choices, strict=True) if bad_cum[s[2] + 1] == bad_cum[s[0]]]
     triples = [s for s, _ in kept]
-    gap = gap_reasons(t_s, data.prep.filled_s, angle, triples)
+    qp = data.params.quality
+    # bridged holes long enough for the cubic to miss the swing-flexion rise (the shorter ones keep the peak)
+    long_bridges = [(g0, g1) for g0, g1 in data.prep.bridged_s if g1 - g0 > qp.bridged_peak_s]
+    gap = gap_reasons(t_s, data.prep.filled_s, angle, triples, bridged_s=long_bridges, peak_lead_s=qp.peak_lead_s)
     lobe = {int(h): k for k, h in enumerate(events.hs) if h >= 0}
     ks = [lobe[a] for a, _, _ in triples]
     swing_dps = data.shank_sag_dps[events.ms[np.asarray(ks, dtype=int) + 1]]
     edge = edge_reasons(triples, events.bout[np.asarray(ks, dtype=int)].tolist(), swing_dps)
-    qp = data.params.quality
     values = stride_values_many(angle, t_s, triples, data.params.metrics)
     for (_, choice), g, e, v in zip(kept, gap, edge, values, strict=True):
         extra = tuple(r for r in (*g, *e) if r not in choice.reasons)

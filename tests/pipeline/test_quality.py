@@ -31,3 +31,25 @@ def test_unsteady_first_stride_of_a_bout_is_marked() -> None:
     strides = [(0, 60, 140), (140, 200, 250), (250, 310, 360), (360, 420, 470), (470, 530, 580)]
     out = edge_reasons(strides, [0] * 5, np.array([200.0, 300.0, 300.0, 300.0, 300.0]))
     assert out[0] == ("bout_edge",) and out[-1] == () and out[2] == ()
+
+
+def test_a_hole_on_the_swing_rise_makes_the_peak_a_model() -> None:
+    t = np.arange(300) / 100.0
+    angle = 30 - 30 * np.cos(2 * np.pi * t)  # peaks at 0.5, 1.5, 2.5 s
+    strides = [(0, 20, 100), (100, 120, 200), (200, 220, 299)]
+    # a fill ending 0.1 s before the peak at 1.5 s; one ending 0.3 s before the peak at 2.5 s
+    holes = [(1.2, 1.4), (2.05, 2.15)]
+    plain = gap_reasons(t, holes, angle, strides)
+    led = gap_reasons(t, holes, angle, strides, peak_lead_s=0.15)
+    assert "peak_in_gap" not in plain[1] and "peak_in_gap" in led[1]
+    assert led[2] == plain[2] == ("bridged_gap",)  # the rise after 2.15 s is measured
+    assert led[0] == ()
+
+
+def test_long_cubic_bridges_under_the_peak_add_only_the_peak_reason() -> None:
+    t = np.arange(300) / 100.0
+    angle = 30 - 30 * np.cos(2 * np.pi * t)
+    strides = [(0, 20, 100), (100, 120, 200), (200, 220, 299)]
+    out = gap_reasons(t, [], angle, strides, bridged_s=[(1.45, 1.57), (2.1, 2.22)], peak_lead_s=0.15)
+    # the policy already notes the bridge itself (bridged_gap); here only what it does to the peak
+    assert out == [(), ("peak_in_gap",), ()]

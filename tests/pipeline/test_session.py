@@ -272,3 +272,27 @@ def test_implausible_angles_are_masked_and_counted() -> None:
     assert not leg.strides
     full = process_session(sim.streams).legs["left"]
     assert full.diagnostics.masked_implausible_samples == 0 and full.strides
+
+
+@pytest.mark.parametrize(("hole_s", "modelled"), [(0.06, False), (0.13, True), (0.3, True)])
+def test_a_hole_on_the_swing_rise_keeps_the_stride_out_of_trends(hole_s: float, modelled: bool) -> None:
+    """Shank samples cut just before one stride's swing peak: a short cubic bridge keeps the peak (a note only),
+    a longer bridge or a fill from the neighbouring strides makes it a model (quality below the trend threshold)."""
+    sim = _sim("normal", seed=3)
+    ref = process_session(sim.streams, activity=sim.activity)
+    lr = ref.legs["left"]
+    s = lr.strides[len(lr.strides) // 2]
+    sl = (lr.t_s >= s.t_toe_off_s) & (lr.t_s <= s.t_end_s)
+    t_peak = float(lr.t_s[sl][np.argmax(lr.angle_deg[sl])])
+    streams = []
+    for st in sim.streams:
+        keep = ~((st.t_s > t_peak - 0.03 - hole_s) & (st.t_s < t_peak - 0.03)) | (st.leg != "left") \
+            | (st.segment != "shank")
+        streams.append(dataclasses.replace(st, t_s=st.t_s[keep], gyr=st.gyr[keep], acc=st.acc[keep]))
+    cut = process_session(streams, activity=sim.activity).legs["left"]
+    same = [c for c in cut.strides if abs(c.t_start_s - s.t_start_s) < 0.05 and abs(c.t_end_s - s.t_end_s) < 0.05]
+    assert len(same) == 1
+    assert ("peak_in_gap" in same[0].quality_reasons) == modelled
+    assert (same[0].quality < 0.5) == modelled
+    # the strides without a hole keep their quality
+    assert sum(c.quality < 0.5 for c in cut.strides) <= sum(c.quality < 0.5 for c in lr.strides) + 1
