@@ -44,8 +44,11 @@ def assert_429(resp: Any) -> dict[str, Any]:  # noqa: ANN401
     return body
 
 
-def test_per_token_limit_answers_429_and_spares_other_tokens(tmp_path: Path, sqlite_template: Path) -> None:
-    with api_with(tmp_path, sqlite_template, rate_limit_per_token="5/minute") as api:
+# memory:// counts through limits' synchronous API, any other storage through its async one: the same answers.
+@pytest.mark.parametrize("storage", ["memory://", "async+memory://"])
+def test_per_token_limit_answers_429_and_spares_other_tokens(tmp_path: Path, sqlite_template: Path,
+                                                             storage: str) -> None:
+    with api_with(tmp_path, sqlite_template, rate_limit_per_token="5/minute", rate_limit_storage=storage) as api:
         _, clin = api.clinician()
         _, other = api.clinician("Dr. Other")
         codes = [api.client.get("/v1/me", headers=bearer(clin)).status_code for _ in range(5)]
@@ -65,8 +68,10 @@ def test_per_ip_limit(tmp_path: Path, sqlite_template: Path) -> None:
         assert_429(api.client.get("/v1/me", headers=bearer(other)))
 
 
-def test_repeated_bad_tokens_are_slowed_but_working_tokens_are_not(tmp_path: Path, sqlite_template: Path) -> None:
-    with api_with(tmp_path, sqlite_template) as api:
+@pytest.mark.parametrize("storage", ["memory://", "async+memory://"])
+def test_repeated_bad_tokens_are_slowed_but_working_tokens_are_not(tmp_path: Path, sqlite_template: Path,
+                                                                   storage: str) -> None:
+    with api_with(tmp_path, sqlite_template, rate_limit_storage=storage) as api:
         _, clin = api.clinician()
         assert api.client.get("/v1/me", headers=bearer(clin)).status_code == 200
         codes = [api.client.get("/v1/me", headers=bearer(f"gm_guess{i}")).status_code for i in range(40)]
