@@ -103,6 +103,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(InFlightLimitMiddleware, max_in_flight=settings.max_in_flight,
                        retry_after_s=settings.retry_after_s)
     # The sessions router first: the phones' uploads are most of the traffic, and routes are matched in order.
+    first_included = len(app.router.routes)
     app.include_router(session_routes.router)
     app.include_router(health.router)
     app.include_router(auth_routes.router)
@@ -115,4 +116,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_api_route("/", lambda: RedirectResponse("/ui/"), include_in_schema=False)
     app.include_router(calibration_routes.router)
     install_openapi(app)
+    # ... before even the documentation routes FastAPI registers itself (each match tried costs ~10 us).
+    app.router.routes.insert(0, app.router.routes.pop(first_included))
     return app
