@@ -30,6 +30,7 @@ from server.patients import routes as patient_routes
 from server.request_hygiene import RequestHygieneMiddleware
 from server.results import routes as result_routes
 from server.sessions import routes as session_routes
+from server.sessions.group_commit import GroupCommitter
 from server.trends import routes as trend_routes
 from server.ui import routes as ui_routes
 
@@ -92,6 +93,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.engine = engine
     app.state.upload_engine = upload_engine
+    if upload_engine is not None:
+        app.state.group_committer = GroupCommitter(upload_engine, grouped=settings.upload_group_commit)
     app.state.sessionmaker = make_sessionmaker(engine)
     install_error_handlers(app)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes)

@@ -45,6 +45,7 @@ from server.errors import ProblemError, conflict, invalid
 from server.ops import metrics as ops_metrics
 from server.processing.queue import enqueue
 from server.sessions.bounds import session_span_problem
+from server.sessions.group_commit import GroupCommitter, driver_sql
 from server.sessions.ingest import (
     IngestOutcome,
     guarded_insert,
@@ -205,8 +206,9 @@ async def upload_batch(session_id: str, request: Request, response: Response, ca
     raw = await request.body()
     rates = app_cache(request, "session_sensor_rates", SENSOR_RATES_TTL_S)
     # Parse, validate and store in one thread hop; the connection is back in the pool before the answer.
-    outcome = await anyio.to_thread.run_sync(_upload, request.app.state.sessionmaker, _autocommit(request), rates,
-                                             caller, session_id, raw, settings.max_samples_per_batch,
+    outcome = await anyio.to_thread.run_sync(_upload, request.app.state.sessionmaker, _autocommit(request),
+                                             getattr(request.app.state, "group_committer", None), rates, caller,
+                                             session_id, raw, settings.max_samples_per_batch,
                                              limiter=_upload_limiter(request, settings))
     response.status_code = 201 if outcome.created else 200
     ops_metrics.batch_ingested(outcome.samples, stored=outcome.created)
@@ -274,19 +276,32 @@ def _upload_insert(dialect: str, role: str) -> Executable:
     return stmt
 
 
-def _upload(sm: sessionmaker[DbSession], autocommit: Engine, rates_cache: TtlCache, caller: Principal,
-            session_id: str, raw: bytes, max_samples: int) -> IngestOutcome:
+_DRIVER_SQL: dict[str, tuple[str, dict[str, Any]]] = {}
+
+
+def _upload_driver_sql(engine: Engine, role: str) -> tuple[str, dict[str, Any]]:
+    """:func:`_upload_insert` compiled for the driver, once per role (run by :class:`GroupCommitter`)."""
+    out = _DRIVER_SQL.get(role)
+    if out is None:
+        out = _DRIVER_SQL[role] = driver_sql(engine, _upload_insert(engine.dialect.name, role))
+    return out
+
+
+def _upload(sm: sessionmaker[DbSession], autocommit: Engine, committer: GroupCommitter | None,
+            rates_cache: TtlCache, caller: Principal, session_id: str, raw: bytes, max_samples: int,
+            ) -> IngestOutcome:
     body = parse_batch(raw, max_samples)
     try:
-        return _store(sm, autocommit, rates_cache, caller, session_id, body, max_samples)
+        return _store(sm, autocommit, committer, rates_cache, caller, session_id, body, max_samples)
     except ProblemError as exc:
         log.info("batch session=%s sensor=%s seq=%d rejected %d: %s", session_id, body.sensor_id, body.seq,
                  exc.status, exc.detail)
         raise
 
 
-def _store(sm: sessionmaker[DbSession], autocommit: Engine, rates_cache: TtlCache, caller: Principal,
-           session_id: str, body: BatchIn, max_samples: int) -> IngestOutcome:
+def _store(sm: sessionmaker[DbSession], autocommit: Engine, committer: GroupCommitter | None,
+           rates_cache: TtlCache, caller: Principal, session_id: str, body: BatchIn, max_samples: int,
+           ) -> IngestOutcome:
     """The hot path is one INSERT whose WHERE checks the token, the caller's access and the session's status;
     anything it refuses (replay, completed, revoked, unknown sensor or session) goes through the full checks."""
     key = (caller.token_id, session_id)
@@ -299,8 +314,13 @@ def _store(sm: sessionmaker[DbSession], autocommit: Engine, rates_cache: TtlCach
     if body.sensor_id in rates:
         prepared = prepare_batch(rates, body, max_samples=max_samples)
         params = {**insert_params(session_id, prepared), **visibility_params(caller), "live_token_id": caller.token_id}
-        if _insert_once_more_on_a_dead_connection(autocommit, _upload_insert(autocommit.dialect.name, caller.role),
-                                                  params):
+        if committer is not None:
+            sql, fixed = _upload_driver_sql(autocommit, caller.role)
+            stored = committer.insert(sql, {**fixed, **params})
+        else:
+            stored = _insert_once_more_on_a_dead_connection(
+                autocommit, _upload_insert(autocommit.dialect.name, caller.role), params)
+        if stored:
             return IngestOutcome(created=True, sensor_id=prepared.sensor_id, seq=prepared.seq,
                                  samples=prepared.n_samples)
     with sm() as db:

@@ -264,15 +264,27 @@ def _statements(api: Api) -> Iterator[list[str]]:
     def record(_conn, _cursor, statement, _params, _context, _many) -> None:  # noqa: ANN001
         seen.append(" ".join(statement.split()).upper())
 
-    # On PostgreSQL the upload's INSERT runs on an engine of its own (server.db.make_upload_engine).
+    # On PostgreSQL the upload's INSERT runs on the driver through the group committer
+    # (server.sessions.group_commit), on an engine of its own (server.db.make_upload_engine).
     engines = [e for e in (api.engine, api.client.app.state.upload_engine) if e is not None]
+    committer = getattr(api.client.app.state, "group_committer", None)
     for engine in engines:
         event.listen(engine, "before_cursor_execute", record)
+    if committer is not None:
+        insert = committer.insert
+
+        def recorded(sql: str, params: dict) -> bool:
+            record(None, None, sql, params, None, False)
+            return insert(sql, params)
+
+        committer.insert = recorded
     try:
         yield seen
     finally:
         for engine in engines:
             event.remove(engine, "before_cursor_execute", record)
+        if committer is not None:
+            del committer.insert
 
 
 def test_new_batch_is_one_statement_and_replay_checks_only_after_the_insert(api: Api) -> None:
