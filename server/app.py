@@ -98,6 +98,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             engine.dispose()
             if upload_engine is not None:
                 upload_engine.dispose()
+            pool = getattr(app.state, "upload_pool", None)
+            if pool is not None:
+                app.state.upload_pool = None  # a later start makes a new one
+                pool.shutdown(wait=False, cancel_futures=True)
 
     # /docs and /redoc with Swagger UI and ReDoc from the fastapi-offline package: no CDN, works offline.
     app = FastAPIOffline(title="gaitmon", version="1.0.0", description=DESCRIPTION, openapi_tags=TAGS,

@@ -501,8 +501,8 @@ def test_uploads_run_on_threads_of_their_own_within_the_pool(settings: Settings)
     with open_api(s) as api:
         _, dev, sess = api.setup_device_session()
         assert api.upload(dev, sess["id"], batch_body("L-shank", 0, n=40)).status_code == 201
-        limiter = api.client.app.state.upload_limiter
-        assert limiter.total_tokens == 8 and limiter.borrowed_tokens == 0
+        pool = api.client.app.state.upload_pool
+        assert pool._max_workers == 8 and len(pool._threads) == 1  # one upload so far: one thread started
 
 
 def test_an_upload_on_a_dead_pooled_connection_is_stored_once_on_a_new_one(postgres_url: str, tmp_path,  # noqa: ANN001
