@@ -56,6 +56,9 @@ class Settings(BaseSettings):
     # process can parse, more only contend for the GIL with the event loop (30 busy threads held it off for
     # 100-300 ms at a time, and new connections waited seconds to be accepted).
     upload_threads: int = 8
+    # PostgreSQL: the uploads that arrive while another group is being written share one transaction (one WAL
+    # flush; each answered only after that commit). Off: one autocommitted INSERT per batch.
+    upload_group_commit: bool = True
     # SQLite: how long a writer waits for the single write lock before the request is answered 503.
     sqlite_busy_timeout_s: float = 5.0
     # Requests in progress in one API process (health checks excluded) beyond which new ones get 503 at once.

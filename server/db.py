@@ -74,7 +74,8 @@ def make_upload_engine(url: str, settings: Settings) -> Engine | None:
     Its connections are in autocommit from the start, so a checkout neither switches the isolation level nor
     resets it on return, and it has no pre-ping: the three round trips around each INSERT were a third of the
     upload's database work. A connection found dead by its statement invalidates the pool and the upload retries
-    once (:func:`server.sessions.routes._store`; the INSERT is idempotent). One connection per upload thread.
+    once (:meth:`server.sessions.group_commit.GroupCommitter._alone`; the INSERT is idempotent). One connection
+    per upload thread.
     """
     if url.startswith("sqlite"):
         return None

@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.responses import Response
@@ -49,6 +50,8 @@ log = logging.getLogger("gaitmon.api")
 UNMATCHED = "<unmatched>"
 _HOLDER = "gaitmon.metrics.route"
 QUEUE_STATUSES = ("queued", "processing")
+# Series whose children the middleware remembers (methods are whatever clients send: bounded).
+MAX_CACHED_SERIES = 1000
 
 HTTP_REQUESTS = Counter("gaitmon_http_requests_total", "HTTP requests by route template and status",
                         ["method", "route", "status"])
@@ -62,11 +65,18 @@ JOB_DURATION = Histogram("gaitmon_job_duration_seconds", "Processing time of a s
                          buckets=(0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0, 600.0, 1800.0))
 
 
+# The children of the counters every upload touches, looked up once (labels() validates and locks each time).
+_BATCHES_STORED = BATCHES.labels(result="stored")
+_BATCHES_DUPLICATE = BATCHES.labels(result="duplicate")
+
+
 def batch_ingested(samples: int, *, stored: bool) -> None:
     """Count one accepted batch (``stored`` False: an identical replay that was acknowledged)."""
-    BATCHES.labels(result="stored" if stored else "duplicate").inc()
     if stored:
+        _BATCHES_STORED.inc()
         SAMPLES.inc(samples)
+    else:
+        _BATCHES_DUPLICATE.inc()
 
 
 def job_finished(outcome: str, seconds: float) -> None:
@@ -132,6 +142,8 @@ class MetricsMiddleware:
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
+        # (method, route, status) -> the counter's and histogram's children: labels() validates and locks per call.
+        self._children: dict[tuple[str, str, int], tuple[Any, Any]] = {}
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -151,10 +163,16 @@ class MetricsMiddleware:
         try:
             await self.app(scope, receive, send_and_record)
         finally:
-            method = scope["method"]
-            route = holder.get("route", UNMATCHED)
-            HTTP_REQUESTS.labels(method=method, route=route, status=str(status)).inc()
-            HTTP_DURATION.labels(method=method, route=route).observe(time.perf_counter() - t0)
+            key = (scope["method"], holder.get("route", UNMATCHED), status)
+            children = self._children.get(key)
+            if children is None:
+                method, route, _ = key
+                children = (HTTP_REQUESTS.labels(method=method, route=route, status=str(status)),
+                            HTTP_DURATION.labels(method=method, route=route))
+                if len(self._children) < MAX_CACHED_SERIES:
+                    self._children[key] = children
+            children[0].inc()
+            children[1].observe(time.perf_counter() - t0)
 
 
 def render(sm: sessionmaker[DbSession]) -> bytes:

@@ -61,12 +61,22 @@ def validate_times(t_ms: np.ndarray, t0_ms: float, sample_rate_hz: float) -> Non
     period_ms = 1000.0 / sample_rate_hz
     # Half the declared period or less between most samples means the stamps (or the declared rate) are wrong;
     # the median tolerates the bunching of samples stamped on arrival of a BLE notification.
-    if steps.size >= 3 and float(np.median(steps)) < 0.5 * period_ms:
-        raise invalid("timestamps_ms", f"median spacing {float(np.median(steps)):.3g} ms is less than half the "
+    if steps.size >= 3 and (median := _median(steps)) < 0.5 * period_ms:
+        raise invalid("timestamps_ms", f"median spacing {median:.3g} ms is less than half the "
                                        f"declared sample period ({period_ms:.3g} ms at {sample_rate_hz:g} Hz)")
     if abs(float(t_ms[0]) - t0_ms) > period_ms:
         raise invalid("t0_ms", f"t0_ms ({t0_ms}) must be the time of the first sample (timestamps_ms[0] = "
                                f"{float(t_ms[0])})")
+
+
+def _median(x: np.ndarray) -> float:
+    """``np.median`` of a finite 1-D array, the same value from one partition: np.median's generic reduction
+    machinery cost ~0.08 ms per batch, more than the timestamps' other checks together."""
+    k = x.size // 2
+    if x.size % 2:
+        return float(np.partition(x, k)[k])
+    part = np.partition(x, (k - 1, k))
+    return float((part[k - 1] + part[k]) / 2)
 
 
 def still_in_status(db: DbSession, session_id: str, statuses: tuple[str, ...]) -> bool:

@@ -2,18 +2,20 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextvars
 import logging
 from collections.abc import Callable, Coroutine
+from concurrent.futures import ThreadPoolExecutor
 from datetime import UTC
 from typing import Any
 
-import anyio
 from fastapi import APIRouter, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.routing import APIRoute
 from pydantic import ValidationError
 from sqlalchemy import Engine, Executable, String, bindparam, func, select
-from sqlalchemy.exc import DBAPIError, IntegrityError
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.orm import sessionmaker
 
@@ -45,6 +47,7 @@ from server.errors import ProblemError, conflict, invalid
 from server.ops import metrics as ops_metrics
 from server.processing.queue import enqueue
 from server.sessions.bounds import session_span_problem
+from server.sessions.group_commit import GroupCommitter, driver_sql
 from server.sessions.ingest import (
     IngestOutcome,
     guarded_insert,
@@ -205,9 +208,12 @@ async def upload_batch(session_id: str, request: Request, response: Response, ca
     raw = await request.body()
     rates = app_cache(request, "session_sensor_rates", SENSOR_RATES_TTL_S)
     # Parse, validate and store in one thread hop; the connection is back in the pool before the answer.
-    outcome = await anyio.to_thread.run_sync(_upload, request.app.state.sessionmaker, _autocommit(request), rates,
-                                             caller, session_id, raw, settings.max_samples_per_batch,
-                                             limiter=_upload_limiter(request, settings))
+    # On an executor of their own: anyio's thread hop (limiter, checkpoints, its worker queue) cost ~0.05 ms more
+    # per batch. The context goes along, so the thread's log lines carry the request id.
+    outcome = await asyncio.get_running_loop().run_in_executor(
+        _upload_pool(request, settings), contextvars.copy_context().run, _upload, request.app.state.sessionmaker,
+        _autocommit(request), getattr(request.app.state, "group_committer", None), rates, caller, session_id, raw,
+        settings.max_samples_per_batch)
     response.status_code = 201 if outcome.created else 200
     ops_metrics.batch_ingested(outcome.samples, stored=outcome.created)
     log.debug("batch session=%s sensor=%s seq=%d samples=%d -> %s", session_id, outcome.sensor_id, outcome.seq,
@@ -241,13 +247,14 @@ def _visible_sensor_rates(db: DbSession, caller: Principal, session_id: str) -> 
     return {r.sensor_id: r.sample_rate_hz for r in rows}
 
 
-def _upload_limiter(request: Request, settings: Settings) -> anyio.CapacityLimiter:
+def _upload_pool(request: Request, settings: Settings) -> ThreadPoolExecutor:
     # Uploads get threads of their own (Settings.upload_threads): a few, so that parsing in threads never starves
     # the event loop of the GIL, and the other routes keep theirs under a flood of uploads.
-    limiter = getattr(request.app.state, "upload_limiter", None)
-    if limiter is None:
-        limiter = request.app.state.upload_limiter = anyio.CapacityLimiter(settings.upload_thread_count)
-    return limiter
+    pool = getattr(request.app.state, "upload_pool", None)
+    if pool is None:
+        pool = request.app.state.upload_pool = ThreadPoolExecutor(settings.upload_thread_count,
+                                                                  thread_name_prefix="gaitmon-upload")
+    return pool
 
 
 def _autocommit(request: Request) -> Engine:
@@ -274,19 +281,32 @@ def _upload_insert(dialect: str, role: str) -> Executable:
     return stmt
 
 
-def _upload(sm: sessionmaker[DbSession], autocommit: Engine, rates_cache: TtlCache, caller: Principal,
-            session_id: str, raw: bytes, max_samples: int) -> IngestOutcome:
+_DRIVER_SQL: dict[str, tuple[str, dict[str, Any]]] = {}
+
+
+def _upload_driver_sql(engine: Engine, role: str) -> tuple[str, dict[str, Any]]:
+    """:func:`_upload_insert` compiled for the driver, once per role (run by :class:`GroupCommitter`)."""
+    out = _DRIVER_SQL.get(role)
+    if out is None:
+        out = _DRIVER_SQL[role] = driver_sql(engine, _upload_insert(engine.dialect.name, role))
+    return out
+
+
+def _upload(sm: sessionmaker[DbSession], autocommit: Engine, committer: GroupCommitter | None,
+            rates_cache: TtlCache, caller: Principal, session_id: str, raw: bytes, max_samples: int,
+            ) -> IngestOutcome:
     body = parse_batch(raw, max_samples)
     try:
-        return _store(sm, autocommit, rates_cache, caller, session_id, body, max_samples)
+        return _store(sm, autocommit, committer, rates_cache, caller, session_id, body, max_samples)
     except ProblemError as exc:
         log.info("batch session=%s sensor=%s seq=%d rejected %d: %s", session_id, body.sensor_id, body.seq,
                  exc.status, exc.detail)
         raise
 
 
-def _store(sm: sessionmaker[DbSession], autocommit: Engine, rates_cache: TtlCache, caller: Principal,
-           session_id: str, body: BatchIn, max_samples: int) -> IngestOutcome:
+def _store(sm: sessionmaker[DbSession], autocommit: Engine, committer: GroupCommitter | None,
+           rates_cache: TtlCache, caller: Principal, session_id: str, body: BatchIn, max_samples: int,
+           ) -> IngestOutcome:
     """The hot path is one INSERT whose WHERE checks the token, the caller's access and the session's status;
     anything it refuses (replay, completed, revoked, unknown sensor or session) goes through the full checks."""
     key = (caller.token_id, session_id)
@@ -299,8 +319,13 @@ def _store(sm: sessionmaker[DbSession], autocommit: Engine, rates_cache: TtlCach
     if body.sensor_id in rates:
         prepared = prepare_batch(rates, body, max_samples=max_samples)
         params = {**insert_params(session_id, prepared), **visibility_params(caller), "live_token_id": caller.token_id}
-        if _insert_once_more_on_a_dead_connection(autocommit, _upload_insert(autocommit.dialect.name, caller.role),
-                                                  params):
+        if committer is not None:  # PostgreSQL
+            sql, fixed = _upload_driver_sql(autocommit, caller.role)
+            stored = committer.insert(sql, {**fixed, **params})
+        else:
+            with autocommit.connect() as conn:
+                stored = insert_batch(conn, _upload_insert(autocommit.dialect.name, caller.role), params)
+        if stored:
             return IngestOutcome(created=True, sensor_id=prepared.sensor_id, seq=prepared.seq,
                                  samples=prepared.n_samples)
     with sm() as db:
@@ -308,21 +333,6 @@ def _store(sm: sessionmaker[DbSession], autocommit: Engine, rates_cache: TtlCach
             raise unauthorized_token()
         session = get_session_for(db, caller, session_id)
         return ingest_batch(db, session, body, max_samples=max_samples)
-
-
-def _insert_once_more_on_a_dead_connection(autocommit: Engine, stmt: Executable, params: dict[str, object]) -> bool:
-    """The guarded insert; once more when its pooled connection turned out dead (the upload engine has no
-    pre-ping). Safe: had the first attempt stored the batch, the second stores nothing and the caller's full
-    checks answer it as a replay."""
-    try:
-        with autocommit.connect() as conn:
-            return insert_batch(conn, stmt, params)
-    except DBAPIError as exc:
-        if not exc.connection_invalidated:
-            raise
-        log.warning("upload: pooled connection was dead (%s); once more on a new one", type(exc.orig).__name__)
-    with autocommit.connect() as conn:
-        return insert_batch(conn, stmt, params)
 
 
 @router.post("/{session_id}/complete", status_code=202, response_model=SessionOut,

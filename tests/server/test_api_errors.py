@@ -89,3 +89,19 @@ def test_large_responses_are_gzipped_when_accepted(api: Api) -> None:
     assert r.headers.get("content-encoding") == "gzip" and "paths" in r.json()
     r = api.client.get("/openapi.json", headers={"Accept-Encoding": "identity"})
     assert "content-encoding" not in r.headers and "paths" in r.json()
+
+
+def test_upload_answers_are_never_compressed_and_carry_no_vary(api: Api) -> None:
+    """Uploads bypass the response GZip middleware (their answers are always below its minimum size): a 201, a 200
+    replay and a 422 problem go out plain, without the Vary header a compressed answer would carry."""
+    from tests.server.helpers import batch_body
+
+    _, dev, sess = api.setup_device_session()
+    url = f"/v1/sessions/{sess['id']}/batches"
+    statuses = []
+    for body in (batch_body("L-thigh", 0, n=20), batch_body("L-thigh", 0, n=20), {"sensor_id": "L-thigh"}):
+        r = api.client.post(url, json=body, headers={**bearer(dev), "Accept-Encoding": "gzip"})
+        statuses.append(r.status_code)
+        assert "content-encoding" not in r.headers and "vary" not in r.headers and len(r.content) < 1024
+        assert r.json()
+    assert statuses == [201, 200, 422]

@@ -264,15 +264,27 @@ def _statements(api: Api) -> Iterator[list[str]]:
     def record(_conn, _cursor, statement, _params, _context, _many) -> None:  # noqa: ANN001
         seen.append(" ".join(statement.split()).upper())
 
-    # On PostgreSQL the upload's INSERT runs on an engine of its own (server.db.make_upload_engine).
+    # On PostgreSQL the upload's INSERT runs on the driver through the group committer
+    # (server.sessions.group_commit), on an engine of its own (server.db.make_upload_engine).
     engines = [e for e in (api.engine, api.client.app.state.upload_engine) if e is not None]
+    committer = getattr(api.client.app.state, "group_committer", None)
     for engine in engines:
         event.listen(engine, "before_cursor_execute", record)
+    if committer is not None:
+        insert = committer.insert
+
+        def recorded(sql: str, params: dict) -> bool:
+            record(None, None, sql, params, None, False)
+            return insert(sql, params)
+
+        committer.insert = recorded
     try:
         yield seen
     finally:
         for engine in engines:
             event.remove(engine, "before_cursor_execute", record)
+        if committer is not None:
+            del committer.insert
 
 
 def test_new_batch_is_one_statement_and_replay_checks_only_after_the_insert(api: Api) -> None:
@@ -489,8 +501,8 @@ def test_uploads_run_on_threads_of_their_own_within_the_pool(settings: Settings)
     with open_api(s) as api:
         _, dev, sess = api.setup_device_session()
         assert api.upload(dev, sess["id"], batch_body("L-shank", 0, n=40)).status_code == 201
-        limiter = api.client.app.state.upload_limiter
-        assert limiter.total_tokens == 8 and limiter.borrowed_tokens == 0
+        pool = api.client.app.state.upload_pool
+        assert pool._max_workers == 8 and len(pool._threads) == 1  # one upload so far: one thread started
 
 
 def test_an_upload_on_a_dead_pooled_connection_is_stored_once_on_a_new_one(postgres_url: str, tmp_path,  # noqa: ANN001

@@ -44,8 +44,11 @@ def assert_429(resp: Any) -> dict[str, Any]:  # noqa: ANN401
     return body
 
 
-def test_per_token_limit_answers_429_and_spares_other_tokens(tmp_path: Path, sqlite_template: Path) -> None:
-    with api_with(tmp_path, sqlite_template, rate_limit_per_token="5/minute") as api:
+# memory:// counts through limits' synchronous API, any other storage through its async one: the same answers.
+@pytest.mark.parametrize("storage", ["memory://", "async+memory://"])
+def test_per_token_limit_answers_429_and_spares_other_tokens(tmp_path: Path, sqlite_template: Path,
+                                                             storage: str) -> None:
+    with api_with(tmp_path, sqlite_template, rate_limit_per_token="5/minute", rate_limit_storage=storage) as api:
         _, clin = api.clinician()
         _, other = api.clinician("Dr. Other")
         codes = [api.client.get("/v1/me", headers=bearer(clin)).status_code for _ in range(5)]
@@ -65,8 +68,10 @@ def test_per_ip_limit(tmp_path: Path, sqlite_template: Path) -> None:
         assert_429(api.client.get("/v1/me", headers=bearer(other)))
 
 
-def test_repeated_bad_tokens_are_slowed_but_working_tokens_are_not(tmp_path: Path, sqlite_template: Path) -> None:
-    with api_with(tmp_path, sqlite_template) as api:
+@pytest.mark.parametrize("storage", ["memory://", "async+memory://"])
+def test_repeated_bad_tokens_are_slowed_but_working_tokens_are_not(tmp_path: Path, sqlite_template: Path,
+                                                                   storage: str) -> None:
+    with api_with(tmp_path, sqlite_template, rate_limit_storage=storage) as api:
         _, clin = api.clinician()
         assert api.client.get("/v1/me", headers=bearer(clin)).status_code == 200
         codes = [api.client.get("/v1/me", headers=bearer(f"gm_guess{i}")).status_code for i in range(40)]
@@ -203,3 +208,34 @@ def test_metrics_of_several_processes_are_summed_in_multiprocess_mode(tmp_path: 
                          capture_output=True, text=True).stdout
     assert "gaitmon_samples_ingested_total 20.0" in out
     assert 'gaitmon_batches_total{result="stored"} 2.0' in out
+
+
+def test_in_memory_windows_answer_as_limits_own_sliding_window_counter(monkeypatch: pytest.MonkeyPatch) -> None:
+    """MemoryWindows (memory://) against limits' SlidingWindowCounterRateLimiter on MemoryStorage: the same
+    allowed/refused answers, tests and reset times over hits at random times across many window boundaries."""
+    import random
+    import time as time_module
+
+    from limits.storage import MemoryStorage
+    from limits.strategies import SlidingWindowCounterRateLimiter
+
+    from server.ops.rate_limit import MemoryWindows
+
+    now = [1_800_000_000.0]
+    monkeypatch.setattr(time_module, "time", lambda: now[0])
+    ours, theirs = MemoryWindows(), SlidingWindowCounterRateLimiter(MemoryStorage())
+    rng = random.Random(3)
+    answers = []
+    for item in parse_many("7/second;20/minute;3/10 seconds"):
+        for _ in range(600):
+            now[0] += rng.choice([0.0, 0.01, 0.2, 0.7, 1.3, 4.0, 11.0])
+            ident = rng.choice(["a", "b"])
+            answers.append((ours.test(item, ident), theirs.test(item, ident)))
+            answers.append((ours.hit(item, ident), theirs.hit(item, ident)))
+            answers.append((round(ours.get_window_stats(item, ident).reset_time, 6),
+                            round(theirs.get_window_stats(item, ident).reset_time, 6)))
+    assert all(a == b for a, b in answers), next((a, b) for a, b in answers if a != b)
+    assert {a for a, _ in answers} >= {True, False}  # both answers occur
+    now[0] += 3 * 3600 + MemoryWindows.SWEEP_EVERY_S
+    ours.hit(parse_many("1/second")[0], "c")
+    assert len(ours) == 1  # the dead counters are swept
