@@ -104,8 +104,9 @@ def flag(f: dict[str, Any], tz: ZoneInfo) -> str:
     """One attention flag (server.trends.attention) as a sentence: the flag's own reason, which states the numbers
     behind it; a silent patient's last session in the patient's time zone."""
     if f["kind"] == "silent" and f.get("last_session_at"):
-        days = f.get("days_without_data") or 0
-        return f"No session for {days:.0f} days (last on {local_date(f['last_session_at'], tz)})."
+        # whole days, as a clinician counts them: 9.5 days without a session is "9 days", not "10"
+        days = int(f.get("days_without_data") or 0)
+        return f"No session for {days} days (last on {local_date(f['last_session_at'], tz)})."
     return str(f.get("reason") or f["kind"].replace("_", " "))
 
 

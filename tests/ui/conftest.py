@@ -104,7 +104,8 @@ def seeded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Seeded]:
             sids = [_upload_sim(base, device, pa, at_nine - timedelta(days=d), pattern, seed)
                     for d, pattern, seed in SESSIONS]
             sid_b = _upload_sim(base, tok_b, pb, at_nine - timedelta(days=2), "normal", 21)
-            sid_a2 = _upload_sim(base, tok_a, pa2, at_nine - timedelta(days=9), "slow", 22)
+            # 9.25 days before the pages are read, whatever the hour the suite runs: far from a whole-day boundary
+            sid_a2 = _upload_sim(base, tok_a, pa2, now - timedelta(days=9, hours=6), "slow", 22)
             with Client(base, admin) as c:
                 for sid in [*sids, sid_b, sid_a2]:
                     assert c.wait_for_processing(sid, timeout_s=180).status == "done"
