@@ -184,14 +184,7 @@ class Server:
 
     def cpu_s(self) -> float:
         """CPU seconds used so far by the API processes (user + system)."""
-        total = 0
-        for pid in self._group_pids():
-            try:
-                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-                total += int(fields[11]) + int(fields[12])
-            except (OSError, IndexError, ValueError):
-                continue
-        return total / os.sysconf("SC_CLK_TCK")
+        return sum(_proc_cpu_s(pid) for pid in self._group_pids())
 
     def rss_mb(self) -> float:
         """Resident memory of the API processes (the uvicorn process group), MB."""
@@ -377,6 +370,32 @@ async def drive_phones(base: str, phones: list[tuple[str, str, list[str]]], args
     return stats, wall, peak[0]
 
 
+def _proc_cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) of one process so far; 0 once it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
+def postgres_cpu_s() -> float:
+    """CPU seconds used so far by every PostgreSQL process of this machine (server, backends, WAL writer,
+    checkpointer), read from /proc: what the database costs per batch, without pg_stat_statements. Backends that
+    ended since the last reading are not counted, so it is a lower bound; other databases' clients count too."""
+    total = 0.0
+    for pid_dir in Path("/proc").iterdir():
+        if not pid_dir.name.isdigit():
+            continue
+        try:
+            if (pid_dir / "comm").read_text().strip() != "postgres":
+                continue
+        except OSError:
+            continue
+        total += _proc_cpu_s(int(pid_dir.name))
+    return total
+
+
 def _own_cpu_s() -> float:
     """CPU seconds of this process (the phones and the /healthz thread), user + system."""
     t = os.times()
@@ -385,16 +404,21 @@ def _own_cpu_s() -> float:
 
 @dataclass
 class Saturated:
-    """What closed-loop senders got from one server: acknowledged batches, seconds, the server's CPU seconds."""
+    """What closed-loop senders got from one server: acknowledged batches, seconds, the server's CPU seconds, the
+    database's CPU seconds (:func:`postgres_cpu_s`; 0 without PostgreSQL) and the load generator's."""
 
     acked: int = 0
     seconds: float = 0.0
     cpu_s: float = 0.0
+    db_cpu_s: float = 0.0
+    generator_cpu_s: float = 0.0
 
     def add(self, other: Saturated) -> None:
         self.acked += other.acked
         self.seconds += other.seconds
         self.cpu_s += other.cpu_s
+        self.db_cpu_s += other.db_cpu_s
+        self.generator_cpu_s += other.generator_cpu_s
 
     @property
     def per_s(self) -> float:
@@ -405,12 +429,20 @@ class Saturated:
         """The server's CPU milliseconds per acknowledged batch (a figure that holds on a shared machine)."""
         return 1000 * self.cpu_s / max(self.acked, 1)
 
+    @property
+    def db_cpu_ms(self) -> float:
+        return 1000 * self.db_cpu_s / max(self.acked, 1)
+
+    @property
+    def generator_cpu_ms(self) -> float:
+        return 1000 * self.generator_cpu_s / max(self.acked, 1)
+
 
 async def saturate(base: str, path_for: list[tuple[str, str, str]], seconds: float, clients: int,
                    fs: float, server: Server, first_seq: int = 100_000) -> Saturated:
     """Closed loop: ``clients`` senders posting new batches (seq from ``first_seq`` on) back to back."""
     acked = 0
-    cpu0 = server.cpu_s()
+    cpu0, db0, gen0 = server.cpu_s(), postgres_cpu_s() if server.postgres else 0.0, _own_cpu_s()
     deadline = time.monotonic() + seconds
 
     async def sender(k: int) -> None:
@@ -436,7 +468,8 @@ async def saturate(base: str, path_for: list[tuple[str, str, str]], seconds: flo
 
     t0 = time.monotonic()
     await asyncio.gather(*(sender(k) for k in range(clients)))
-    return Saturated(acked, time.monotonic() - t0, server.cpu_s() - cpu0)
+    db_s = postgres_cpu_s() - db0 if server.postgres else 0.0
+    return Saturated(acked, time.monotonic() - t0, server.cpu_s() - cpu0, db_s, _own_cpu_s() - gen0)
 
 
 async def saturate_both(base: str, targets: list[tuple[str, str, str]], server: Server, bare_base: str,
@@ -620,6 +653,9 @@ def run(args: argparse.Namespace) -> dict:
             out["bare_batches_per_s"], out["bare_cpu_ms"] = theirs.per_s, theirs.cpu_ms
             out["ratio"] = out["gaitmon_batches_per_s"] / out["bare_batches_per_s"]
             out["cpu_ratio"] = out["bare_cpu_ms"] / out["gaitmon_cpu_ms"]
+            out["gaitmon_db_cpu_ms"] = ours.db_cpu_ms
+            out["gaitmon_generator_cpu_ms"] = ours.generator_cpu_ms
+            out["bare_generator_cpu_ms"] = theirs.generator_cpu_ms
         _print(out, args)
         return out
     finally:
@@ -663,6 +699,10 @@ def _print(o: dict, args: argparse.Namespace) -> None:
               f"{o['bare_batches_per_s']:.0f} batches/s = {o['ratio']:.2f} |")
         print(f"| API CPU per batch: gaitmon / bare endpoint | {o['gaitmon_cpu_ms']:.2f} / {o['bare_cpu_ms']:.2f} ms "
               f"(bare/gaitmon = {o['cpu_ratio']:.2f}) |")
+        if args.postgres:
+            print(f"| PostgreSQL CPU per gaitmon batch (all its processes) | {o['gaitmon_db_cpu_ms']:.2f} ms |")
+        print(f"| load generator CPU per batch: gaitmon / bare endpoint | {o['gaitmon_generator_cpu_ms']:.2f} / "
+              f"{o['bare_generator_cpu_ms']:.2f} ms |")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
