@@ -6,6 +6,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
+from pipeline.reasons import REASONS
 from server.enums import Leg, StrideActivity
 from server.results.stride_record import STRIDE_UNITS
 from server.schema_types import OrmOut, UtcDatetime
@@ -29,7 +30,8 @@ StrideOut = create_model(
     **{name: _value_field(name) for name in STRIDE_UNITS},
     estimator=(str, ...),
     quality=(float | None, ...),
-    quality_reasons=(list[str], ...),
+    quality_reasons=(list[str], Field(..., description="why the quality is below 1; codes: " + "; ".join(
+        f"`{code}`: {meaning}" for code, meaning in REASONS.items()))),
     activity=(StrideActivity, Field(..., description="what the stride was processed as; trends never pool them")),
     fallback=(bool, Field(..., description="the angle came from the fallback of the activity's primary estimator")),
 )

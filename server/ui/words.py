@@ -17,8 +17,13 @@ STATUS = {
     "failed": "Processing failed",
 }
 
-# Per-stride quality reasons of pipeline.fusion (each lowers the stride's 0..1 quality score).
+# Per-stride quality reasons (pipeline.reasons lists every code; each lowers the stride's 0..1 quality score).
 REASONS = {
+    "assumed_level": "level assumed: no calibration of the standing knee angle recorded",
+    "go_level": "running without a moment of quiet standing: the angle's level is unknown",
+    "peak_in_gap": "the peak of the swing fell in a data gap",
+    "event_in_gap": "a heel strike or toe-off fell in a data gap",
+    "bout_edge": "first or last stride of a walk",
     "no_absolute_reference": "no still moment to anchor the angle (thigh/shank never quiet)",
     "few_quiet_samples": "few still moments to anchor the angle",
     "no_go_estimate": "gyroscope-only estimate incomplete",

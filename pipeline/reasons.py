@@ -1,0 +1,26 @@
+"""The per-stride quality reason codes and what each means: the one list that the API's documentation, the pages'
+words and the tests read. A stride's ``reasons`` come from :mod:`pipeline.policy` (the estimate) and
+:mod:`pipeline.quality` (the data); what each costs is ``pipeline.params.QualityParams``."""
+
+from __future__ import annotations
+
+REASONS: dict[str, str] = {
+    "assumed_level": "the absolute level rests on the assumed standing knee flexion "
+                     "(PostureParams.standing_knee_deg); no calibration was recorded for this leg",
+    "no_absolute_reference": "no quiet standing in the session to anchor the angle's zero",
+    "few_quiet_samples": "only a few quiet samples anchor the angle's zero",
+    "go_level": "running without quiet standing: the level is the gyroscope-only estimate's (zero at the "
+                "straightest moment of the stride), which a running knee never reaches (out of trends)",
+    "no_go_estimate": "the gyroscope-only estimate is incomplete in the stride",
+    "no_zero_crossing": "no zero-velocity point in the stride to reset the gyroscope's drift",
+    "drift": "the gyroscope-only estimate drifted beyond its limit",
+    "saturation": "a sensor reading hit its full-scale limit",
+    "go_cf_mismatch": "the gyroscope-only and complementary-filter estimates disagree in shape (out of trends)",
+    "cf_fallback": "the complementary filter was used instead of the gyroscope-only estimate",
+    "bridged_gap": "a short data gap inside the stride was bridged",
+    "event_in_gap": "a heel strike or toe-off fell inside a bridged gap",
+    "peak_in_gap": "the swing peak, the stance minimum or the rise to the peak fell inside a modelled gap "
+                   "(out of trends)",
+    "bout_edge": "first or last stride of a walking bout",
+}
+"""Code -> meaning. ``(out of trends)``: the reason alone keeps the stride below the trend threshold."""
