@@ -15,6 +15,9 @@ Groups:
 * ``labels``: wrong sensor labels; they should be detected and corrected, or refused with a warning.
 * ``diagnostic``: not a physical motion (a left-handed relabelling of the axes); shown for information.
 
+The single-sensor perturbations are applied to the Tan et al. right-shank step windows too (heel strike and
+toe-off against the force plate).
+
 Per perturbation, estimator and leg: strides found (min-max over repetitions), matched strides' swing-peak and ROM
 change vs the unperturbed run and the RMS change of the continuous trace (max over repetitions), the zero-mean RMSE
 and mean abs swing-peak error vs Vicon as :func:`bench.accuracy.real_tables` computes them (worst repetition), the
@@ -684,6 +687,66 @@ def table_compact(rows_by_est: dict[str, list[RowResult]]) -> list[str]:
     return out
 
 
+# perturbations that apply to one sensor alone (the Tan windows have the right shank only for the events)
+_TAN_GROUPS = ("invariant", "tolerated")
+_TAN_SKIP = ("time shift", "sensor order", "clock offset", "packet loss", "tiled")
+
+
+def tan_table(perts: list[Perturbation], seed: int, quick: bool) -> list[str]:
+    """Heel strike and toe-off of the Tan et al. right-shank windows (:func:`pipeline.phases.detect_gait_events` on
+    the shank's principal-axis rate, as :func:`bench.accuracy.real_tables`) under the single-sensor perturbations:
+    errors against the force plate and the largest change against the unperturbed detection [ms]."""
+    from bench.real_data import TAN_DIR, load_tan_steps, real_data_available
+    from pipeline.phases import detect_gait_events, shank_sagittal_dps
+    if not real_data_available(TAN_DIR):
+        return ["_Tan et al. recordings absent (../shared/data/real): skipped._", ""]
+    windows = load_tan_steps()
+
+    def nearest(st: RawSensorStream, hs_s: float, to_s: float) -> tuple[float, float]:
+        gyr, acc = _si(st)
+        ev = detect_gait_events(shank_sagittal_dps(np.rad2deg(gyr)), float(st.fs_hz), min_bout_peaks=1,
+                                shank_acc_mps2=acc)
+        t = np.asarray(st.t_s, float)
+        out = []
+        for x, ref in ((ev.hs, hs_s), (ev.to, to_s)):
+            tx = t[x[x >= 0]]
+            out.append(float(tx[np.argmin(np.abs(tx - ref))]) if tx.size else math.nan)
+        return out[0], out[1]
+
+    streams = [RawSensorStream(sensor_id="R_SHANK", leg="right", segment="shank", fs_hz=w.fs_hz, t_s=w.t_s,
+                               gyr=w.shank_gyr_dps, acc=w.shank_acc_mps2, gyro_unit="deg/s", acc_unit="m/s2")
+               for w in windows]
+    truth = [(float(w.t_s[w.hs_idx]), float(w.t_s[min(w.to_idx, w.t_s.size - 1)])) for w in windows]
+    base = [nearest(st, hs, to) for st, (hs, to) in zip(streams, truth, strict=True)]
+    out = ["### Perturbations of the real Tan et al. treadmill steps (right shank, force-plate events)", "",
+           f"{len(windows)} step windows; per perturbation and repetition every window is perturbed and its events "
+           "detected again. Found: windows with a heel strike / toe-off; errors against the force plate (mean "
+           "abs, worst repetition); Δ: largest change of any window's event against the unperturbed detection.", "",
+           "| group | perturbation | reps | HS found | HS err mean abs (ms) | ΔHS max (ms) | TO found "
+           "| TO err mean abs (ms) | ΔTO max (ms) |", "|---|---|---|---|---|---|---|---|---|"]
+    rows = [("-", "unperturbed", 1, [base])]
+    for p in perts:
+        if p.group not in _TAN_GROUPS or any(k in p.name for k in _TAN_SKIP):
+            continue
+        rng = np.random.default_rng([seed, sum(map(ord, p.name)), 1])
+        reps = min(p.reps, 2) if quick else p.reps
+        runs = []
+        for _ in range(reps):
+            runs.append([nearest(p.apply([st], rng).streams[0], hs, to)
+                         for st, (hs, to) in zip(streams, truth, strict=True)])
+        rows.append((p.group, p.name, reps, runs))
+    for group, name, reps, runs in rows:
+        cells = []
+        for k in (0, 1):
+            found = min(sum(math.isfinite(r[i][k]) for i in range(len(windows))) for r in runs)
+            err = max(float(np.nanmean([abs(r[i][k] - truth[i][k]) for i in range(len(windows))])) for r in runs)
+            d = max(float(np.nanmax([abs(r[i][k] - base[i][k]) for i in range(len(windows))])) for r in runs)
+            cells += [f"{found}/{len(windows)}", f"{1000 * err:.0f}", f"{1000 * d:.0f}"]
+        out.append(f"| {group} | {name} | {reps} | " + " | ".join(cells) + " |")
+    out.append("")
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.real_perturb", description=__doc__.split("\n\n")[0])
     ap.add_argument("--estimators", default=",".join(ESTIMATORS),
@@ -739,6 +802,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         out += table_main(rows[e], base, base_scores)
     if len(ests) > 1:
         out += table_compact(rows)
+    out += tan_table(perts, args.seed, args.quick)
     print("\n".join(out))
     _log(f"done in {time.perf_counter() - t0:.0f} s")
     return 0
