@@ -23,7 +23,7 @@ change vs the unperturbed run and the RMS change of the continuous trace (max ov
 and mean abs swing-peak error vs Vicon as :func:`bench.accuracy.real_tables` computes them (worst repetition), the
 samples masked as implausible and any stored angle outside [-15, 160] deg, and the session's warnings.
 
-    python -m bench.real_perturb               # all perturbations, auto + every estimator (~2 min on one core)
+    python -m bench.real_perturb               # all perturbations, auto + every estimator (~40 s on one core)
     python -m bench.real_perturb --quick       # 2 repetitions, auto only (smoke run)
 """
 
