@@ -152,8 +152,9 @@ class AssignmentParams:
     """Above this ratio the labelled order is confirmed; in between (no gait) nothing is decided."""
     centre_suspect_mps2: float = 0.25
     """A joint-centre fit residual (Seel Eq. 5) above this [m/s^2] makes the thigh pairing between the legs worth
-    testing: 0.04-0.22 with right labels (up to 0.55 with a thigh sensor 50 cm from the knee), 0.38-0.92 with the
-    thighs swapped."""
+    testing: 0.04-0.22 with right labels on the simulator (up to 0.55 with a thigh sensor 50 cm from the knee),
+    0.38-0.92 with the thighs swapped; 0.64-0.65 with right labels on the real biomechZoo trial, so there every
+    session is tested (the decision itself is relative: :func:`pipeline.assignment.swapped_pairing_better`)."""
     pairing_gain: float = 0.5
     """The swapped thigh pairing is taken when its summed residual is below this share of the labelled one."""
 

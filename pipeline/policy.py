@@ -107,12 +107,21 @@ def _level_reasons(leg: LegInput) -> tuple[str, ...]:
 
 
 def single_estimator(leg: LegInput, name: str) -> PolicyResult:
-    """One registered estimator alone: every stride is its own, with full quality (nothing checked)."""
+    """One registered estimator alone: every stride is its own, with full quality (nothing checked). Without quiet
+    standing in the session an accelerometer-fused estimator's level would be the joint-plane frames' own, which
+    moves with the mounting and with anything that moves the joint-centre fit (on the real biomechZoo trial 36 deg
+    for a 0.05 g accelerometer bias, 22 deg for a 2 % gain error: bench.real_perturb); its curve takes GO's level
+    instead (:func:`go_levelled`, reason ``go_level``), as the running policy does."""
     angle, diag = get_estimator(name)(leg)
     angle = np.asarray(angle, dtype=float)
-    labels = np.where(np.isfinite(angle), name, "").astype(str)
-    choice = StrideChoice(estimator=name, quality=1.0, reasons=_level_reasons(leg), fallback=False)
     ref = diag.standing_ref_deg
+    levelled = go_levelled(leg, angle) if ref is None and name != "go" else None
+    reasons = _level_reasons(leg)
+    if levelled is not None:
+        angle = levelled
+        reasons = ("no_absolute_reference", "go_level", *reasons)
+    labels = np.where(np.isfinite(angle), name, "").astype(str)
+    choice = StrideChoice(estimator=name, quality=1.0, reasons=reasons, fallback=False)
     return mask_implausible(leg, PolicyResult(
         angle_deg=angle, estimator=labels, choices=tuple(choice for _ in leg.events.strides),
         absolute_reference=_reference(ref), standing_ref_deg=None if ref is None else round(ref, 2),
