@@ -15,7 +15,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from pipeline import ALGORITHM_VERSION
-from pipeline.assignment import check_segments, pairing_suspicious, swapped_pairing_better
+from pipeline.assignment import SI, check_segments, pairing_suspicious, swapped_pairing_better
 from pipeline.bilateral import OtherLeg, mid_swings_s, non_alternating
 from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
@@ -23,6 +23,7 @@ from pipeline.metrics import stride_values_many
 from pipeline.params import RUNNING, AssignmentParams, PipelineParams, preset
 from pipeline.phases import GaitEvents
 from pipeline.policy import PolicyResult, auto, single_estimator
+from pipeline.prepare import to_si
 from pipeline.quality import edge_reasons, gap_reasons, stride_quality
 from pipeline.running import build_running_leg_input, detect_running
 from pipeline.sync import SyncedLeg, synchronised_leg
@@ -59,7 +60,8 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
     warnings: list[str] = []
     by_leg = _streams_by_leg(streams, warnings)
     ap = (params if params is not None else preset(activity)).assignment
-    assigned = _check_labels(by_leg, ap, warnings)
+    si: dict[int, SI] = {}
+    assigned = _check_labels(by_leg, ap, warnings, si)
     legs: dict[str, LegResult] = {}
     swings: dict[str, np.ndarray] = {}
     synced: dict[str, SyncedLeg] = {}
@@ -70,7 +72,7 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
             warnings.append(f"{leg} leg skipped: no {missing} sensor")
             continue
         try:
-            synced[leg] = _synced(leg, segs["thigh"], segs["shank"], activity, params)
+            synced[leg] = _synced(leg, segs["thigh"], segs["shank"], activity, params, si)
         except ValueError as exc:
             warnings.append(f"{leg} leg skipped: {exc}")
     events = _leg_events(synced, activity, params)
@@ -84,7 +86,7 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
         except ValueError as exc:
             warnings.append(f"{leg} leg skipped: {exc}")
     legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
-                                        warnings, others)
+                                        warnings, others, si)
     legs = _alternating_strides(legs, swings, warnings)
     for leg, how in assigned.items():
         lr = legs.get(leg)
@@ -93,16 +95,20 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
     return SessionResult(algorithm_version=ALGORITHM_VERSION, activity=activity, legs=legs, warnings=warnings)
 
 
-def _check_labels(by_leg: dict[str, dict[str, RawSensorStream]], params: AssignmentParams, warnings: list[str]
-                  ) -> dict[str, str]:
+def _check_labels(by_leg: dict[str, dict[str, RawSensorStream]], params: AssignmentParams, warnings: list[str],
+                  si: dict[int, SI]) -> dict[str, str]:
     """Exchange a leg's thigh and shank streams when their motion says the labels are swapped
-    (:func:`pipeline.assignment.check_segments`). Returns what was done per leg."""
+    (:func:`pipeline.assignment.check_segments`). Returns what was done per leg; ``si`` receives each checked
+    stream's :func:`pipeline.prepare.to_si` by ``id`` of the stream, for the leg's processing to reuse."""
     assigned: dict[str, str] = {}
     for leg in sorted(by_leg):
         segs = by_leg[leg]
         if "thigh" not in segs or "shank" not in segs:
             continue
-        chk = check_segments(segs["thigh"], segs["shank"], params)
+        for seg in ("thigh", "shank"):
+            si[id(segs[seg])] = to_si(segs[seg])
+        chk = check_segments(segs["thigh"], segs["shank"], params,
+                             (si[id(segs["thigh"])], si[id(segs["shank"])]))
         ratios = f"shank/thigh swing rate {chk.rate_ratio:.2f}, impact {chk.impact_ratio:.2f}"
         if chk.verdict == "swapped":
             segs["thigh"], segs["shank"] = segs["shank"], segs["thigh"]
@@ -124,8 +130,8 @@ def _check_thigh_pairing(legs: dict[str, LegResult], swings: dict[str, np.ndarra
                          by_leg: dict[str, dict[str, RawSensorStream]], activity: str,
                          estimator: str, params: PipelineParams | None,
                          calibration: Mapping[str, KneeCalibration] | None, ap: AssignmentParams,
-                         assigned: dict[str, str], warnings: list[str], others: Mapping[str, OtherLeg]
-                         ) -> tuple[dict[str, LegResult], dict[str, np.ndarray]]:
+                         assigned: dict[str, str], warnings: list[str], others: Mapping[str, OtherLeg],
+                         si: Mapping[int, SI] | None = None) -> tuple[dict[str, LegResult], dict[str, np.ndarray]]:
     """Both legs processed again with the thighs exchanged when a joint-centre residual is suspicious; the swapped
     pairing is kept when it fits clearly better (:func:`pipeline.assignment.swapped_pairing_better`)."""
     if set(legs) != {"left", "right"}:
@@ -136,7 +142,7 @@ def _check_thigh_pairing(legs: dict[str, LegResult], swings: dict[str, np.ndarra
     other = {"left": "right", "right": "left"}
     try:
         runs = {k: _process_leg(k, by_leg[other[k]]["thigh"], by_leg[k]["shank"], activity, estimator, params,
-                                (calibration or {}).get(k), other=others.get(k)) for k in ("left", "right")}
+                                (calibration or {}).get(k), other=others.get(k), si=si) for k in ("left", "right")}
     except ValueError:
         runs = {}
     swapped = {k: v[0] for k, v in runs.items()}
@@ -195,13 +201,16 @@ def _streams_by_leg(streams: Sequence[RawSensorStream], warnings: list[str]
     return by_leg
 
 
-def _synced(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str, params: PipelineParams | None
-            ) -> SyncedLeg:
+def _synced(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str, params: PipelineParams | None,
+            si: Mapping[int, SI] | None = None) -> SyncedLeg:
     """:func:`pipeline.sync.synchronised_leg` with the session's parameters (runtime warnings of NaN-heavy
-    input silenced, as for the whole leg)."""
+    input silenced, as for the whole leg). ``si``: streams already converted (:func:`_check_labels`)."""
+    pair = None
+    if si is not None and id(thigh) in si and id(shank) in si:
+        pair = (si[id(thigh)], si[id(shank)])
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore", RuntimeWarning)
-        return synchronised_leg(leg, thigh, shank, params if params is not None else preset(activity))
+        return synchronised_leg(leg, thigh, shank, params if params is not None else preset(activity), si=pair)
 
 
 def _leg_events(synced: Mapping[str, SyncedLeg], activity: str, params: PipelineParams | None
@@ -259,12 +268,13 @@ def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activi
 def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str, estimator: str,
                  params: PipelineParams | None, calibration: KneeCalibration | None,
                  synced: SyncedLeg | None = None, other: OtherLeg | None = None,
-                 events: tuple[np.ndarray, GaitEvents] | None = None) -> tuple[LegResult, np.ndarray]:
+                 events: tuple[np.ndarray, GaitEvents] | None = None, si: Mapping[int, SI] | None = None
+                 ) -> tuple[LegResult, np.ndarray]:
     """:func:`process_leg` and the times [s] of every mid-swing peak of the leg (in bouts or not). ``synced``: the
     leg already synchronised; ``other``: the contralateral leg's swings (:func:`_other_legs`); ``events``: the
-    leg's own gait events on ``synced`` (:func:`_leg_events`)."""
+    leg's own gait events on ``synced`` (:func:`_leg_events`); ``si``: streams already converted."""
     if synced is None:
-        synced = _synced(leg, thigh, shank, activity, params)
+        synced = _synced(leg, thigh, shank, activity, params, si)
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore", RuntimeWarning)
         data, running = _leg_input(synced, activity, params, calibration, other, events)
