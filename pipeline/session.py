@@ -60,21 +60,27 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
     warnings: list[str] = []
     by_leg = _streams_by_leg(streams, warnings)
     ap = (params if params is not None else preset(activity)).assignment
-    si: dict[int, SI] = {}
-    assigned = _check_labels(by_leg, ap, warnings, si)
+    assigned: dict[str, str] = {}
     legs: dict[str, LegResult] = {}
     swings: dict[str, np.ndarray] = {}
     synced: dict[str, SyncedLeg] = {}
+    # each leg's label check right before its synchronisation, sharing its streams' conversion (held for one leg
+    # at a time); the label checks' warnings still come before the legs' own
+    label_warnings: list[str] = []
+    leg_warnings: list[str] = []
     for leg in sorted(by_leg):
         segs = by_leg[leg]
         if "thigh" not in segs or "shank" not in segs:
             missing = "thigh" if "thigh" not in segs else "shank"
-            warnings.append(f"{leg} leg skipped: no {missing} sensor")
+            leg_warnings.append(f"{leg} leg skipped: no {missing} sensor")
             continue
+        si = _check_labels(leg, segs, ap, assigned, label_warnings)
         try:
             synced[leg] = _synced(leg, segs["thigh"], segs["shank"], activity, params, si)
         except ValueError as exc:
-            warnings.append(f"{leg} leg skipped: {exc}")
+            leg_warnings.append(f"{leg} leg skipped: {exc}")
+        del si
+    warnings += label_warnings + leg_warnings
     events = _leg_events(synced, activity, params)
     others = _other_legs(synced, events)
     for leg in sorted(synced):
@@ -86,7 +92,7 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
         except ValueError as exc:
             warnings.append(f"{leg} leg skipped: {exc}")
     legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
-                                        warnings, others, si)
+                                        warnings, others)
     legs = _alternating_strides(legs, swings, warnings)
     for leg, how in assigned.items():
         lr = legs.get(leg)
@@ -95,27 +101,21 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
     return SessionResult(algorithm_version=ALGORITHM_VERSION, activity=activity, legs=legs, warnings=warnings)
 
 
-def _check_labels(by_leg: dict[str, dict[str, RawSensorStream]], params: AssignmentParams, warnings: list[str],
-                  si: dict[int, SI]) -> dict[str, str]:
-    """Exchange a leg's thigh and shank streams when their motion says the labels are swapped
-    (:func:`pipeline.assignment.check_segments`). Returns what was done per leg; ``si`` receives each checked
-    stream's :func:`pipeline.prepare.to_si` by ``id`` of the stream, for the leg's processing to reuse."""
-    assigned: dict[str, str] = {}
-    for leg in sorted(by_leg):
-        segs = by_leg[leg]
-        if "thigh" not in segs or "shank" not in segs:
-            continue
-        for seg in ("thigh", "shank"):
-            si[id(segs[seg])] = to_si(segs[seg])
-        chk = check_segments(segs["thigh"], segs["shank"], params,
-                             (si[id(segs["thigh"])], si[id(segs["shank"])]))
-        ratios = f"shank/thigh swing rate {chk.rate_ratio:.2f}, impact {chk.impact_ratio:.2f}"
-        if chk.verdict == "swapped":
-            segs["thigh"], segs["shank"] = segs["shank"], segs["thigh"]
-            assigned[leg] = "thigh_shank_exchanged"
-            warnings.append(f"{leg} leg: the sensor labelled thigh moves like a shank ({ratios}); "
-                            "thigh and shank labels exchanged")
-    return assigned
+def _check_labels(leg: str, segs: dict[str, RawSensorStream], params: AssignmentParams, assigned: dict[str, str],
+                  warnings: list[str]) -> tuple[SI, SI]:
+    """Exchange the leg's thigh and shank streams in ``segs`` when their motion says the labels are swapped
+    (:func:`pipeline.assignment.check_segments`; what was done goes to ``assigned``). Returns the two streams'
+    :func:`pipeline.prepare.to_si` (thigh, shank, after any exchange), for the leg's preparation to reuse."""
+    si = {seg: to_si(segs[seg]) for seg in ("thigh", "shank")}
+    chk = check_segments(segs["thigh"], segs["shank"], params, (si["thigh"], si["shank"]))
+    ratios = f"shank/thigh swing rate {chk.rate_ratio:.2f}, impact {chk.impact_ratio:.2f}"
+    if chk.verdict == "swapped":
+        segs["thigh"], segs["shank"] = segs["shank"], segs["thigh"]
+        si["thigh"], si["shank"] = si["shank"], si["thigh"]
+        assigned[leg] = "thigh_shank_exchanged"
+        warnings.append(f"{leg} leg: the sensor labelled thigh moves like a shank ({ratios}); "
+                        "thigh and shank labels exchanged")
+    return si["thigh"], si["shank"]
 
 
 def _centre_residuals(legs: dict[str, LegResult]) -> tuple[float, float] | None:
@@ -130,8 +130,8 @@ def _check_thigh_pairing(legs: dict[str, LegResult], swings: dict[str, np.ndarra
                          by_leg: dict[str, dict[str, RawSensorStream]], activity: str,
                          estimator: str, params: PipelineParams | None,
                          calibration: Mapping[str, KneeCalibration] | None, ap: AssignmentParams,
-                         assigned: dict[str, str], warnings: list[str], others: Mapping[str, OtherLeg],
-                         si: Mapping[int, SI] | None = None) -> tuple[dict[str, LegResult], dict[str, np.ndarray]]:
+                         assigned: dict[str, str], warnings: list[str], others: Mapping[str, OtherLeg]
+                         ) -> tuple[dict[str, LegResult], dict[str, np.ndarray]]:
     """Both legs processed again with the thighs exchanged when a joint-centre residual is suspicious; the swapped
     pairing is kept when it fits clearly better (:func:`pipeline.assignment.swapped_pairing_better`)."""
     if set(legs) != {"left", "right"}:
@@ -142,7 +142,7 @@ def _check_thigh_pairing(legs: dict[str, LegResult], swings: dict[str, np.ndarra
     other = {"left": "right", "right": "left"}
     try:
         runs = {k: _process_leg(k, by_leg[other[k]]["thigh"], by_leg[k]["shank"], activity, estimator, params,
-                                (calibration or {}).get(k), other=others.get(k), si=si) for k in ("left", "right")}
+                                (calibration or {}).get(k), other=others.get(k)) for k in ("left", "right")}
     except ValueError:
         runs = {}
     swapped = {k: v[0] for k, v in runs.items()}
@@ -202,15 +202,12 @@ def _streams_by_leg(streams: Sequence[RawSensorStream], warnings: list[str]
 
 
 def _synced(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str, params: PipelineParams | None,
-            si: Mapping[int, SI] | None = None) -> SyncedLeg:
+            si: tuple[SI, SI] | None = None) -> SyncedLeg:
     """:func:`pipeline.sync.synchronised_leg` with the session's parameters (runtime warnings of NaN-heavy
-    input silenced, as for the whole leg). ``si``: streams already converted (:func:`_check_labels`)."""
-    pair = None
-    if si is not None and id(thigh) in si and id(shank) in si:
-        pair = (si[id(thigh)], si[id(shank)])
+    input silenced, as for the whole leg). ``si``: both streams already converted (:func:`_check_labels`)."""
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore", RuntimeWarning)
-        return synchronised_leg(leg, thigh, shank, params if params is not None else preset(activity), si=pair)
+        return synchronised_leg(leg, thigh, shank, params if params is not None else preset(activity), si=si)
 
 
 def _leg_events(synced: Mapping[str, SyncedLeg], activity: str, params: PipelineParams | None
@@ -268,13 +265,12 @@ def process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activi
 def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str, estimator: str,
                  params: PipelineParams | None, calibration: KneeCalibration | None,
                  synced: SyncedLeg | None = None, other: OtherLeg | None = None,
-                 events: tuple[np.ndarray, GaitEvents] | None = None, si: Mapping[int, SI] | None = None
-                 ) -> tuple[LegResult, np.ndarray]:
+                 events: tuple[np.ndarray, GaitEvents] | None = None) -> tuple[LegResult, np.ndarray]:
     """:func:`process_leg` and the times [s] of every mid-swing peak of the leg (in bouts or not). ``synced``: the
     leg already synchronised; ``other``: the contralateral leg's swings (:func:`_other_legs`); ``events``: the
-    leg's own gait events on ``synced`` (:func:`_leg_events`); ``si``: streams already converted."""
+    leg's own gait events on ``synced`` (:func:`_leg_events`)."""
     if synced is None:
-        synced = _synced(leg, thigh, shank, activity, params, si)
+        synced = _synced(leg, thigh, shank, activity, params)
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore", RuntimeWarning)
         data, running = _leg_input(synced, activity, params, calibration, other, events)
