@@ -29,6 +29,9 @@ from pipeline.prepare import to_si
 from pipeline.signal_utils import row_norm
 from pipeline.types import RawSensorStream
 
+SI = tuple[np.ndarray, np.ndarray, np.ndarray]
+"""``(t_s, gyr_rps, acc_mps2)`` of :func:`pipeline.prepare.to_si`."""
+
 
 @dataclass(frozen=True)
 class SegmentCheck:
@@ -40,10 +43,11 @@ class SegmentCheck:
     verdict: str
 
 
-def _swing_and_impact(stream: RawSensorStream, params: AssignmentParams) -> tuple[float, float]:
+def _swing_and_impact(stream: RawSensorStream, params: AssignmentParams, si: SI | None = None
+                      ) -> tuple[float, float]:
     """Swing rate [deg/s] (a high percentile of the gyro norm) and impact [m/s^3] (the same percentile of the
-    specific force's rate of change) of one sensor."""
-    t, gyr, acc = to_si(stream)
+    specific force's rate of change) of one sensor; ``si``: its :func:`pipeline.prepare.to_si` when already known."""
+    t, gyr, acc = to_si(stream) if si is None else si
     if t.shape[0] < 3:
         return float("nan"), float("nan")
     rate = float(np.percentile(np.rad2deg(row_norm(gyr)), params.rate_percentile))
@@ -52,10 +56,11 @@ def _swing_and_impact(stream: RawSensorStream, params: AssignmentParams) -> tupl
 
 
 def check_segments(thigh: RawSensorStream, shank: RawSensorStream,
-                   params: AssignmentParams = WALKING.assignment) -> SegmentCheck:
-    """Whether the streams labelled thigh and shank of one leg are on those segments (module docstring)."""
-    r1, i1 = _swing_and_impact(thigh, params)
-    r2, i2 = _swing_and_impact(shank, params)
+                   params: AssignmentParams = WALKING.assignment, si: tuple[SI, SI] | None = None) -> SegmentCheck:
+    """Whether the streams labelled thigh and shank of one leg are on those segments (module docstring). ``si``: the
+    two streams' :func:`pipeline.prepare.to_si`, when the caller has them (the same values, converted once)."""
+    r1, i1 = _swing_and_impact(thigh, params, None if si is None else si[0])
+    r2, i2 = _swing_and_impact(shank, params, None if si is None else si[1])
     with np.errstate(invalid="ignore", divide="ignore"):
         rate, impact = r2 / r1, i2 / i1
     if not np.isfinite(rate):

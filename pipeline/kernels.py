@@ -50,22 +50,58 @@ cross_rows: Callable[..., None] | None = None
 
 if numba is not None:
 
+    @numba.njit("void(f8[:, ::1], f8[:, ::1], f8[:, ::1], i8, i8, i8)", cache=True, nogil=True, inline="always")
+    def _one_section_lanes(sos: np.ndarray, zi: np.ndarray, e: np.ndarray, ca: int, cb: int, cc: int) -> None:
+        """Both passes of :func:`_filtfilt_columns` for a single section (a 2nd-order Butterworth, what every
+        walking filter is) on the padded columns ``ca``, ``cb``, ``cc`` of ``e`` in place (equal indices repeat a
+        column: its values are computed twice, the same). The three recursions run side by side with their states
+        in local variables: kept in registers, each step waits for the multiply-adds only, not for the state's
+        store and reload through memory, and the three independent chains overlap."""
+        m = e.shape[0]
+        b0, b1, b2, a1, a2 = sos[0, 0], sos[0, 1], sos[0, 2], sos[0, 4], sos[0, 5]
+        for rev in range(2):
+            first = 0 if rev == 0 else m - 1
+            za0, za1 = zi[0, 0] * e[first, ca], zi[0, 1] * e[first, ca]
+            zb0, zb1 = zi[0, 0] * e[first, cb], zi[0, 1] * e[first, cb]
+            zc0, zc1 = zi[0, 0] * e[first, cc], zi[0, 1] * e[first, cc]
+            for jj in range(m):
+                j = jj if rev == 0 else m - 1 - jj
+                xa, xb, xc = e[j, ca], e[j, cb], e[j, cc]
+                ya = b0 * xa + za0
+                yb = b0 * xb + zb0
+                yc = b0 * xc + zc0
+                za0 = b1 * xa - a1 * ya + za1
+                zb0 = b1 * xb - a1 * yb + zb1
+                zc0 = b1 * xc - a1 * yc + zc1
+                za1 = b2 * xa - a2 * ya
+                zb1 = b2 * xb - a2 * yb
+                zc1 = b2 * xc - a2 * yc
+                e[j, cc] = yc
+                e[j, cb] = yb
+                e[j, ca] = ya
+
     @numba.njit("void(f8[:, ::1], f8[:, ::1], f8[:, :], i8, f8[:, ::1])", cache=True, nogil=True)
     def _filtfilt_columns(sos: np.ndarray, zi: np.ndarray, x: np.ndarray, padlen: int, out: np.ndarray) -> None:
         """``out[:, c]`` = sosfiltfilt of ``x[:, c]`` (scipy's odd extension by ``padlen``, initial state ``zi`` times
         the first sample of each pass, direct-form II transposed sections as in scipy's ``_sosfilt``). The columns
         are filtered side by side, sample by sample: each column's recursion is a chain of dependent
-        multiply-adds, and independent chains interleaved keep the processor busy."""
+        multiply-adds, and independent chains interleaved keep the processor busy. A single section goes to
+        :func:`_one_section_lanes`, the same arithmetic with its states in registers."""
         n, k = x.shape
         n_sec = sos.shape[0]
         m = n + 2 * padlen
         e = np.empty((m, k))
-        z = np.empty((n_sec, 2, k))
         for j in range(padlen):
             for c in range(k):
                 e[j, c] = 2.0 * x[0, c] - x[padlen - j, c]
                 e[n + padlen + j, c] = 2.0 * x[n - 1, c] - x[n - 2 - j, c]
         e[padlen:padlen + n] = x
+        if n_sec == 1:
+            for c0 in range(0, k, 3):
+                _one_section_lanes(sos, zi, e, c0, min(c0 + 1, k - 1), min(c0 + 2, k - 1))
+            out[:] = e[padlen:padlen + n]
+            return
+        z = np.empty((n_sec, 2, k))
         for rev in range(2):
             # forward pass with state zi * ext[0]; then backward over its output, state zi * its last sample
             first = 0 if rev == 0 else m - 1

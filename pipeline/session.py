@@ -15,7 +15,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from pipeline import ALGORITHM_VERSION
-from pipeline.assignment import check_segments, pairing_suspicious, swapped_pairing_better
+from pipeline.assignment import SI, check_segments, pairing_suspicious, swapped_pairing_better
 from pipeline.bilateral import OtherLeg, mid_swings_s, non_alternating
 from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
@@ -23,6 +23,7 @@ from pipeline.metrics import stride_values_many
 from pipeline.params import RUNNING, AssignmentParams, PipelineParams, preset
 from pipeline.phases import GaitEvents
 from pipeline.policy import PolicyResult, auto, single_estimator
+from pipeline.prepare import to_si
 from pipeline.quality import edge_reasons, gap_reasons, stride_quality
 from pipeline.running import build_running_leg_input, detect_running
 from pipeline.sync import SyncedLeg, synchronised_leg
@@ -59,20 +60,27 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
     warnings: list[str] = []
     by_leg = _streams_by_leg(streams, warnings)
     ap = (params if params is not None else preset(activity)).assignment
-    assigned = _check_labels(by_leg, ap, warnings)
+    assigned: dict[str, str] = {}
     legs: dict[str, LegResult] = {}
     swings: dict[str, np.ndarray] = {}
     synced: dict[str, SyncedLeg] = {}
+    # each leg's label check right before its synchronisation, sharing its streams' conversion (held for one leg
+    # at a time); the label checks' warnings still come before the legs' own
+    label_warnings: list[str] = []
+    leg_warnings: list[str] = []
     for leg in sorted(by_leg):
         segs = by_leg[leg]
         if "thigh" not in segs or "shank" not in segs:
             missing = "thigh" if "thigh" not in segs else "shank"
-            warnings.append(f"{leg} leg skipped: no {missing} sensor")
+            leg_warnings.append(f"{leg} leg skipped: no {missing} sensor")
             continue
+        si = _check_labels(leg, segs, ap, assigned, label_warnings)
         try:
-            synced[leg] = _synced(leg, segs["thigh"], segs["shank"], activity, params)
+            synced[leg] = _synced(leg, segs["thigh"], segs["shank"], activity, params, si)
         except ValueError as exc:
-            warnings.append(f"{leg} leg skipped: {exc}")
+            leg_warnings.append(f"{leg} leg skipped: {exc}")
+        del si
+    warnings += label_warnings + leg_warnings
     events = _leg_events(synced, activity, params)
     others = _other_legs(synced, events)
     for leg in sorted(synced):
@@ -93,23 +101,21 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
     return SessionResult(algorithm_version=ALGORITHM_VERSION, activity=activity, legs=legs, warnings=warnings)
 
 
-def _check_labels(by_leg: dict[str, dict[str, RawSensorStream]], params: AssignmentParams, warnings: list[str]
-                  ) -> dict[str, str]:
-    """Exchange a leg's thigh and shank streams when their motion says the labels are swapped
-    (:func:`pipeline.assignment.check_segments`). Returns what was done per leg."""
-    assigned: dict[str, str] = {}
-    for leg in sorted(by_leg):
-        segs = by_leg[leg]
-        if "thigh" not in segs or "shank" not in segs:
-            continue
-        chk = check_segments(segs["thigh"], segs["shank"], params)
-        ratios = f"shank/thigh swing rate {chk.rate_ratio:.2f}, impact {chk.impact_ratio:.2f}"
-        if chk.verdict == "swapped":
-            segs["thigh"], segs["shank"] = segs["shank"], segs["thigh"]
-            assigned[leg] = "thigh_shank_exchanged"
-            warnings.append(f"{leg} leg: the sensor labelled thigh moves like a shank ({ratios}); "
-                            "thigh and shank labels exchanged")
-    return assigned
+def _check_labels(leg: str, segs: dict[str, RawSensorStream], params: AssignmentParams, assigned: dict[str, str],
+                  warnings: list[str]) -> tuple[SI, SI]:
+    """Exchange the leg's thigh and shank streams in ``segs`` when their motion says the labels are swapped
+    (:func:`pipeline.assignment.check_segments`; what was done goes to ``assigned``). Returns the two streams'
+    :func:`pipeline.prepare.to_si` (thigh, shank, after any exchange), for the leg's preparation to reuse."""
+    si = {seg: to_si(segs[seg]) for seg in ("thigh", "shank")}
+    chk = check_segments(segs["thigh"], segs["shank"], params, (si["thigh"], si["shank"]))
+    ratios = f"shank/thigh swing rate {chk.rate_ratio:.2f}, impact {chk.impact_ratio:.2f}"
+    if chk.verdict == "swapped":
+        segs["thigh"], segs["shank"] = segs["shank"], segs["thigh"]
+        si["thigh"], si["shank"] = si["shank"], si["thigh"]
+        assigned[leg] = "thigh_shank_exchanged"
+        warnings.append(f"{leg} leg: the sensor labelled thigh moves like a shank ({ratios}); "
+                        "thigh and shank labels exchanged")
+    return si["thigh"], si["shank"]
 
 
 def _centre_residuals(legs: dict[str, LegResult]) -> tuple[float, float] | None:
@@ -195,13 +201,13 @@ def _streams_by_leg(streams: Sequence[RawSensorStream], warnings: list[str]
     return by_leg
 
 
-def _synced(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str, params: PipelineParams | None
-            ) -> SyncedLeg:
+def _synced(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activity: str, params: PipelineParams | None,
+            si: tuple[SI, SI] | None = None) -> SyncedLeg:
     """:func:`pipeline.sync.synchronised_leg` with the session's parameters (runtime warnings of NaN-heavy
-    input silenced, as for the whole leg)."""
+    input silenced, as for the whole leg). ``si``: both streams already converted (:func:`_check_labels`)."""
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore", RuntimeWarning)
-        return synchronised_leg(leg, thigh, shank, params if params is not None else preset(activity))
+        return synchronised_leg(leg, thigh, shank, params if params is not None else preset(activity), si=si)
 
 
 def _leg_events(synced: Mapping[str, SyncedLeg], activity: str, params: PipelineParams | None

@@ -41,11 +41,14 @@ class SyncedLeg:
     thigh_fit: np.ndarray | None = None  # else its thigh half when known (:func:`pipeline.walking.reusable_thigh_fit`)
 
 
-def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, params: PipelineParams) -> SyncedLeg:
+def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, params: PipelineParams,
+                     si: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+                     | None = None) -> SyncedLeg:
     """Prepare a leg, fit its axes, and when the hinge constraint shows a thigh/shank clock offset larger than
     ``SyncParams.min_shift_samples`` of a sample, prepare it again with the shank's time stamps corrected (the axes
-    do not move with the lag). Raises ValueError with less than a second of usable samples."""
-    si1, si2 = to_si(thigh), to_si(shank)
+    do not move with the lag). ``si``: both streams' :func:`pipeline.prepare.to_si` when the caller has them
+    (never modified). Raises ValueError with less than a second of usable samples."""
+    si1, si2 = (to_si(thigh), to_si(shank)) if si is None else si
     fs1 = nominal_fs(thigh, si1[0]) if si1[0].size else 0.0
     fs2 = nominal_fs(shank, si2[0]) if si2[0].size else 0.0
     prep = prepare_leg_si(leg, si1, si2, fs1, fs2, params=params.prepare)

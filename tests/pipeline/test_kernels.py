@@ -33,6 +33,18 @@ def test_lowpass_equals_sosfiltfilt(shape: tuple[int, ...], cutoff_hz: float, fs
     assert np.array_equal(got, expected)
 
 
+@pytest.mark.parametrize("shape", [(5_000, 4), (5_000, 5), (3_000, 2), (3_000, 1)])
+@pytest.mark.parametrize("order", [2, 4])
+def test_lowpass_of_any_width_and_order_equals_sosfiltfilt(shape: tuple[int, ...], order: int) -> None:
+    """Single-section filters run three columns side by side (a last group of one or two repeats a column);
+    higher orders take the general section loop."""
+    x = np.random.default_rng(shape[1] * 10 + order).standard_normal(shape) * 300.0
+    sos = signal_utils._butter_sos(order, 8.0, 100.0)
+    padlen = min(x.shape[0] - 1, 3 * (2 * len(sos) + 1))
+    assert np.array_equal(signal_utils.lowpass(x, 8.0, 100.0, order=order),
+                          sosfiltfilt(sos, x, axis=0, padlen=padlen))
+
+
 def test_lowpass_of_a_strided_view_equals_sosfiltfilt() -> None:
     x = np.random.default_rng(3).standard_normal((3_000, 6))[:, ::2]
     sos = signal_utils._butter_sos(2, 10.0, 100.0)
