@@ -324,7 +324,8 @@ class _CentreProblem:
     offset of the residual (the accelerometers' gain mismatch, :func:`observable_bias_basis`)."""
 
     def __init__(self, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray, centre_reg: float,
-                 bias_weight: float | None = None, bias_basis: np.ndarray | None = None) -> None:
+                 bias_weight: float | None = None, bias_basis: np.ndarray | None = None,
+                 offset_weight: float = 0.0) -> None:
         self.args = (a1, m1, a2, m2)
         self.centre_reg = centre_reg
         self.reg = centre_reg * np.sqrt(a1.shape[0])
@@ -332,7 +333,9 @@ class _CentreProblem:
         self.k = 6 if bias_weight is None else 6 + (6 if bias_basis is None else bias_basis.shape[1] + 1)
         self.w = np.full(self.k, self.reg)
         if bias_weight is not None:
-            self.w[6:self.k - (bias_basis is not None)] = bias_weight
+            self.w[6:] = bias_weight
+        if bias_basis is not None:
+            self.w[-1] = offset_weight
         self._reg_rows = np.diag(self.w)  # the pulls' rows of the Jacobian
         self._x: np.ndarray | None = None
         self._parts: tuple[np.ndarray, ...] = ()
@@ -384,10 +387,11 @@ def _centre_resid(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray,
 
 
 def _lsq_centres(x0: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray,
-                 centre_reg: float, bias_weight: float | None = None, bias_basis: np.ndarray | None = None) -> _Fit:
-    """Eq. 5 least squares from ``x0``: (o1, o2), or (o1, o2, b1, b2) with ``bias_weight``, or (o1, o2, beta) with
-    ``bias_basis`` too (:class:`_CentreProblem`)."""
-    prob = _CentreProblem(a1, m1, a2, m2, centre_reg, bias_weight, bias_basis)
+                 centre_reg: float, bias_weight: float | None = None, bias_basis: np.ndarray | None = None,
+                 offset_weight: float = 0.0) -> _Fit:
+    """Eq. 5 least squares from ``x0``: (o1, o2), or (o1, o2, b1, b2) with ``bias_weight``, or (o1, o2, beta, c)
+    with ``bias_basis`` too (:class:`_CentreProblem`)."""
+    prob = _CentreProblem(a1, m1, a2, m2, centre_reg, bias_weight, bias_basis, offset_weight)
     return _lm(prob.residuals, prob.jacobian, x0)
 
 
@@ -476,20 +480,21 @@ def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.nd
         sol = _lsq_centres(sol.x, a1, m1, a2, m2, reg)
     x = sol.x
     basis = observable_bias_basis(x, a1, m1, a2, m2, params)
+    offset = 0.0
     if basis.shape[1]:
-        sigma_r = float(np.sqrt(np.mean(_centre_resid(x, a1, m1, a2, m2) ** 2)))
+        sigma_r = max(float(np.sqrt(np.mean(_centre_resid(x, a1, m1, a2, m2) ** 2))), _EPS)
+        sd = np.r_[np.full(basis.shape[1], params.centre_bias_prior_mps2), params.centre_offset_prior_mps2]
         sub = _lsq_centres(np.concatenate([x, np.zeros(basis.shape[1] + 1)]), a1, m1, a2, m2, reg,
-                           bias_weight=max(sigma_r, _EPS) / params.centre_bias_prior_mps2, bias_basis=basis).x[:-1]
+                           bias_weight=sigma_r / sd[0], bias_basis=basis, offset_weight=sigma_r / sd[-1]).x
         # a prior-predictive check (Box 1980, J. R. Stat. Soc. A 143:383): fitted biases the prior calls implausible
         # are misfit of another kind (a residual clock offset, a wrong centre minimum) that the bias terms absorb
-        if float(sub[6:] @ sub[6:]) / params.centre_bias_prior_mps2 ** 2 <= chi2.ppf(params.centre_bias_check_level,
-                                                                                     basis.shape[1]):
-            x = _biases(sub, basis)
+        if float(np.sum((sub[6:] / sd) ** 2)) <= chi2.ppf(params.centre_bias_check_level, sd.size):
+            x, offset = _biases(sub[:-1], basis), float(sub[-1])
     b1, b2 = (x[6:9], x[9:12]) if x.size == 12 else (np.zeros(3), np.zeros(3))
     o1h, o2h = x[:3], x[3:6]
     shift = (o1h @ j1 + o2h @ j2) / 2.0
     o1, o2 = o1h - j1 * shift, o2h - j2 * shift
-    r = _centre_resid(x, a1, m1, a2, m2)
+    r = _centre_resid(x, a1, m1, a2, m2) - offset
     rms = float(np.sqrt(np.mean(r ** 2)))
     if max(np.linalg.norm(o1), np.linalg.norm(o2)) > params.max_lever_m:
         # not a body-worn sensor position: no lever-arm correction rather than a wrong one
