@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import leastsq
+from scipy.stats import chi2
 
 from pipeline.params import WALKING, AxesParams
 from pipeline.signal_utils import cross_rows, row_norm
@@ -307,30 +308,41 @@ def _centre_split(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray,
     return v1, v2
 
 
+def _biases(x: np.ndarray, basis: np.ndarray | None) -> np.ndarray:
+    """(o1, o2, beta) -> (o1, o2, b1, b2) with b = basis @ beta: the biases of an observable subspace (6, k)."""
+    return x if basis is None else np.concatenate([x[:6], basis @ x[6:]])
+
+
 class _CentreProblem:
     """Seel Eq. 5 residual and Jacobian on one sample set, sharing ``a - M o`` and its norms between the two (MINPACK
     evaluates the Jacobian where it last evaluated the residuals); same arithmetic, same result.
 
     With ``bias_weight`` the unknowns are (o1, o2, b1, b2): each accelerometer's constant bias b_i is taken off its
     samples (``||a1 - b1 - Gamma1 o1|| - ||a2 - b2 - Gamma2 o2||``) and pulled towards 0 by the rows
-    ``bias_weight * b``, a Gaussian prior on the bias (:func:`fit_joint_centres`)."""
+    ``bias_weight * b``, a Gaussian prior on the bias (:func:`fit_joint_centres`). With ``bias_basis`` (6, k),
+    orthonormal columns, the biases are ``bias_basis @ beta`` and the unknowns (o1, o2, beta, c), c a constant
+    offset of the residual (the accelerometers' gain mismatch, :func:`observable_bias_basis`)."""
 
     def __init__(self, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray, centre_reg: float,
-                 bias_weight: float | None = None) -> None:
+                 bias_weight: float | None = None, bias_basis: np.ndarray | None = None,
+                 offset_weight: float = 0.0) -> None:
         self.args = (a1, m1, a2, m2)
         self.centre_reg = centre_reg
         self.reg = centre_reg * np.sqrt(a1.shape[0])
-        self.k = 6 if bias_weight is None else 12
+        self.basis = bias_basis
+        self.k = 6 if bias_weight is None else 6 + (6 if bias_basis is None else bias_basis.shape[1] + 1)
         self.w = np.full(self.k, self.reg)
         if bias_weight is not None:
             self.w[6:] = bias_weight
+        if bias_basis is not None:
+            self.w[-1] = offset_weight
         self._reg_rows = np.diag(self.w)  # the pulls' rows of the Jacobian
         self._x: np.ndarray | None = None
         self._parts: tuple[np.ndarray, ...] = ()
 
     def _eval(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
         if self._x is None or x.shape != self._x.shape or not (x == self._x).all():
-            v1, v2 = _centre_split(x, *self.args)
+            v1, v2 = _centre_split(x if self.basis is None else _biases(x[:-1], self.basis), *self.args)
             self._x, self._parts = np.array(x, dtype=float), (v1, v2, row_norm(v1), row_norm(v2))
         return self._parts
 
@@ -339,6 +351,8 @@ class _CentreProblem:
         n, k = n1.shape[0], self.k
         out = np.empty(n + k)
         np.subtract(n1, n2, out=out[:n])
+        if self.basis is not None:
+            out[:n] -= x[-1]
         np.multiply(self.w, x, out=out[n:])
         return out
 
@@ -353,9 +367,13 @@ class _CentreProblem:
         out[:n, :3] = np.einsum("ni,nij->nj", u1, m1)
         np.negative(out[:n, :3], out=out[:n, :3])
         out[:n, 3:6] = np.einsum("ni,nij->nj", u2, m2)
-        if k == 12:
-            np.negative(u1, out=out[:n, 6:9])
-            out[:n, 9:12] = u2
+        if k > 6:
+            if self.basis is None:
+                np.negative(u1, out=out[:n, 6:9])
+                out[:n, 9:12] = u2
+            else:
+                out[:n, 6:-1] = np.hstack([-u1, u2]) @ self.basis
+                out[:n, -1] = -1.0
         out[n:] = self._reg_rows
         return out
 
@@ -369,10 +387,59 @@ def _centre_resid(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray,
 
 
 def _lsq_centres(x0: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray,
-                 centre_reg: float, bias_weight: float | None = None) -> _Fit:
-    """Eq. 5 least squares from ``x0``: (o1, o2), or (o1, o2, b1, b2) with ``bias_weight`` (:class:`_CentreProblem`)."""
-    prob = _CentreProblem(a1, m1, a2, m2, centre_reg, bias_weight)
+                 centre_reg: float, bias_weight: float | None = None, bias_basis: np.ndarray | None = None,
+                 offset_weight: float = 0.0) -> _Fit:
+    """Eq. 5 least squares from ``x0``: (o1, o2), or (o1, o2, b1, b2) with ``bias_weight``, or (o1, o2, beta, c)
+    with ``bias_basis`` too (:class:`_CentreProblem`)."""
+    prob = _CentreProblem(a1, m1, a2, m2, centre_reg, bias_weight, bias_basis, offset_weight)
     return _lm(prob.residuals, prob.jacobian, x0)
+
+
+def observable_bias_basis(x: np.ndarray, a1: np.ndarray, m1: np.ndarray, a2: np.ndarray, m2: np.ndarray,
+                          params: AxesParams = WALKING.axes) -> np.ndarray:
+    """Orthonormal directions (6, k) of the two accelerometers' biases (b1, b2) that the Eq. 5 samples determine
+    well enough to fit, linearised at the bias-free centres ``x`` = (o1, o2); the other directions stay at 0.
+
+    Information: the Gauss-Newton information of the biases with the nuisances profiled out, S = J~^T J~ with
+    J~ = J_b - J_o (J_o^T J_o + D)^-1 J_o^T J_b (J_o: the centres' columns and a constant offset's; D the centre
+    pull). Its white-noise scale would trust every sample as independent, but the misfit of Eq. 5 (soft tissue,
+    residual clock offset, impacts) is correlated within a stretch of gait, so the score covariance M is taken
+    cluster-robust over ``fit_chunks`` contiguous blocks of the (time-ordered) samples (sandwich estimator, Liang &
+    Zeger 1986, Biometrika 73:13; Cameron & Miller 2015, J. Hum. Resour. 50:317), giving the effective information
+    I = S M^-1 S. A direction w with eigenvalue mu of I is kept when the posterior SD under the prior,
+    (mu + 1/sigma_b^2)^-1/2, is below ``centre_bias_sd_ratio`` times the prior SD sigma_b: there the data, not the
+    prior, set the bias."""
+    n = a1.shape[0]
+    sigma_b = params.centre_bias_prior_mps2
+    groups = min(params.fit_chunks, n // 10)
+    if sigma_b <= 0 or groups < 8:
+        return np.zeros((6, 0))
+    prob = _CentreProblem(a1, m1, a2, m2, params.centre_reg, bias_weight=1.0)
+    x12 = np.concatenate([x[:6], np.zeros(6)])
+    r = prob.residuals(x12)[:n]
+    jac = prob.jacobian(x12)[:n]
+    # the centres and a constant offset of the residual are profiled out: a gain mismatch between the two
+    # accelerometers (consumer MEMS: 1-3 %, 0.1-0.3 m/s^2 at 1 g) offsets ||a1|| - ||a2|| by a near-constant, and a
+    # bias direction whose regressor is near-constant (seen only through u_i's small tilt by the bias itself) would
+    # take it up
+    jo = np.column_stack([jac[:, :6], np.ones(n)])
+    jb = jac[:, 6:]
+    jt = jb - jo @ np.linalg.solve(jo.T @ jo + np.diag(np.r_[prob.w[:6] ** 2, 0.0]), jo.T @ jb)
+    s = jt.T @ jt
+    # residual after the (unconstrained, linearised) step in all unknowns, so that the true biases and offset do not
+    # count as misfit
+    full = np.column_stack([jo, jb])
+    e = r - full @ np.linalg.lstsq(full.T @ full + np.diag(np.r_[prob.w[:6] ** 2, np.zeros(7)]), full.T @ r,
+                                   rcond=None)[0]
+    scores = np.stack([jt[blk].T @ e[blk] for blk in np.array_split(np.arange(n), groups)])
+    scores -= scores.mean(axis=0)
+    meat = scores.T @ scores * (groups / (groups - 1.0))
+    meat += np.eye(6) * (1e-9 * max(float(np.trace(meat)), _EPS))
+    info = s @ np.linalg.solve(meat, s)
+    mu, vec = np.linalg.eigh(0.5 * (info + info.T))
+    ratio = params.centre_bias_sd_ratio
+    keep = mu * sigma_b ** 2 >= 1.0 / ratio ** 2 - 1.0
+    return vec[:, keep]
 
 
 def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,
@@ -383,15 +450,14 @@ def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.nd
 
     Eq. 5 assumes bias-free accelerometers. A constant bias b_i of a few 0.01 g adds ``b1.u1 - b2.u2`` to the
     residual (u_i: direction of the knee-centre acceleration, mostly gravity, in sensor i's frame), which the
-    centres would otherwise absorb, centimetres off in the joint plane. So the fit is refined once more with both
-    biases as six more unknowns under a zero-mean Gaussian prior of SD ``AxesParams.centre_bias_prior_mps2``
-    (maximum a posteriori: residual rows and prior rows ``(sigma_r / sigma_b) b`` in one least-squares problem,
-    sigma_r the residual RMS of the fit without biases). In-plane components are observable wherever the segments
-    tilt against gravity (stance to swing, sitting); the components along the axis and the part common to both
-    segments' gravity directions hardly are, and the prior holds those near 0. The biases are nuisance parameters:
-    their in-plane estimates are as uncertain as the biases are large (sweep tune seeds: error ~0.1-0.4 m/s^2 for
-    biases of ~0.1), so they correct the centres, not the angles (taken off the accelerometer angle too, they
-    made 8 jumps in a row worse, peak bias -1.4 -> -2.2 deg).
+    centres would otherwise absorb, centimetres off in the joint plane. With ``AxesParams.centre_bias_prior_mps2``
+    > 0 the fit is refined once more with the biases as unknowns, but only in the directions the samples make
+    observable (:func:`observable_bias_basis`: along the knee axis, and the part common to both segments when they
+    tilt together, the data see nothing), plus a constant offset of the residual (the accelerometers' gain
+    mismatch), under a zero-mean Gaussian prior of that SD (maximum a posteriori: residual rows and prior rows
+    ``(sigma_r / sigma_b) beta`` in one least-squares problem, sigma_r the residual RMS of the fit without biases).
+    The biases are nuisance parameters: they correct the centres, not the angles (taken off the accelerometer angle
+    too, they made 8 jumps in a row worse, peak bias -1.4 -> -2.2 deg).
     """
     m1, m2 = gamma_matrices(g1, gd1), gamma_matrices(g2, gd2)
     # MINPACK Levenberg-Marquardt (a 6-parameter problem; the trust-region solver's SVDs cost far more here).
@@ -413,15 +479,22 @@ def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.nd
         a1, m1, a2, m2 = a1[keep], m1[keep], a2[keep], m2[keep]
         sol = _lsq_centres(sol.x, a1, m1, a2, m2, reg)
     x = sol.x
-    if params.centre_bias_prior_mps2 > 0:
-        sigma_r = float(np.sqrt(np.mean(_centre_resid(x, a1, m1, a2, m2) ** 2)))
-        x = _lsq_centres(np.concatenate([x, np.zeros(6)]), a1, m1, a2, m2, reg,
-                         bias_weight=max(sigma_r, _EPS) / params.centre_bias_prior_mps2).x
+    basis = observable_bias_basis(x, a1, m1, a2, m2, params)
+    offset = 0.0
+    if basis.shape[1]:
+        sigma_r = max(float(np.sqrt(np.mean(_centre_resid(x, a1, m1, a2, m2) ** 2))), _EPS)
+        sd = np.r_[np.full(basis.shape[1], params.centre_bias_prior_mps2), params.centre_offset_prior_mps2]
+        sub = _lsq_centres(np.concatenate([x, np.zeros(basis.shape[1] + 1)]), a1, m1, a2, m2, reg,
+                           bias_weight=sigma_r / sd[0], bias_basis=basis, offset_weight=sigma_r / sd[-1]).x
+        # a prior-predictive check (Box 1980, J. R. Stat. Soc. A 143:383): fitted biases the prior calls implausible
+        # are misfit of another kind (a residual clock offset, a wrong centre minimum) that the bias terms absorb
+        if float(np.sum((sub[6:] / sd) ** 2)) <= chi2.ppf(params.centre_bias_check_level, sd.size):
+            x, offset = _biases(sub[:-1], basis), float(sub[-1])
     b1, b2 = (x[6:9], x[9:12]) if x.size == 12 else (np.zeros(3), np.zeros(3))
     o1h, o2h = x[:3], x[3:6]
     shift = (o1h @ j1 + o2h @ j2) / 2.0
     o1, o2 = o1h - j1 * shift, o2h - j2 * shift
-    r = _centre_resid(x, a1, m1, a2, m2)
+    r = _centre_resid(x, a1, m1, a2, m2) - offset
     rms = float(np.sqrt(np.mean(r ** 2)))
     if max(np.linalg.norm(o1), np.linalg.norm(o2)) > params.max_lever_m:
         # not a body-worn sensor position: no lever-arm correction rather than a wrong one

@@ -69,12 +69,24 @@ class AxesParams:
     valley of Eq. 5 along the axis."""
     centre_bias_prior_mps2: float = 0.0
     """SD [m/s^2] of the zero-mean prior on each accelerometer axis's constant bias, fitted with the joint centres
-    as a nuisance parameter (:func:`pipeline.axes.fit_joint_centres`); 0 fits no bias. Off: at 0.3 (~0.03 g, the
-    zero-g offset class of consumer MEMS accelerometers) the centres are right to ~1 cm where biases pulled them
-    5-20 cm off, and most sweep rows improve (report seeds: 0 g peak LoA -2.1 .. 3.6 -> -2.1 .. 3.3, sit-to-stand
-    -2.3 .. 4.4 -> -1.4 .. 3.6), but the weakly observable bias combinations follow the misfit, not the bias: fast
-    walking's peak bias -1.56 -> -1.80 deg, one fast-walking leg -4.7 -> -6.0, and a 12-minute session processed in
-    blocks no longer matches itself in one block (peak median difference 2.2 deg, 0.5 allowed)."""
+    as a nuisance parameter (:func:`pipeline.axes.fit_joint_centres`) in the directions the session makes observable
+    (:func:`pipeline.axes.observable_bias_basis`); 0 fits no bias. Off: at 0.3 (~0.03 g, the zero-g offset class of
+    consumer MEMS accelerometers) a 12-minute session processed in blocks matches itself again (median peak
+    difference 0.09-0.35 deg, 0.5 allowed) and lever arms x2 improve (sweep tune seeds, peak LoA -3.8 .. 1.4 ->
+    -3.0 .. 1.1), but 128 Hz sessions (bursty-loss axis: 3 % loss LoA -3.0 .. 1.4 -> -3.6 .. 1.3), fast walking
+    (accuracy tune seeds, bias -0.90 -> -1.12 deg) and 40 Hz (report seeds, LoA -2.5 .. 3.1 -> -2.3 .. 3.6) get
+    worse."""
+    centre_bias_sd_ratio: float = 0.5
+    """A bias direction is fitted only where its posterior SD (cluster-robust information plus the prior) is below
+    this share of the prior SD, i.e. where the data carry at least (1/0.5^2 - 1) = 3 times the prior's information;
+    the rest stays at 0 instead of following the fit's misfit."""
+    centre_offset_prior_mps2: float = 0.3
+    """SD [m/s^2] of the zero-mean prior on a constant offset of the Eq. 5 residual fitted with the biases: the two
+    accelerometers' sensitivity mismatch (consumer MEMS: +-2 % each, ~0.28 m/s^2 at 1 g for the pair)."""
+    centre_bias_check_level: float = 0.99
+    """The fitted biases and offset are dropped (the centres kept from the bias-free fit) when their squared norm over
+    the prior variances exceeds this quantile of chi-square with as many degrees of freedom as fitted unknowns:
+    values that large are not what the priors describe but other misfit absorbed by those terms."""
 
 
 @dataclass(frozen=True)

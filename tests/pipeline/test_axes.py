@@ -15,6 +15,9 @@ from pipeline.axes import (
     angular_acceleration,
     estimate_sync_lag_s,
     fit_joint_axes,
+    fit_joint_centres,
+    gamma_matrices,
+    observable_bias_basis,
     orient_axes,
     orient_thigh_on_gait,
     select_fit_samples,
@@ -177,3 +180,60 @@ def test_accelerometer_bias_in_the_centre_fit(seed: int) -> None:
     with_bias, without = _in_plane_centre_errors_cm(sim, on), _in_plane_centre_errors_cm(sim, off)
     assert max(without) > 3.0  # the case shows the problem
     assert max(with_bias) < 1.5
+
+
+_BIAS_ON = dataclasses.replace(WALKING.axes, centre_bias_prior_mps2=0.3)
+
+
+def _tilted_legs(together: bool, seed: int = 0, n: int = 2000, bias_mps2: float = 0.3):
+    """Accelerometers tilted about the knee axis z through a sit-to-stand range and turning slowly about it (one
+    tilt and rate per block of 50 samples), the shank on its own or rigidly with the thigh; each sensor 10-20 cm
+    from the knee centre, with a constant bias (0.3 m/s^2 per axis) and noise. Returns (a1, g1, a2, g2, true biases)."""
+    rng = np.random.default_rng(seed)
+    th1, w1 = np.repeat(rng.uniform(-0.3, 1.6, 40), n // 40), np.repeat(rng.uniform(-2.0, 2.0, 40), n // 40)
+    th2, w2 = (th1, w1) if together else (np.repeat(rng.uniform(-1.6, 0.3, 40), n // 40),
+                                          np.repeat(rng.uniform(-2.0, 2.0, 40), n // 40))
+    z = np.zeros(n)
+    g1, g2 = np.column_stack([z, z, w1]), np.column_stack([z, z, w2])
+    o1, o2 = np.array([0.02, 0.15, 0.03]), np.array([-0.01, -0.12, 0.04])
+    b1, b2 = bias_mps2 * rng.standard_normal(3), bias_mps2 * rng.standard_normal(3)
+    a1, a2 = (9.81 * np.column_stack([np.cos(th), np.sin(th), z]) + gamma_matrices(g, 0 * g) @ o + b
+              + 0.05 * rng.standard_normal((n, 3)) for th, g, o, b in ((th1, g1, o1, b1), (th2, g2, o2, b2)))
+    return a1, g1, a2, g2, np.concatenate([b1, b2])
+
+
+@pytest.mark.parametrize("together", [False, True])
+def test_only_observable_bias_directions_are_fitted(together: bool) -> None:
+    """Eq. 5 with biases sees ``b1.u1 - b2.u2`` (u_i: gravity in sensor i). Tilting about the knee axis z leaves the
+    z components unseen; a leg moving rigidly (u1 = u2) leaves the part common to both unseen as well. The fitted
+    subspace must hold exactly what the data see: 4 in-plane directions, or 2 (the in-plane difference b1 - b2), and
+    the fitted biases must match the true ones in it."""
+    a1, g1, a2, g2, b_true = _tilted_legs(together)
+    z = np.array([0.0, 0.0, 1.0])
+    off = fit_joint_centres(a1, g1, 0 * g1, a2, g2, 0 * g2, z, z, WALKING.axes)
+    m1, m2 = gamma_matrices(g1, 0 * g1), gamma_matrices(g2, 0 * g2)
+    basis = observable_bias_basis(np.concatenate([off.o1, off.o2]), a1, m1, a2, m2, _BIAS_ON)
+    assert basis.shape == (6, 2 if together else 4)
+    # nothing along the axis (up to the tilt of u_i by the biases themselves, ~|b| / g)
+    unseen = np.eye(6)[[2, 5]]
+    if together:
+        unseen = np.vstack([unseen, np.array([[1, 0, 0, 1, 0, 0], [0, 1, 0, 0, 1, 0]]) / np.sqrt(2)])
+    assert np.abs(unseen @ basis).max() < 0.1
+    c = fit_joint_centres(a1, g1, 0 * g1, a2, g2, 0 * g2, z, z, _BIAS_ON)
+    b_fit = np.concatenate([c.b1, c.b2])
+    assert np.abs(unseen @ b_fit).max() < 0.05  # held at 0 where unseen, whatever the true bias there
+    assert np.abs(basis.T @ (b_fit - b_true)).max() < 0.03
+    assert np.abs(unseen @ b_true).max() > 0.1  # the case shows it
+
+
+def test_biases_the_prior_calls_implausible_are_dropped() -> None:
+    """Fitted biases of ~10 prior SDs are not what the prior describes (the prior-predictive check in
+    :func:`pipeline.axes.fit_joint_centres`): the fit keeps the bias-free centres rather than such biases."""
+    a1, g1, a2, g2, _ = _tilted_legs(False, bias_mps2=3.0)
+    z = np.array([0.0, 0.0, 1.0])
+    c = fit_joint_centres(a1, g1, 0 * g1, a2, g2, 0 * g2, z, z, _BIAS_ON)
+    off = fit_joint_centres(a1, g1, 0 * g1, a2, g2, 0 * g2, z, z, WALKING.axes)
+    assert not c.b1.any() and not c.b2.any()
+    assert np.allclose(c.o1, off.o1) and np.allclose(c.o2, off.o2)
+    loose = dataclasses.replace(_BIAS_ON, centre_bias_check_level=1.0)
+    assert np.abs(fit_joint_centres(a1, g1, 0 * g1, a2, g2, 0 * g2, z, z, loose).b1).max() > 1.0  # the check acts
