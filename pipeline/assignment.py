@@ -25,12 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.params import WALKING, AssignmentParams
-from pipeline.prepare import to_si
+from pipeline.prepare import SI, to_si
 from pipeline.signal_utils import row_norm
 from pipeline.types import RawSensorStream
-
-SI = tuple[np.ndarray, np.ndarray, np.ndarray]
-"""``(t_s, gyr_rps, acc_mps2)`` of :func:`pipeline.prepare.to_si`."""
 
 
 @dataclass(frozen=True)

@@ -58,7 +58,11 @@ class PreparedLeg:
         return int(self.t_s.shape[0])
 
 
-def to_si(stream: RawSensorStream) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+SI = tuple[np.ndarray, np.ndarray, np.ndarray]
+"""``(t_s, gyr_rps, acc_mps2)`` of one stream: what :func:`to_si` returns."""
+
+
+def to_si(stream: RawSensorStream) -> SI:
     """``(t_s, gyr_rps, acc_mps2)`` of a raw stream, sorted by time with duplicate time stamps dropped."""
     t = np.asarray(stream.t_s, dtype=float)
     gyr = np.asarray(stream.gyr, dtype=float).reshape(-1, 3)

@@ -15,7 +15,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from pipeline import ALGORITHM_VERSION
-from pipeline.assignment import SI, check_segments, pairing_suspicious, swapped_pairing_better
+from pipeline.assignment import check_segments, pairing_suspicious, swapped_pairing_better
 from pipeline.bilateral import OtherLeg, mid_swings_s, non_alternating
 from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
@@ -23,7 +23,7 @@ from pipeline.metrics import stride_values_many
 from pipeline.params import RUNNING, AssignmentParams, PipelineParams, preset
 from pipeline.phases import GaitEvents
 from pipeline.policy import PolicyResult, auto, single_estimator
-from pipeline.prepare import to_si
+from pipeline.prepare import SI, to_si
 from pipeline.quality import edge_reasons, gap_reasons, stride_quality
 from pipeline.running import build_running_leg_input, detect_running
 from pipeline.sync import SyncedLeg, synchronised_leg
