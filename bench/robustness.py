@@ -1,8 +1,9 @@
 """Robustness sweep: perturb ONE simulator assumption at a time far beyond its default and score the pipeline.
 
-    python -m bench.robustness                   # REPORT seeds (100-104), every axis, ~3-4 min on 2 cores
+    python -m bench.robustness                   # REPORT seeds (100-104), every axis but short, ~3-4 min on 2 cores
     python -m bench.robustness --seeds tune      # TUNE seeds (0-4): tune on these, report on the others
     python -m bench.robustness --axes loss,labels --quick   # one seed, short sessions (smoke test)
+    python -m bench.robustness --axes short      # 10-60 s sessions with a thigh-shank offset (not in the default)
 
 Every case is a ``normal`` walking session (90 s in bouts of 12 strides, 100 Hz, random mounting, default noise,
 standing, turns and sitting between bouts; pipeline.simulate.SimConfig) with one field changed; the pipeline runs
