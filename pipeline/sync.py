@@ -78,12 +78,13 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
     are informative (no out-of-plane motion), from the joint-centre constraint (when ``axes_params`` is given).
     Applied only when at least two windows are informative and agree with the line within ``agree_s``: a real knee
     is not a perfect hinge, and on the hardware-synchronised biomechZoo trial (one 10 s window) the constraint alone
-    suggests a false 10-18 ms lag, so a single unconfirmed estimate is not used. ``g1``, ``g2``: low-passed gyros
-    (N, 3) [rad/s]."""
+    suggests a false 10-18 ms lag, so a single unconfirmed estimate is not used. A leg shorter than two windows gets
+    a constant lag from the joint-centre cue on its halves instead (:func:`_short_session_lag`). ``g1``, ``g2``:
+    low-passed gyros (N, 3) [rad/s]."""
     fs = prep.fs_hz
     win = int(params.window_s * fs)
     if prep.n < 2 * win:
-        return None, 0.0
+        return _short_session_lag(prep, g1, g2, axes, params, axes_params), 0.0
     edges = np.linspace(0, prep.n, int(prep.n // win) + 1).astype(int)
     windows = [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
     rates = hinge_rates(g1, g2, axes.j1, axes.j2)  # once for all windows
@@ -95,13 +96,38 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
     # the centre cue is the less accurate of the two wherever turns make both informative
     if offset is not None or axes_params is None or sum(lag is not None for lag in hinge) >= 2:
         return offset, drift
+    pick = np.unique(np.linspace(0, len(windows) - 1, min(len(windows), params.max_centre_windows)).round())
+    return _line_model(prep, [windows[int(i)] for i in pick], params,
+                       _centre_lag_of(prep, g1, g2, axes, params, axes_params))
+
+
+def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
+                       axes_params: AxesParams | None) -> float | None:
+    """Constant lag [s] of a leg too short for two ``window_s`` windows (a 10 m walk test, a 30-60 s trial): the
+    joint-centre cue (Seel Eq. 5) on its two halves, applied only when both are informative and agree within
+    ``agree_s`` (the rule of :func:`_line_model`) and their lag exceeds ``short_min_lag_s``; halves shorter than
+    ``short_window_s`` give no estimate. Not the
+    hinge cue (Eq. 2): on the hardware-synchronised biomechZoo trial (10 s) it reads a false -10 / -18 ms and follows
+    only a quarter of an imposed offset, where the centre cue follows it one to one. Two halves fix no drift: over
+    such a session 150 ppm move the lag by 4.5 ms at most."""
+    half = prep.n // 2
+    if axes_params is None or half < params.short_window_s * prep.fs_hz:
+        return None
+    halves = [slice(0, half), slice(half, prep.n)]
+    lag = _line_model(prep, halves, params, _centre_lag_of(prep, g1, g2, axes, params, axes_params))[0]
+    return lag if lag is not None and abs(lag) > params.short_min_lag_s else None
+
+
+def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
+                   axes_params: AxesParams) -> Callable[[slice], float | None]:
+    """The joint-centre lag of one window (:func:`pipeline.axes.estimate_centre_lag_s`), its inputs prepared once."""
+    fs = prep.fs_hz
     a1, a2 = (np.nan_to_num(a) for a in lowpass_runs_many((prep.acc_thigh_mps2, prep.acc_shank_mps2), prep.valid,
                                                             axes_params.fit_cutoff_hz, fs))
     gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)
     far = fit_margin_mask(prep.valid, fs, axes_params)
-    pick = np.unique(np.linspace(0, len(windows) - 1, min(len(windows), params.max_centre_windows)).round())
-    return _line_model(prep, [windows[int(i)] for i in pick], params, lambda w: estimate_centre_lag_s(
-        a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, far, fs, w, params.max_lag_s, axes_params))
+    return lambda w: estimate_centre_lag_s(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, far, fs, w, params.max_lag_s,
+                                           axes_params)
 
 
 def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
