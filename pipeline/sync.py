@@ -23,7 +23,7 @@ from pipeline.axes import (
     hinge_rates,
 )
 from pipeline.params import AxesParams, PipelineParams, SyncParams
-from pipeline.prepare import PreparedLeg, nominal_fs, prepare_leg_si, to_si
+from pipeline.prepare import SI, PreparedLeg, nominal_fs, prepare_leg_si, to_si
 from pipeline.signal_utils import lowpass_runs_many
 from pipeline.types import RawSensorStream
 from pipeline.walking import fit_gyros, reusable_thigh_fit
@@ -42,8 +42,7 @@ class SyncedLeg:
 
 
 def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, params: PipelineParams,
-                     si: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
-                     | None = None) -> SyncedLeg:
+                     si: tuple[SI, SI] | None = None) -> SyncedLeg:
     """Prepare a leg, fit its axes, and when the hinge constraint shows a thigh/shank clock offset larger than
     ``SyncParams.min_shift_samples`` of a sample, prepare it again with the shank's time stamps corrected (the axes
     do not move with the lag). ``si``: both streams' :func:`pipeline.prepare.to_si` when the caller has them
