@@ -22,6 +22,10 @@ from pipeline.params import WALKING, PrepareParams
 from pipeline.types import RawSensorStream
 
 MAX_BRIDGE_S = WALKING.prepare.max_bridge_s
+# A grid sample this close to a gap's edge (a received stamp) is that received sample: the grid is anchored on the
+# stamps, so without it the last bit of a clock correction decided whether an edge sample was kept (seen as a one-
+# sample move of stride edges and 0.1 deg of peak between two CPUs). Far below any sample period, above rounding.
+EDGE_TOL_S = 1e-6
 """The walking preset's bridge limit [s], for callers outside the pipeline (:class:`PrepareParams` owns it)."""
 
 
@@ -272,8 +276,7 @@ def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, flo
     filled: list[tuple[float, float]] = []
     kept: list[tuple[float, float]] = []
     for g0, g1 in gaps:
-        i0 = int(np.searchsorted(t_grid, g0, side="right"))
-        i1 = int(np.searchsorted(t_grid, g1, side="left"))
+        i0, i1 = (int(i) for i in _inside_bounds(t_grid, np.array([g0]), np.array([g1]))[:, 0])
         if i1 <= i0:
             filled.append((g0, g1))  # no grid sample inside: nothing to fill
             continue
@@ -347,15 +350,18 @@ def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.nd
     return tmpl[1:-1] + (1 - u) * r0 + u * r1
 
 
+def _inside_bounds(t_grid: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
+    """(2, K) grid index ranges [lo, hi) of the samples strictly inside each interval, by more than ``EDGE_TOL_S``."""
+    return np.stack([np.searchsorted(t_grid, starts + EDGE_TOL_S, side="right"),
+                     np.searchsorted(t_grid, stops - EDGE_TOL_S, side="left")])
+
+
 def _mask_intervals(t_grid: np.ndarray, gaps: list[tuple[float, float]]) -> np.ndarray:
     """True for grid samples strictly inside any gap interval."""
     bad = np.zeros(t_grid.shape[0], dtype=bool)
     if not gaps:
         return bad
-    starts = np.array([g[0] for g in gaps])
-    stops = np.array([g[1] for g in gaps])
-    lo = np.searchsorted(t_grid, starts, side="right")
-    hi = np.searchsorted(t_grid, stops, side="left")
+    lo, hi = _inside_bounds(t_grid, np.array([g[0] for g in gaps]), np.array([g[1] for g in gaps]))
     delta = np.zeros(t_grid.shape[0] + 1, dtype=int)
     np.add.at(delta, lo, 1)
     np.add.at(delta, hi, -1)
