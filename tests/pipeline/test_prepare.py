@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
-from pipeline.prepare import EDGE_TOL_S, MAX_BRIDGE_S, prepare_leg
+from pipeline.prepare import EDGE_TOL_S, MAX_BRIDGE_S, _mask_intervals, prepare_leg
+from pipeline.session import process_session
+from pipeline.simulate import SimConfig, simulate_session
 from pipeline.types import RawSensorStream
 
 
@@ -102,8 +106,6 @@ def test_holes_without_periodic_context_stay_masked() -> None:
 
 def test_grid_sample_on_a_gap_edge_is_kept_whatever_its_last_bit() -> None:
     """The grid is anchored on received stamps, so its samples fall on a gap's edges; rounding must not decide."""
-    from pipeline.prepare import _mask_intervals
-
     edge0, edge1 = 1.0, 1.5
     for eps in (-4e-16, 0.0, 4e-16):
         t_grid = np.array([0.9, edge0 + eps, 1.1, 1.4, edge1 + eps, 1.6])
@@ -113,11 +115,6 @@ def test_grid_sample_on_a_gap_edge_is_kept_whatever_its_last_bit() -> None:
 def test_lossy_session_is_stable_under_last_bit_noise() -> None:
     """1e-13 relative noise on the gyros (what another CPU's SIMD kernels give) moves no stride and no masked sample:
     before the edge tolerance it flipped a gap-edge sample after the clock correction in 4 of 6 draws (0.08 deg)."""
-    import dataclasses
-
-    from pipeline.session import process_session
-    from pipeline.simulate import SimConfig, simulate_session
-
     sim = simulate_session(SimConfig(pattern="normal", fs_hz=128.0, seed=907, duration_s=60.0, packet_loss=0.03,
                                      packet_samples=20))
     base = process_session(sim.streams, "walking")
