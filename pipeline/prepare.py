@@ -22,11 +22,11 @@ from pipeline.params import WALKING, PrepareParams
 from pipeline.types import RawSensorStream
 
 MAX_BRIDGE_S = WALKING.prepare.max_bridge_s
-# A grid sample this close to a gap's edge (a received stamp) is that received sample: the grid is anchored on the
-# stamps, so without it the last bit of a clock correction decided whether an edge sample was kept (seen as a one-
-# sample move of stride edges and 0.1 deg of peak between two CPUs). Far below any sample period, above rounding.
-EDGE_TOL_S = 1e-6
 """The walking preset's bridge limit [s], for callers outside the pipeline (:class:`PrepareParams` owns it)."""
+EDGE_TOL_S = 1e-6
+"""A grid sample this close to a gap's edge [s] is the received sample there: the grid is anchored on received
+stamps, so whether an edge sample is kept must not depend on the last bit of a clock correction (one sample more or
+less moves the fits' sample sets, and so stride edges and peaks). Far below any sample period, far above rounding."""
 
 
 @dataclass(frozen=True)
@@ -275,8 +275,8 @@ def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, flo
     out = x
     filled: list[tuple[float, float]] = []
     kept: list[tuple[float, float]] = []
-    for g0, g1 in gaps:
-        i0, i1 = (int(i) for i in _inside_bounds(t_grid, np.array([g0]), np.array([g1]))[:, 0])
+    los, his = _inside_bounds(t_grid, np.array([g[0] for g in gaps]), np.array([g[1] for g in gaps]))
+    for (g0, g1), i0, i1 in zip(gaps, los.tolist(), his.tolist(), strict=True):
         if i1 <= i0:
             filled.append((g0, g1))  # no grid sample inside: nothing to fill
             continue

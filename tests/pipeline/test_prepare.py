@@ -114,7 +114,7 @@ def test_grid_sample_on_a_gap_edge_is_kept_whatever_its_last_bit() -> None:
 
 def test_lossy_session_is_stable_under_last_bit_noise() -> None:
     """1e-13 relative noise on the gyros (what another CPU's SIMD kernels give) moves no stride and no masked sample:
-    before the edge tolerance it flipped a gap-edge sample after the clock correction in 4 of 6 draws (0.08 deg)."""
+    this session's clock correction puts grid samples on gap edges (``EDGE_TOL_S``)."""
     sim = simulate_session(SimConfig(pattern="normal", fs_hz=128.0, seed=907, duration_s=60.0, packet_loss=0.03,
                                      packet_samples=20))
     base = process_session(sim.streams, "walking")

@@ -1,4 +1,4 @@
-"""Snapshot regression of pipeline outputs: stride tables and trace hashes of fixed inputs.
+"""Snapshot regression of pipeline outputs: stride tables and per-second trace means of fixed inputs.
 
 The golden files in ``tests/pipeline/snapshots/`` were written by this test from the code as it was when they were
 last updated. Any change of a stride count, a warning, an estimator or a quality reason fails the test, and so does a
