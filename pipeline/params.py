@@ -254,9 +254,28 @@ class PostureParams:
     (walking policy, CF, KF, EKF)."""
 
     still_dps: float = 15.0
-    """Both segments slower than this [deg/s]: still (sway is a few deg/s, slow walking hundreds)."""
+    """Both segments slower than this [deg/s]: still (sway is a few deg/s, slow walking hundreds); one sensor slower
+    than this for ``quiet_min_s``: a rest for its offsets (:mod:`pipeline.rest_offset`)."""
     force_tol: float = 0.1
-    """Specific force within this share of g: no segment acceleration."""
+    """Specific force within this share of g: no segment acceleration (each accelerometer's rest offset removed
+    first, :mod:`pipeline.rest_offset`)."""
+    rest_offset_prior_mps2: float = 0.5
+    """Prior SD [m/s^2] per axis of an accelerometer's offset (uncalibrated MEMS: 20-80 mg), fitted from the
+    session's rests and removed in preparation (:mod:`pipeline.rest_offset`)."""
+    rest_orientation_deg: float = 20.0
+    """Rests within this angle [deg] of each other are one posture for the rest-offset fit: sway tilts a standing
+    segment by a few degrees, postures differ by tens (sitting turns the thigh by ~90)."""
+    rest_offset_max_mps2: float = 3.0
+    """A fitted rest offset larger than this [m/s^2] (0.3 g, beyond any data sheet) is not an offset: none is
+    removed (0: never removed)."""
+    rest_offset_prior_mps2: float = 0.5
+    """Prior SD [m/s^2] of an accelerometer's offset per axis (uncalibrated MEMS: 20-80 mg), which the force test
+    removes as far as the session's rests show it (:func:`pipeline.posture.rest_offset_mps2`)."""
+    rest_orientation_deg: float = 20.0
+    """Rests within this angle [deg] of each other are one posture for the rest-offset fit: sway tilts a standing
+    segment by a few degrees, postures differ by tens (sitting turns the thigh by ~90)."""
+    rest_offset_max_mps2: float = 3.0
+    """A rest offset larger than this [m/s^2] (0.3 g, beyond any data sheet) is not an offset: none is removed."""
     quiet_min_s: float = 1.0
     """Shortest quiet run [s] (and least total standing for a zero): a second of stillness outlasts the settling
     after a movement stops and averages the accelerometer noise below a degree."""

@@ -8,7 +8,8 @@ in the joint plane), and the knee is ``PostureParams.standing_knee_deg`` flexed 
 relaxed-standing assumption: healthy adults 2-6 deg). Allseits et al. 2018 (Sect. 2.4.2) zero their CF comparison
 the same way. No paper gives the detection rules below.
 
-* quiet (:func:`quiet_mask`): both segments still and their specific force within ``force_tol`` of g, for at least
+* quiet (:func:`quiet_mask`): both segments still and their specific force within ``force_tol`` of g (each
+  accelerometer's rest offset already removed in preparation, :mod:`pipeline.rest_offset`), for at least
   ``quiet_min_s`` (any posture: standing, sitting, lying); the filters trust the accelerometer angle more there;
 * standing (:func:`standing_mask`): quiet, away from walking bouts, and upright: in each joint plane gravity within
   ``upright_deg`` of that segment's mean stance direction during the session's strides (roughly its long axis).

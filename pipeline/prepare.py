@@ -18,7 +18,8 @@ import numpy as np
 
 from pipeline.constants import G_MPS2
 from pipeline.kernels import central_slopes, hermite_eval, saturated_runs, shifted_context, si_block
-from pipeline.params import WALKING, PrepareParams
+from pipeline.params import WALKING, PostureParams, PrepareParams
+from pipeline.rest_offset import rest_offsets
 from pipeline.types import RawSensorStream
 
 MAX_BRIDGE_S = WALKING.prepare.max_bridge_s
@@ -55,6 +56,12 @@ class PreparedLeg:
     thigh_noted_s: list[tuple[float, float]] = field(default_factory=list)
     shank_bridged: int = 0
     thigh_saturated: np.ndarray | None = None  # the thigh's part of ``saturated``, for the same reuse
+    # each sensor's accelerometer offset [m/s^2] and gyro bias [rad/s] seen at rest (pipeline.rest_offset), already
+    # removed from acc_*_mps2 and gyr_*_rps
+    acc_offset_thigh_mps2: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    acc_offset_shank_mps2: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    gyr_bias_thigh_rps: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    gyr_bias_shank_rps: np.ndarray = field(default_factory=lambda: np.zeros(3))
     shank_saturated_raw: np.ndarray | None = None  # the shank's saturated raw samples (its own stamps)
 
     @property
@@ -369,8 +376,10 @@ def _mask_intervals(t_grid: np.ndarray, gaps: list[tuple[float, float]]) -> np.n
 
 
 def prepare_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, shank_shift_s: float = 0.0,
-                shank_drift: float = 0.0, params: PrepareParams = WALKING.prepare) -> PreparedLeg:
-    """Convert both streams to SI, put them on one uniform grid over their common time span, mark gaps.
+                shank_drift: float = 0.0, params: PrepareParams = WALKING.prepare,
+                posture: PostureParams = WALKING.posture) -> PreparedLeg:
+    """Convert both streams to SI, put them on one uniform grid over their common time span, mark gaps, remove
+    each accelerometer's rest offset (:mod:`pipeline.rest_offset`, with the rest definition of ``posture``).
 
     The shank's time stamps are corrected to ``t + shank_shift_s + shank_drift * t`` (a measured clock offset and
     rate error, see :func:`pipeline.sync.synchronised_leg`). Raises ValueError when the two streams have no
@@ -378,17 +387,17 @@ def prepare_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, shank_
     """
     si1, si2 = to_si(thigh), to_si(shank)
     return prepare_leg_si(leg, si1, si2, nominal_fs(thigh, si1[0]), nominal_fs(shank, si2[0]),
-                          shank_shift_s, shank_drift, params=params)
+                          shank_shift_s, shank_drift, params=params, posture=posture)
 
 
 def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
                    si2: tuple[np.ndarray, np.ndarray, np.ndarray], fs1: float, fs2: float,
                    shank_shift_s: float = 0.0, shank_drift: float = 0.0, reuse: PreparedLeg | None = None,
-                   params: PrepareParams = WALKING.prepare) -> PreparedLeg:
+                   params: PrepareParams = WALKING.prepare, posture: PostureParams = WALKING.posture) -> PreparedLeg:
     """:func:`prepare_leg` on streams already converted by :func:`to_si` (``(t_s, gyr_rps, acc_mps2)`` each, at
     nominal rates ``fs1``/``fs2``), so a second pass with corrected shank time stamps skips the conversion.
-    ``reuse``: a first pass of the same streams; its grid and thigh channels are kept when the re-stamped shank
-    still covers that grid (only the shank is interpolated again)."""
+    ``reuse``: a first pass of the same streams; its grid and thigh channels (rest offset removed) are kept when
+    the re-stamped shank still covers that grid (only the shank is interpolated again)."""
     for name, si in (("thigh", si1), ("shank", si2)):
         if si[0].shape[0] < 2:
             raise ValueError(f"{leg} {name} sensor has fewer than 2 usable samples")
@@ -417,6 +426,7 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
     if keep_grid:
         # the first pass's arrays themselves (never modified in place): same values and memory layout
         gyr_thigh, acc_thigh = reuse.gyr_thigh_rps, reuse.acc_thigh_mps2
+        off1, gb1 = reuse.acc_offset_thigh_mps2, reuse.gyr_bias_thigh_rps
         gaps1, filled1 = reuse.thigh_gaps_s, reuse.thigh_filled_s
         br1, noted1 = reuse.bridged_gaps - reuse.shank_bridged, reuse.thigh_noted_s
     else:
@@ -424,20 +434,23 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
         thigh6, filled1, gaps1 = periodic_fill(
             t_grid, _interp_columns(t_grid, t1, _channels(g1, a1), params.max_bridge_s), gaps1, fs_hz, params)
         br1 += len(filled1)
-        gyr_thigh, acc_thigh = thigh6[:, :3], thigh6[:, 3:]
+        off1, gb1 = rest_offsets(thigh6[:, 3:], thigh6[:, :3], ~_mask_intervals(t_grid, gaps1), fs_hz, posture)
+        gyr_thigh, acc_thigh = thigh6[:, :3] - gb1, thigh6[:, 3:] - off1
     shank6, filled2, gaps2 = periodic_fill(
         t_grid, _interp_columns(t_grid, t2, _channels(g2, a2), params.max_bridge_s), gaps2, fs_hz, params)
     br2 += len(filled2)
+    off2, gb2 = rest_offsets(shank6[:, 3:], shank6[:, :3], ~_mask_intervals(t_grid, gaps2), fs_hz, posture)
     gaps = sorted(gaps1 + gaps2)
     valid = ~_mask_intervals(t_grid, gaps)
     return PreparedLeg(
         leg=leg, fs_hz=fs_hz, t0_s=float(t_start), t_s=t_grid,
-        gyr_thigh_rps=gyr_thigh, gyr_shank_rps=shank6[:, :3],
-        acc_thigh_mps2=acc_thigh, acc_shank_mps2=shank6[:, 3:],
+        gyr_thigh_rps=gyr_thigh, gyr_shank_rps=shank6[:, :3] - gb2,
+        acc_thigh_mps2=acc_thigh, acc_shank_mps2=shank6[:, 3:] - off2,
         valid=valid, saturated=saturated, gaps_s=_merge_intervals(gaps), bridged_gaps=br1 + br2,
         bridged_s=_merge_intervals(noted1 + noted2), filled_s=_merge_intervals(filled1 + filled2),
         thigh_gaps_s=gaps1, thigh_filled_s=filled1, thigh_noted_s=noted1, shank_bridged=br2,
         thigh_saturated=sat_thigh, shank_saturated_raw=sat_shank,
+        acc_offset_thigh_mps2=off1, acc_offset_shank_mps2=off2, gyr_bias_thigh_rps=gb1, gyr_bias_shank_rps=gb2,
     )
 
 

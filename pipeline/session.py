@@ -329,4 +329,8 @@ def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, stride
         standing_knee_deg=data.params.posture.standing_knee_deg,
         level_source="calibration" if calibration is not None else "assumed",
         masked_implausible_samples=result.masked_implausible_samples,
-        calibration_id=None if calibration is None else calibration.calibration_id)
+        calibration_id=None if calibration is None else calibration.calibration_id,
+        acc_offset_thigh_mps2=tuple(np.round(synced.prep.acc_offset_thigh_mps2, 3).tolist()),
+        acc_offset_shank_mps2=tuple(np.round(synced.prep.acc_offset_shank_mps2, 3).tolist()),
+        gyr_bias_thigh_dps=tuple(np.round(np.degrees(synced.prep.gyr_bias_thigh_rps), 2).tolist()),
+        gyr_bias_shank_dps=tuple(np.round(np.degrees(synced.prep.gyr_bias_shank_rps), 2).tolist()))

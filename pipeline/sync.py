@@ -50,7 +50,7 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     si1, si2 = (to_si(thigh), to_si(shank)) if si is None else si
     fs1 = nominal_fs(thigh, si1[0]) if si1[0].size else 0.0
     fs2 = nominal_fs(shank, si2[0]) if si2[0].size else 0.0
-    prep = prepare_leg_si(leg, si1, si2, fs1, fs2, params=params.prepare)
+    prep = prepare_leg_si(leg, si1, si2, fs1, fs2, params=params.prepare, posture=params.posture)
     if prep.valid.sum() < max(10, int(prep.fs_hz)):
         raise ValueError("less than one second of usable samples")
     g1, g2 = fit_gyros(prep, params.axes.fit_cutoff_hz)
@@ -64,7 +64,8 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     if max(abs(offset), abs(drift) * (prep.t_s[-1] - prep.t_s[0]) / 2) * prep.fs_hz > params.sync.min_shift_samples:
         first = prep
         prep = prepare_leg_si(leg, si1, si2, fs1, fs2, shank_shift_s=-(offset - drift * t_mid),
-                              shank_drift=-drift, reuse=first, params=params.prepare)
+                              shank_drift=-drift, reuse=first, params=params.prepare,
+                              posture=params.posture)
         return SyncedLeg(prep, axes, round(1000 * offset, 1), round(1e6 * drift, 1), None,
                          reusable_thigh_fit(first, prep, g1))
     return SyncedLeg(prep, axes, round(1000 * offset, 1), round(1e6 * drift, 1), fit_gyr)

@@ -135,6 +135,12 @@ class LegDiagnostics:
     # what the sensor-label checks did (pipeline.assignment): "as_labelled", "thigh_shank_exchanged" or
     # "thighs_exchanged_between_legs"
     assignment: str = "as_labelled"
+    # each sensor's accelerometer offset [m/s^2] and gyro bias [deg/s] (sensor frames) as the session's rests showed
+    # them, removed before processing (pipeline.rest_offset); zeros without rests
+    acc_offset_thigh_mps2: tuple[float, ...] = (0.0, 0.0, 0.0)
+    acc_offset_shank_mps2: tuple[float, ...] = (0.0, 0.0, 0.0)
+    gyr_bias_thigh_dps: tuple[float, ...] = (0.0, 0.0, 0.0)
+    gyr_bias_shank_dps: tuple[float, ...] = (0.0, 0.0, 0.0)
 
 
 @dataclass

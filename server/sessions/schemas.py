@@ -92,7 +92,8 @@ class LegSummaryOut(BaseModel):
     gaps: int = 0
     diagnostics: dict[str, Any] | None = Field(
         None, description="The pipeline's per-leg diagnostics (activity, axis fit residual, absolute reference, "
-                          "shank clock lag, ...), when it reports them")
+                          "shank clock lag, each sensor's accelerometer offset and gyro bias seen at rest and "
+                          "removed, ...), when it reports them")
 
 
 class SessionSummaryOut(BaseModel):

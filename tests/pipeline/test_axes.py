@@ -175,8 +175,10 @@ def test_accelerometer_bias_in_the_centre_fit(seed: int) -> None:
     biases observable)."""
     sim = simulate_session(SimConfig(seed=seed, duration_s=60.0, bout_strides=10, activities=("sit_to_stand",),
                                      acc_bias_ms2=0.3, sync_offset_ms=0.0, clock_drift_ppm=0.0))
-    on = dataclasses.replace(WALKING, axes=dataclasses.replace(WALKING.axes, centre_bias_prior_mps2=0.3))
-    off = dataclasses.replace(WALKING, axes=dataclasses.replace(WALKING.axes, centre_bias_prior_mps2=0.0))
+    # the biases left in the accelerometers (the rest offset of preparation would remove most of them)
+    raw = dataclasses.replace(WALKING, posture=dataclasses.replace(WALKING.posture, rest_offset_max_mps2=0.0))
+    on = dataclasses.replace(raw, axes=dataclasses.replace(WALKING.axes, centre_bias_prior_mps2=0.3))
+    off = dataclasses.replace(raw, axes=dataclasses.replace(WALKING.axes, centre_bias_prior_mps2=0.0))
     with_bias, without = _in_plane_centre_errors_cm(sim, on), _in_plane_centre_errors_cm(sim, off)
     assert max(without) > 3.0  # the case shows the problem
     assert max(with_bias) < 1.5
