@@ -160,6 +160,15 @@ AXES: dict[str, Axis] = {
         _v("thigh/shank swapped, both legs", label_swap="segments"),
         _v("thigh/shank swapped, left leg", label_swap="left_segments")),
         note="Desired behaviour: detect and refuse, or correct; the last column says what the pipeline did."),
+    "sensor": Axis("Sensor errors beyond the simulator's defaults (per axis SD; defaults: accelerometer offset 0.1 "
+                   "m/s^2, gyro bias 1 deg/s, drift 0.05 deg/s, noise 0.3 deg/s and 0.05 m/s^2)", (
+        _v("accelerometer offset 0.5 m/s^2 (~50 mg)", acc_bias_ms2=0.5),
+        _v("accelerometer offset 1 m/s^2 (~0.1 g)", acc_bias_ms2=1.0),
+        _v("gyro bias 3 deg/s", gyro_bias_dps=3.0), _v("gyro bias 6 deg/s", gyro_bias_dps=6.0),
+        _v("gyro bias drift 0.5 deg/s", gyro_bias_walk_dps=0.5),
+        _v("gyro noise x3", gyro_noise_dps=0.9), _v("accelerometer noise x5", acc_noise_ms2=0.25),
+        _v("gains off by 2 % per axis (gyro and accelerometer)", gyro_gain_sd=0.02, acc_gain_sd=0.02)),
+        note="Uncalibrated MEMS: accelerometer offsets of 20-80 mg and gyro biases of a few deg/s (data sheets)."),
     "short": Axis("Short sessions with a thigh-shank clock offset (shanks late, exact clocks otherwise)", tuple(
         _v(f"{dur:g} s, {lag:g} ms", shank_lag_ms=lag, duration_s=dur, **_SHORT)
         for dur in (10.0, 20.0, 40.0, 60.0) for lag in (0.0, 10.0, 20.0)),

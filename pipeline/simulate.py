@@ -27,7 +27,7 @@ and each new random effect draws from its own ``default_rng([seed, k])`` stream)
 angle, per-leg scaled or shifted knee curves, an absolute heel-strike shock in g, larger and off-axis lever arms,
 bursty packet loss (Gilbert-Elliott two-state channel per sensor), sharper and more frequent turns, non-gait
 movements between bouts (vertical jumps, step-ups onto a stair, sit-to-stand repetitions: never strides in the
-truth) and wrongly labelled sensors (legs or thigh/shank swapped).
+truth), wrongly labelled sensors (legs or thigh/shank swapped) and per-axis sensitivity (gain) errors.
 
 Pure numpy/scipy, seeded and deterministic.
 """
@@ -149,6 +149,9 @@ class SimConfig:
     # (the gyro sees it too), as a loosely strapped sensor would; "default": the model above
     impact_model: Literal["default", "ringing"] = "default"
     move_reps: int = 3  # repetitions of each jump, step-up or sit-to-stand block between bouts
+    # per-axis sensitivity (gain) errors, SD of the relative error (uncalibrated MEMS: 1-3 %); 0: exact gains
+    gyro_gain_sd: float = 0.0
+    acc_gain_sd: float = 0.0
     jump_rest_s: float = 1.0  # standing between two jumps (0: rhythmic jumping at the jump's own period)
 
 
@@ -758,6 +761,7 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
     # Mountings draw from their own stream so "aligned" and "random" share identical kinematics and noise.
     rng_mount = np.random.default_rng([cfg.seed, 1])
     rng_loss = np.random.default_rng([cfg.seed, 2])  # likewise: loss settings change nothing but the loss
+    rng_gain = np.random.default_rng([cfg.seed, 4])  # likewise for the sensitivity errors
     gyro_scale = 1.0 if cfg.gyro_unit == "deg/s" else np.pi / 180
     acc_scale = 1.0 if cfg.acc_unit == "m/s2" else 1.0 / GRAVITY_MS2
     for leg in cfg.legs:
@@ -830,6 +834,9 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
             gyr = gyr + gbias + gwalk + np.radians(cfg.gyro_noise_dps) * rng.standard_normal((m, 3))
             abias = cfg.acc_bias_ms2 * rng.standard_normal(3)
             acc = acc + abias + cfg.acc_noise_ms2 * rng.standard_normal((m, 3))
+            if cfg.gyro_gain_sd or cfg.acc_gain_sd:
+                gyr = gyr * (1.0 + cfg.gyro_gain_sd * rng_gain.standard_normal(3))
+                acc = acc * (1.0 + cfg.acc_gain_sd * rng_gain.standard_normal(3))
 
             if cfg.gyro_range_dps:  # saturation of the sensor's full-scale range
                 gyr = np.clip(gyr, -np.radians(cfg.gyro_range_dps), np.radians(cfg.gyro_range_dps))
