@@ -261,21 +261,16 @@ class PostureParams:
     first, :mod:`pipeline.rest_offset`)."""
     rest_offset_prior_mps2: float = 0.5
     """Prior SD [m/s^2] per axis of an accelerometer's offset (uncalibrated MEMS: 20-80 mg), fitted from the
-    session's rests and removed in preparation (:mod:`pipeline.rest_offset`)."""
+    session's rests and removed in preparation (:mod:`pipeline.rest_offset`); 0: no accelerometer offset is fitted."""
+    rest_block_sd_mps2: float = 0.1
+    """Scatter [m/s^2] of one rest block's mean about the sphere |a - b| = g (sway, noise): weighs the prior against
+    the data in the rest-offset fit."""
     rest_orientation_deg: float = 20.0
     """Rests within this angle [deg] of each other are one posture for the rest-offset fit: sway tilts a standing
     segment by a few degrees, postures differ by tens (sitting turns the thigh by ~90)."""
     rest_offset_max_mps2: float = 3.0
-    """A fitted rest offset larger than this [m/s^2] (0.3 g, beyond any data sheet) is not an offset: none is
-    removed (0: never removed)."""
-    rest_offset_prior_mps2: float = 0.5
-    """Prior SD [m/s^2] of an accelerometer's offset per axis (uncalibrated MEMS: 20-80 mg), which the force test
-    removes as far as the session's rests show it (:func:`pipeline.posture.rest_offset_mps2`)."""
-    rest_orientation_deg: float = 20.0
-    """Rests within this angle [deg] of each other are one posture for the rest-offset fit: sway tilts a standing
-    segment by a few degrees, postures differ by tens (sitting turns the thigh by ~90)."""
-    rest_offset_max_mps2: float = 3.0
-    """A rest offset larger than this [m/s^2] (0.3 g, beyond any data sheet) is not an offset: none is removed."""
+    """A fitted accelerometer offset larger than this [m/s^2] (0.3 g, beyond any data sheet) is not an offset: none
+    is removed. (The gyro bias needs no such cap: rests are slower than ``still_dps``, so is their median.)"""
     quiet_min_s: float = 1.0
     """Shortest quiet run [s] (and least total standing for a zero): a second of stillness outlasts the settling
     after a movement stops and averages the accelerometer noise below a degree."""

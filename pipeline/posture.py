@@ -22,15 +22,13 @@ the same way. No paper gives the detection rules below.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from pipeline.constants import G_MPS2
 from pipeline.leg_input import LegInput
 from pipeline.params import WALKING, PostureParams
 from pipeline.prepare import PreparedLeg
-from pipeline.signal_utils import true_runs
+from pipeline.signal_utils import slower_than, true_runs
 
 
 def _norm(x: np.ndarray) -> np.ndarray:
@@ -40,9 +38,8 @@ def _norm(x: np.ndarray) -> np.ndarray:
 def quiet_mask(prep: PreparedLeg, params: PostureParams = WALKING.posture) -> np.ndarray:
     """(N,) bool: both segments still (slower than ``still_dps``, specific force within ``force_tol`` of g) for at
     least ``quiet_min_s``: there the accelerometer angle sees gravity only and is accurate to a degree or two."""
-    lim = math.radians(params.still_dps) ** 2
-    still = prep.valid & (np.einsum("ij,ij->i", prep.gyr_thigh_rps, prep.gyr_thigh_rps) < lim)
-    still &= np.einsum("ij,ij->i", prep.gyr_shank_rps, prep.gyr_shank_rps) < lim
+    still = prep.valid & slower_than(prep.gyr_thigh_rps, params.still_dps)
+    still &= slower_than(prep.gyr_shank_rps, params.still_dps)
     for acc in (prep.acc_thigh_mps2, prep.acc_shank_mps2):
         still &= np.abs(_norm(acc) - G_MPS2) < params.force_tol * G_MPS2
     out = np.zeros(prep.n, dtype=bool)

@@ -28,10 +28,7 @@ import numpy as np
 
 from pipeline.constants import G_MPS2
 from pipeline.params import WALKING, PostureParams
-from pipeline.signal_utils import true_runs
-
-# rest blocks scatter by ~0.1 m/s^2 about the sphere (sway, noise): the weight of the prior against one block
-_BLOCK_SD_MPS2 = 0.1
+from pipeline.signal_utils import row_norm, slower_than, true_runs
 
 
 def rest_block_starts(gyr_rps: np.ndarray, valid: np.ndarray, fs_hz: float,
@@ -39,8 +36,7 @@ def rest_block_starts(gyr_rps: np.ndarray, valid: np.ndarray, fs_hz: float,
     """The first sample of every ``quiet_min_s`` block of the sensor's own still runs (its gyro slower than
     ``still_dps`` for at least ``quiet_min_s``, on valid samples), and the block length in samples. ``gyr_rps``:
     (N, 3) of one sensor; ``valid``: (N,) bool."""
-    lim = math.radians(params.still_dps) ** 2
-    still = valid & (np.einsum("ij,ij->i", gyr_rps, gyr_rps) < lim)
+    still = valid & slower_than(gyr_rps, params.still_dps)
     n_blk = max(int(round(params.quiet_min_s * fs_hz)), 1)
     starts = [np.arange(a, b - n_blk + 1, n_blk) for a, b in true_runs(still) if b - a >= n_blk]
     return (np.concatenate(starts) if starts else np.zeros(0, dtype=int)), n_blk
@@ -61,13 +57,13 @@ def posture_clusters(blocks: np.ndarray, params: PostureParams = WALKING.posture
     acceleration follows its tilt, so the specific force does not turn with the segment as gravity would. Only
     distinct postures may fix the offset across gravity."""
     cos_tol = math.cos(math.radians(params.rest_orientation_deg))
-    u = blocks / np.linalg.norm(blocks, axis=1, keepdims=True)
+    u = blocks / row_norm(blocks)[:, None]
     label = np.full(blocks.shape[0], -1)
     n_groups = 0
     # one pass per group: its first block is the earliest one no earlier group took (the greedy rule, group by group)
     while (free := np.flatnonzero(label < 0)).size:
         join = free[u[free] @ u[free[0]] > cos_tol]
-        label[join] = n_groups
+        label[free[0]] = label[join] = n_groups  # the first block always: rounding may put u.u just below cos_tol
         n_groups += 1
     counts = np.bincount(label, minlength=n_groups)
     # the median block: a minority of blocks that are still but not at rest (a vehicle) cannot move it
@@ -79,7 +75,7 @@ def _sphere_fit(m: np.ndarray, w: np.ndarray, ridge: float) -> np.ndarray:
     b = np.zeros(3)
     for _ in range(4):
         d = m - b
-        r = np.sqrt(np.einsum("ij,ij->i", d, d))
+        r = row_norm(d)
         u = d / r[:, None]
         uw = u * w[:, None]
         b = b + np.linalg.solve(uw.T @ u + ridge * np.eye(3), uw.T @ (r - G_MPS2) - ridge * b)
@@ -92,13 +88,16 @@ def fit_rest_offset(blocks: np.ndarray, params: PostureParams = WALKING.posture)
     ``u_c . db = |m_c - b| - g`` (``u_c``: the posture's unit direction) under a zero-mean prior of SD
     ``rest_offset_prior_mps2`` per axis. Blocks still off the sphere by more than ``force_tol`` after a first fit
     are left out and the postures formed again (a vehicle, a lift: not at rest). Zeros without blocks, or when the
-    fit exceeds ``rest_offset_max_mps2`` (no data sheet allows it: not an offset)."""
-    if blocks.shape[0] == 0:
+    fit exceeds ``rest_offset_max_mps2`` (no data sheet allows it: not an offset). Blocks of less than half g (an
+    accelerometer reading zeros, NaN) are no rests."""
+    # a block that is no specific force at all (an accelerometer reading zeros or NaN) is no rest
+    n = row_norm(blocks) if blocks.shape[0] else np.zeros(0)
+    blocks = blocks[np.isfinite(n) & (n > 0.5 * G_MPS2)]
+    if blocks.shape[0] == 0 or params.rest_offset_prior_mps2 <= 0:
         return np.zeros(3)
-    ridge = (_BLOCK_SD_MPS2 / params.rest_offset_prior_mps2) ** 2
+    ridge = (params.rest_block_sd_mps2 / params.rest_offset_prior_mps2) ** 2
     b = _sphere_fit(*posture_clusters(blocks, params), ridge)
-    d = blocks - b
-    at_rest = np.abs(np.sqrt(np.einsum("ij,ij->i", d, d)) - G_MPS2) < params.force_tol * G_MPS2
+    at_rest = np.abs(row_norm(blocks - b) - G_MPS2) < params.force_tol * G_MPS2
     if not at_rest.any():
         return np.zeros(3)
     if not at_rest.all():

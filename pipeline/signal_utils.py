@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from functools import lru_cache
 
@@ -129,6 +130,12 @@ def lowpass_runs_zeroed(xs: Sequence[np.ndarray], valid: np.ndarray, cutoff_hz: 
         if all(np.isfinite(r).all() for r in res):
             return res
     return [np.nan_to_num(x) for x in lowpass_runs_many(xs, valid, cutoff_hz, fs_hz, order)]
+
+
+def slower_than(gyr_rps: np.ndarray, limit_dps: float) -> np.ndarray:
+    """(N,) bool: the angular rate (N, 3) [rad/s] below ``limit_dps`` [deg/s] in magnitude (the stillness test of
+    :mod:`pipeline.posture` and :mod:`pipeline.rest_offset`)."""
+    return np.einsum("ij,ij->i", gyr_rps, gyr_rps) < math.radians(limit_dps) ** 2
 
 
 def row_norm(x: np.ndarray) -> np.ndarray:

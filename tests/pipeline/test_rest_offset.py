@@ -4,6 +4,9 @@ sessions with the true offsets known."""
 from __future__ import annotations
 
 import dataclasses
+import signal
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -12,9 +15,11 @@ from pipeline.constants import G_MPS2
 from pipeline.params import WALKING
 from pipeline.posture import standing_mask
 from pipeline.prepare import prepare_leg_si, to_si
-from pipeline.rest_offset import block_means, fit_rest_offset, posture_clusters, rest_block_starts
+from pipeline.rest_offset import block_means, fit_rest_offset, posture_clusters, rest_block_starts, rest_offsets
+from pipeline.session import process_session
 from pipeline.simulate import SimConfig, simulate_session
 from pipeline.sync import synchronised_leg
+from pipeline.types import RawSensorStream
 from pipeline.walking import build_walking_leg_input
 
 
@@ -144,4 +149,56 @@ def test_the_gyro_bias_is_read_at_rest_and_removed() -> None:
     # the quiet standing before the first bout now reads (almost) no rotation
     first_s = np.degrees(np.median(prep.gyr_thigh_rps[: int(prep.fs_hz)], axis=0))
     assert np.linalg.norm(first_s) < 1.0  # sway
-    assert np.linalg.norm(first_s + np.degrees(prep.gyr_bias_thigh_rps)) > 3.0
+
+
+@contextmanager
+def _deadline(seconds: int) -> Iterator[None]:
+    """Fail instead of hanging (the grouping loop once never ended on a block without a direction)."""
+    def fail(*_: object) -> None:
+        raise TimeoutError(f"took longer than {seconds} s")
+    old = signal.signal(signal.SIGALRM, fail)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def test_blocks_without_a_direction_are_no_rests() -> None:
+    good = np.array([[0.0, 0.0, G_MPS2 + 0.3]] * 5)
+    with _deadline(10):
+        for bad in ([0.0, 0.0, 0.0], [np.nan, 0.0, 9.8], [0.0, 0.0, 1e-300]):
+            fit = fit_rest_offset(np.vstack([good, [bad] * 3]))
+            assert np.allclose(fit, [0.0, 0.0, 0.3], atol=0.02), bad
+        means, counts = posture_clusters(good, dataclasses.replace(WALKING.posture, rest_orientation_deg=0.0))
+        assert counts.sum() == 5  # every block labelled, the loop ends
+        assert np.allclose(rest_offsets(np.zeros((500, 3)), np.zeros((500, 3)), np.ones(500, dtype=bool), 100.0),
+                           0.0)
+        assert np.allclose(fit_rest_offset(good, dataclasses.replace(WALKING.posture, rest_offset_prior_mps2=0.0)), 0.0)
+
+
+def test_a_session_with_a_silent_accelerometer_is_processed() -> None:
+    """A sensor streaming its gyro with the accelerometer off (all zeros) must not stop the session."""
+    sim = _session(0.1)
+    streams = [dataclasses.replace(s, acc=np.zeros_like(s.acc)) if s.segment == "shank" else s for s in sim.streams]
+    assert all(isinstance(s, RawSensorStream) for s in streams)
+    with _deadline(60):
+        res = process_session(streams, activity="walking")
+    leg = res.legs["left"]
+    assert leg.diagnostics is not None
+    assert leg.diagnostics.acc_offset_shank_mps2 == (0.0, 0.0, 0.0)
+
+
+def test_the_leg_diagnostics_report_what_was_removed() -> None:
+    sim = _session(1.0)
+    res = process_session(sim.streams, activity="walking")
+    diag = res.legs["left"].diagnostics
+    assert diag is not None
+    for seg in ("thigh", "shank"):
+        true = np.asarray(sim.info["sensors"][f"L-{seg}"]["acc_bias_mps2"])
+        reported = np.asarray(getattr(diag, f"acc_offset_{seg}_mps2"))
+        assert reported.shape == (3,)
+        assert np.linalg.norm(true - reported) < 0.6 * np.linalg.norm(true)
+        gyro = np.asarray(getattr(diag, f"gyr_bias_{seg}_dps"))
+        assert np.linalg.norm(gyro - np.asarray(sim.info["sensors"][f"L-{seg}"]["gyro_bias_dps"])) < 0.5

@@ -357,3 +357,16 @@ def test_swapped_labels_swap_the_streams(swap: str, expected: dict) -> None:
         assert np.array_equal(s.gyr, ref[s.sensor_id].gyr)  # the data is the physical sensor's
         if s.sensor_id in expected:
             assert (s.leg, s.segment) == expected[s.sensor_id]
+
+
+def test_gain_errors_scale_each_axis_and_change_nothing_else() -> None:
+    base = SimConfig(pattern="normal", seed=3, duration_s=20.0, legs=("left",))
+    off = simulate_session(base)
+    on = simulate_session(dataclasses.replace(base, gyro_gain_sd=0.02, acc_gain_sd=0.02))
+    for a, b in zip(off.streams, on.streams, strict=True):
+        assert np.array_equal(a.t_s, b.t_s)
+        for x, y in ((a.gyr, b.gyr), (a.acc, b.acc)):
+            ratio = y / x
+            gain = np.median(ratio, axis=0)
+            assert np.all(np.abs(gain - 1.0) < 0.1) and np.any(np.abs(gain - 1.0) > 1e-4)
+            assert np.allclose(y, x * gain, rtol=1e-9, atol=1e-12)  # one constant gain per axis
