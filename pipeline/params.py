@@ -268,6 +268,9 @@ class PostureParams:
     rest_orientation_deg: float = 20.0
     """Rests within this angle [deg] of each other are one posture for the rest-offset fit: sway tilts a standing
     segment by a few degrees, postures differ by tens (sitting turns the thigh by ~90)."""
+    rest_offset_warn_mps2: float = 1.0
+    """An accelerometer offset of at least this [m/s^2] (0.1 g) gets a session warning: the sweep's ``sensor`` axis
+    misses its targets from there (what one posture cannot show stays in)."""
     rest_offset_max_mps2: float = 3.0
     """A fitted accelerometer offset larger than this [m/s^2] (0.3 g, beyond any data sheet) is not an offset: none
     is removed. (The gyro bias needs no such cap: rests are slower than ``still_dps``, so is their median.)"""

@@ -17,10 +17,11 @@ import numpy as np
 from pipeline import ALGORITHM_VERSION
 from pipeline.assignment import check_segments, pairing_suspicious, swapped_pairing_better
 from pipeline.bilateral import OtherLeg, mid_swings_s, non_alternating
+from pipeline.constants import G_MPS2
 from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
 from pipeline.metrics import stride_values_many
-from pipeline.params import RUNNING, AssignmentParams, PipelineParams, preset
+from pipeline.params import RUNNING, AssignmentParams, PipelineParams, PostureParams, preset
 from pipeline.phases import GaitEvents
 from pipeline.policy import PolicyResult, auto, single_estimator
 from pipeline.prepare import SI, to_si
@@ -81,6 +82,7 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
             leg_warnings.append(f"{leg} leg skipped: {exc}")
         del si
     warnings += label_warnings + leg_warnings
+    warnings += _offset_warnings(synced, by_leg, (params if params is not None else preset(activity)).posture)
     events = _leg_events(synced, activity, params)
     others = _other_legs(synced, events)
     for leg in sorted(synced):
@@ -99,6 +101,23 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
         if lr is not None and lr.diagnostics is not None:
             lr.diagnostics = dataclasses.replace(lr.diagnostics, assignment=how)
     return SessionResult(algorithm_version=ALGORITHM_VERSION, activity=activity, legs=legs, warnings=warnings)
+
+
+def _offset_warnings(synced: Mapping[str, SyncedLeg], by_leg: Mapping[str, Mapping[str, RawSensorStream]],
+                     posture: PostureParams) -> list[str]:
+    """One warning per sensor whose accelerometer read at least ``rest_offset_warn_mps2`` off at rest: it was
+    removed as far as the rests show it, but such a sensor's unseen part still moves the level by degrees (the
+    sweep's ``sensor`` axis), and the sensor wants calibrating."""
+    out = []
+    for leg in sorted(synced):
+        prep = synced[leg].prep
+        for seg, off in (("thigh", prep.acc_offset_thigh_mps2), ("shank", prep.acc_offset_shank_mps2)):
+            size = float(np.linalg.norm(off))
+            if size >= posture.rest_offset_warn_mps2:
+                out.append(f"{leg} {seg} sensor {by_leg[leg][seg].sensor_id}: its accelerometer reads "
+                           f"{size:.2f} m/s^2 ({size / G_MPS2:.2f} g) off at rest; removed as far as the session's "
+                           "rests show it, the knee level may still be off by degrees: calibrate the sensor")
+    return out
 
 
 def _check_labels(leg: str, segs: dict[str, RawSensorStream], params: AssignmentParams, assigned: dict[str, str],

@@ -202,3 +202,14 @@ def test_the_leg_diagnostics_report_what_was_removed() -> None:
         assert np.linalg.norm(true - reported) < 0.6 * np.linalg.norm(true)
         gyro = np.asarray(getattr(diag, f"gyr_bias_{seg}_dps"))
         assert np.linalg.norm(gyro - np.asarray(sim.info["sensors"][f"L-{seg}"]["gyro_bias_dps"])) < 0.5
+
+
+def test_a_sensor_far_off_at_rest_is_named_in_a_warning() -> None:
+    sim = simulate_session(SimConfig(pattern="normal", seed=7, duration_s=80.0, bout_strides=12, legs=("left",),
+                                     acc_bias_ms2=1.5))
+    warned = [w for w in process_session(sim.streams, activity="walking").warnings if "off at rest" in w]
+    big = {seg for seg in ("thigh", "shank")
+           if np.linalg.norm(sim.info["sensors"][f"L-{seg}"]["acc_bias_mps2"]) > 1.5}
+    assert big, "the case needs a sensor well beyond the warning threshold"
+    assert all(any(f"L-{seg}" in w for w in warned) for seg in big)
+    assert not any("off at rest" in w for w in process_session(_session(0.1).streams, activity="walking").warnings)
