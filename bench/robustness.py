@@ -47,6 +47,7 @@ from bench.matching import (  # noqa: E402
     summarise,
 )
 from pipeline.simulate import SimConfig, SimSession, simulate_session  # noqa: E402
+from pipeline.types import LegResult  # noqa: E402
 
 TUNE_SEEDS = tuple(range(5))
 REPORT_SEEDS = tuple(range(100, 105))
@@ -69,6 +70,9 @@ class AxisValue:
     targets: dict = field(default_factory=lambda: dict(TARGETS))
     calibrated: bool = False  # the true standing flexion of each leg is given to the pipeline (a calibration)
     shank_lag_ms: float = 0.0  # both shanks' reported time stamps late by this against their thighs'
+    # scored with each leg's output mapped from its thigh's clock back to true time (the clock axis: no pipeline can
+    # know how a sensor's clock runs against the world, only against the other sensors)
+    true_time: bool = False
 
 
 @dataclass(frozen=True)
@@ -79,8 +83,8 @@ class Axis:
 
 
 def _v(label: str, targets: dict | None = None, calibrated: bool = False, shank_lag_ms: float = 0.0,
-       **overrides: object) -> AxisValue:
-    return AxisValue(label, dict(overrides), dict(targets or TARGETS), calibrated, shank_lag_ms)
+       true_time: bool = False, **overrides: object) -> AxisValue:
+    return AxisValue(label, dict(overrides), dict(targets or TARGETS), calibrated, shank_lag_ms, true_time)
 
 
 # exact clocks but for the injected thigh-shank offset, so the row's offset is the leg's whole timing error; 1 s of
@@ -169,6 +173,16 @@ AXES: dict[str, Axis] = {
         _v("gyro noise x3", gyro_noise_dps=0.9), _v("accelerometer noise x5", acc_noise_ms2=0.25),
         _v("gains off by 2 % per axis (gyro and accelerometer)", gyro_gain_sd=0.02, acc_gain_sd=0.02)),
         note="Uncalibrated MEMS: accelerometer offsets of 20-80 mg and gyro biases of a few deg/s (data sheets)."),
+    "clock": Axis("Sensor clocks: rate error (SD per sensor, crystal: tens of ppm) and time-stamp offset (SD per "
+                  "sensor; defaults 20 ppm and 5 ms)", (
+        _v("rate error 100 ppm", true_time=True, clock_drift_ppm=100.0),
+        _v("rate error 300 ppm", true_time=True, clock_drift_ppm=300.0),
+        _v("rate error 500 ppm", true_time=True, clock_drift_ppm=500.0),
+        _v("time-stamp offset 20 ms", true_time=True, sync_offset_ms=20.0)),
+        note="A sensor's time stamps run at its own rate from its own start (stamps from the sample counter at the "
+             "nominal rate); internal oscillators without a crystal are off by 0.1-1 %. Scored on true time: each "
+             "leg's output is mapped from its thigh's clock (rate and offset) to the world's, which no pipeline can "
+             "know; what is left is the thigh-shank misalignment."),
     "short": Axis("Short sessions with a thigh-shank clock offset (shanks late, exact clocks otherwise)", tuple(
         _v(f"{dur:g} s, {lag:g} ms", shank_lag_ms=lag, duration_s=dur, **_SHORT)
         for dur in (10.0, 20.0, 40.0, 60.0) for lag in (0.0, 10.0, 20.0)),
@@ -231,6 +245,21 @@ def _swap_report(sim: SimSession, legs: dict, warnings: list[str]) -> dict:
             "warnings": len(warnings), "corr": corr, "rmse": rmse}
 
 
+def _on_true_time(lr: LegResult, clock: dict) -> LegResult:
+    """``lr`` with its times mapped from the thigh's clock to true time (the simulator's clock of that thigh:
+    reported ``start + offset + k / fs``, true ``start + k / (fs (1 + drift))``)."""
+    d = clock["drift_ppm"] * 1e-6
+    start = clock["start_s"]
+    origin = start + clock["sync_offset_ms"] / 1000
+
+    def f(t: float | np.ndarray) -> float | np.ndarray:
+        return start + (t - origin) / (1 + d)
+
+    strides = [dataclasses.replace(st, t_start_s=float(f(st.t_start_s)), t_end_s=float(f(st.t_end_s)),
+                                   t_toe_off_s=float(f(st.t_toe_off_s))) for st in lr.strides]
+    return dataclasses.replace(lr, t_s=f(np.asarray(lr.t_s)), strides=strides)
+
+
 def run_case(case: Case) -> CaseResult:
     """Simulate one case and score ``auto`` on it (both legs pooled)."""
     from pipeline.session import process_session
@@ -255,6 +284,9 @@ def run_case(case: Case) -> CaseResult:
         out.error = f"{type(exc).__name__}: {exc}"
         legs, warnings = {}, []
     non_gait = sim.info.get("non_gait_s", [])
+    if AXES[case.axis].values[case.index].true_time:
+        clocks = sim.info["sensors"]
+        legs = {leg: _on_true_time(lr, clocks[f"{leg[0].upper()}-thigh"]) for leg, lr in legs.items()}
     for leg, truth in sim.truth.items():
         total.add(score_leg(legs.get(leg), truth, data_gaps(sim, leg), non_gait))
     if sim.config.label_swap != "none":
