@@ -52,7 +52,7 @@ def block_means(x: np.ndarray, starts: np.ndarray, n_blk: int) -> np.ndarray:
 
 def posture_clusters(blocks: np.ndarray, params: PostureParams = WALKING.posture) -> tuple[np.ndarray, np.ndarray]:
     """The rest blocks (K, 3) grouped by direction: blocks within ``rest_orientation_deg`` of a group's first block
-    join it (greedy, in time order). Returns the groups' mean vectors (C, 3) and block counts (C,). Sway tilts a
+    join it (greedy, in time order). Returns the groups' median blocks (C, 3) and block counts (C,). Sway tilts a
     standing segment by a few degrees, but it is no second calibration position: an inverted pendulum's horizontal
     acceleration follows its tilt, so the specific force does not turn with the segment as gravity would. Only
     distinct postures may fix the offset across gravity."""
@@ -66,7 +66,7 @@ def posture_clusters(blocks: np.ndarray, params: PostureParams = WALKING.posture
         label[free[0]] = label[join] = n_groups  # the first block always: rounding may put u.u just below cos_tol
         n_groups += 1
     counts = np.bincount(label, minlength=n_groups)
-    # the median block: a minority of blocks that are still but not at rest (a vehicle) cannot move it
+    # the median: a minority of blocks that are still but not at rest (a vehicle) cannot move it
     return np.array([np.median(blocks[label == c], axis=0) for c in range(n_groups)]), counts
 
 
@@ -83,14 +83,13 @@ def _sphere_fit(m: np.ndarray, w: np.ndarray, ridge: float) -> np.ndarray:
 
 
 def fit_rest_offset(blocks: np.ndarray, params: PostureParams = WALKING.posture) -> np.ndarray:
-    """(3,) [m/s^2]: the offset b with ``|m_c - b| = g`` for the rest postures ``m_c`` (the mean blocks of
+    """(3,) [m/s^2]: the offset b with ``|m_c - b| = g`` for the rest postures ``m_c`` (the median blocks of
     :func:`posture_clusters`, weighted by their block counts), by Gauss-Newton on the linearised constraint
     ``u_c . db = |m_c - b| - g`` (``u_c``: the posture's unit direction) under a zero-mean prior of SD
     ``rest_offset_prior_mps2`` per axis. Blocks still off the sphere by more than ``force_tol`` after a first fit
     are left out and the postures formed again (a vehicle, a lift: not at rest). Zeros without blocks, or when the
     fit exceeds ``rest_offset_max_mps2`` (no data sheet allows it: not an offset). Blocks of less than half g (an
     accelerometer reading zeros, NaN) are no rests."""
-    # a block that is no specific force at all (an accelerometer reading zeros or NaN) is no rest
     n = row_norm(blocks) if blocks.shape[0] else np.zeros(0)
     blocks = blocks[np.isfinite(n) & (n > 0.5 * G_MPS2)]
     if blocks.shape[0] == 0 or params.rest_offset_prior_mps2 <= 0:
