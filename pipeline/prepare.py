@@ -379,7 +379,8 @@ def prepare_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, shank_
                 shank_drift: float = 0.0, params: PrepareParams = WALKING.prepare,
                 posture: PostureParams = WALKING.posture) -> PreparedLeg:
     """Convert both streams to SI, put them on one uniform grid over their common time span, mark gaps, remove
-    each accelerometer's rest offset (:mod:`pipeline.rest_offset`, with the rest definition of ``posture``).
+    each sensor's accelerometer offset and gyro bias seen at rest (:mod:`pipeline.rest_offset`, with the rest
+    definition of ``posture``).
 
     The shank's time stamps are corrected to ``t + shank_shift_s + shank_drift * t`` (a measured clock offset and
     rate error, see :func:`pipeline.sync.synchronised_leg`). Raises ValueError when the two streams have no
@@ -396,7 +397,7 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
                    params: PrepareParams = WALKING.prepare, posture: PostureParams = WALKING.posture) -> PreparedLeg:
     """:func:`prepare_leg` on streams already converted by :func:`to_si` (``(t_s, gyr_rps, acc_mps2)`` each, at
     nominal rates ``fs1``/``fs2``), so a second pass with corrected shank time stamps skips the conversion.
-    ``reuse``: a first pass of the same streams; its grid and thigh channels (rest offset removed) are kept when
+    ``reuse``: a first pass of the same streams; its grid and thigh channels (rest offsets removed) are kept when
     the re-stamped shank still covers that grid (only the shank is interpolated again)."""
     for name, si in (("thigh", si1), ("shank", si2)):
         if si[0].shape[0] < 2:

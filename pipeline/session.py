@@ -107,15 +107,16 @@ def _offset_warnings(synced: Mapping[str, SyncedLeg], by_leg: Mapping[str, Mappi
                      posture: PostureParams) -> list[str]:
     """One warning per sensor whose accelerometer read at least ``rest_offset_warn_mps2`` off at rest: it was
     removed as far as the rests show it, but such a sensor's unseen part still moves the level by degrees (the
-    sweep's ``sensor`` axis), and the sensor wants calibrating."""
+    sweep's ``sensor`` axis), and the sensor wants calibrating. The text holds the threshold, not the fitted value
+    (that is in the leg's diagnostics), so a long session's chunks say it once."""
     out = []
+    limit = posture.rest_offset_warn_mps2
     for leg in sorted(synced):
         prep = synced[leg].prep
         for seg, off in (("thigh", prep.acc_offset_thigh_mps2), ("shank", prep.acc_offset_shank_mps2)):
-            size = float(np.linalg.norm(off))
-            if size >= posture.rest_offset_warn_mps2:
-                out.append(f"{leg} {seg} sensor {by_leg[leg][seg].sensor_id}: its accelerometer reads "
-                           f"{size:.2f} m/s^2 ({size / G_MPS2:.2f} g) off at rest; removed as far as the session's "
+            if float(np.linalg.norm(off)) >= limit:
+                out.append(f"{leg} {seg} sensor {by_leg[leg][seg].sensor_id}: its accelerometer reads at least "
+                           f"{limit:g} m/s^2 ({limit / G_MPS2:.2f} g) off at rest; removed as far as the session's "
                            "rests show it, the knee level may still be off by degrees: calibrate the sensor")
     return out
 
