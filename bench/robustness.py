@@ -178,6 +178,8 @@ AXES: dict[str, Axis] = {
         _v("rate error 100 ppm", true_time=True, clock_drift_ppm=100.0),
         _v("rate error 300 ppm", true_time=True, clock_drift_ppm=300.0),
         _v("rate error 500 ppm", true_time=True, clock_drift_ppm=500.0),
+        _v("rate error 100 ppm, 5 min", true_time=True, clock_drift_ppm=100.0, duration_s=300.0),
+        _v("rate error 300 ppm, 5 min", true_time=True, clock_drift_ppm=300.0, duration_s=300.0),
         _v("time-stamp offset 20 ms", true_time=True, sync_offset_ms=20.0)),
         note="A sensor's time stamps run at its own rate from its own start (stamps from the sample counter at the "
              "nominal rate); internal oscillators without a crystal are off by 0.1-1 %. Scored on true time: each "

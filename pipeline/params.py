@@ -95,8 +95,10 @@ class SyncParams:
 
     window_s: float = 40.0
     """One lag estimate per window [s]: long enough for a stable minimum, short against crystal drift."""
-    max_drift: float = 150e-6
-    """Largest credible rate error [s/s]: BLE sensor crystals drift tens of ppm; more is a bad estimate."""
+    max_drift: float = 500e-6
+    """Largest credible rate error [s/s] between a thigh's and a shank's clock: crystals are specified to +-20-50
+    ppm and move by tens more with temperature and age, so two of them differ by up to ~200 ppm; beyond 500 ppm the
+    estimate is wrong or the clock has no crystal (a ~1 % oscillator, whose lags leave ``max_lag_s`` anyway)."""
     agree_s: float = 0.006
     """The window lags must agree with the fitted line within this [s], or no correction is applied."""
     max_lag_s: float = 0.06

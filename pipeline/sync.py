@@ -108,7 +108,8 @@ def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
     ``agree_s`` (the rule of :func:`_line_model`) and their lag exceeds ``short_min_lag_s``; halves shorter than
     ``short_window_s`` give no estimate. Not the hinge cue (Eq. 2): on the hardware-synchronised biomechZoo trial
     (10 s) it reads a false -10 / -18 ms and follows only a quarter of an imposed offset, where the centre cue
-    follows it one to one. Two halves fix no drift: over such a session 150 ppm move the lag by 4.5 ms at most."""
+    follows it one to one. Two halves fix no drift: over such a session two crystals (up to ~200 ppm apart) move the
+    lag by 6 ms at most."""
     half = prep.n // 2
     if axes_params is None or half < params.short_window_s * prep.fs_hz:
         return None
