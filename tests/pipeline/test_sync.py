@@ -16,6 +16,7 @@ from pipeline.axes import (
 )
 from pipeline.params import WALKING
 from pipeline.prepare import nominal_fs, prepare_leg_si, to_si
+from pipeline.session import process_session
 from pipeline.signal_utils import lowpass_runs_many
 from pipeline.simulate import SimConfig, simulate_session
 from pipeline.sync import clock_model, synchronised_leg
@@ -149,3 +150,16 @@ def test_short_real_trial_offset_is_corrected_and_none_invented() -> None:
         assert synchronised_leg(leg, *_leg_streams(streams, leg), WALKING).shank_lag_ms is None
         synced = synchronised_leg(leg, *_leg_streams(streams, leg, 0.015), WALKING)
         assert synced.shank_lag_ms is not None and abs(synced.shank_lag_ms - 15.0) < 4.0
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_a_drift_beyond_one_crystals_tolerance_is_followed(seed: int) -> None:
+    """Two crystals can run ~200 ppm and more apart (tolerance, temperature, age): a 5-minute leg whose shank runs
+    300-400 ppm off its thigh gets that drift (the old 150 ppm clip left it 150-250 ppm off: 25-40 ms at the ends)."""
+    sim = simulate_session(SimConfig(pattern="normal", seed=seed, duration_s=300.0, bout_strides=12, legs=("left",),
+                                     clock_drift_ppm=150.0))
+    true_ppm = sim.info["sensors"]["L-shank"]["drift_ppm"] - sim.info["sensors"]["L-thigh"]["drift_ppm"]
+    assert 300 < abs(true_ppm) < WALKING.sync.max_drift * 1e6
+    diag = process_session(sim.streams, activity="walking").legs["left"].diagnostics
+    assert diag is not None and diag.shank_drift_ppm is not None
+    assert abs(diag.shank_drift_ppm - true_ppm) < 40
