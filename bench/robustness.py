@@ -5,11 +5,11 @@
     python -m bench.robustness --axes loss,labels --quick   # one seed, short sessions (smoke test)
     python -m bench.robustness --axes short      # 10-60 s sessions with a thigh-shank offset (not in the default)
 
-Every case is a ``normal`` walking session (90 s unless the axis says otherwise, in bouts of 12 strides, 100 Hz, random mounting, default noise,
-standing, turns and sitting between bouts; pipeline.simulate.SimConfig) with one field changed; the pipeline runs
-through ``pipeline.session.process_session(streams, activity, "auto")``. One Markdown table per axis (rows = the axis
-values, both legs of all seeds pooled; the ``clock`` axis scored on true time), then the real recordings
-(bench.accuracy.real_tables). Stride matching and statistics come from bench.matching (Bland-Altman LoA, RMSE);
+Every case is a ``normal`` walking session (90 s unless the axis says otherwise, in bouts of 12 strides, 100 Hz,
+random mounting, default noise, standing, turns and sitting between bouts; pipeline.simulate.SimConfig) with one
+field changed; the pipeline runs through ``pipeline.session.process_session(streams, activity, "auto")``. One
+Markdown table per axis (rows = the axis values, both legs of all seeds pooled; the ``clock`` axis scored on true
+time), then the real recordings (bench.accuracy.real_tables). Stride matching and statistics come from bench.matching (Bland-Altman LoA, RMSE);
 progress goes to stderr.
 
 Targets (issue 9), ✗ marks a miss: recall >= 0.95 (>= 0.9 at 10 % bursty loss), precision >= 0.98,
