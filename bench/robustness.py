@@ -9,8 +9,8 @@ Every case is a ``normal`` walking session (90 s unless the axis says otherwise,
 random mounting, default noise, standing, turns and sitting between bouts; pipeline.simulate.SimConfig) with one
 field changed; the pipeline runs through ``pipeline.session.process_session(streams, activity, "auto")``. One
 Markdown table per axis (rows = the axis values, both legs of all seeds pooled; the ``clock`` axis scored on true
-time), then the real recordings (bench.accuracy.real_tables). Stride matching and statistics come from bench.matching (Bland-Altman LoA, RMSE);
-progress goes to stderr.
+time), then the real recordings (bench.accuracy.real_tables). Stride matching and statistics come from
+bench.matching (Bland-Altman LoA, RMSE); progress goes to stderr.
 
 Targets (issue 9), ✗ marks a miss: recall >= 0.95 (>= 0.9 at 10 % bursty loss), precision >= 0.98,
 |peak bias| <= 1.5 deg, peak LoA within +-3.5 deg, RMSE inside strides <= 3 deg (running: bias <= 2, RMSE <= 4),
