@@ -436,17 +436,19 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
             t_grid, _interp_columns(t_grid, t1, _channels(g1, a1), params.max_bridge_s), gaps1, fs_hz, params)
         br1 += len(filled1)
         off1, gb1 = rest_offsets(thigh6[:, 3:], thigh6[:, :3], ~_mask_intervals(t_grid, gaps1), fs_hz, posture)
-        gyr_thigh, acc_thigh = thigh6[:, :3] - gb1, thigh6[:, 3:] - off1
+        thigh6 -= np.concatenate((gb1, off1))  # this pass's own array: corrected in place
+        gyr_thigh, acc_thigh = thigh6[:, :3], thigh6[:, 3:]
     shank6, filled2, gaps2 = periodic_fill(
         t_grid, _interp_columns(t_grid, t2, _channels(g2, a2), params.max_bridge_s), gaps2, fs_hz, params)
     br2 += len(filled2)
     off2, gb2 = rest_offsets(shank6[:, 3:], shank6[:, :3], ~_mask_intervals(t_grid, gaps2), fs_hz, posture)
+    shank6 -= np.concatenate((gb2, off2))
     gaps = sorted(gaps1 + gaps2)
     valid = ~_mask_intervals(t_grid, gaps)
     return PreparedLeg(
         leg=leg, fs_hz=fs_hz, t0_s=float(t_start), t_s=t_grid,
-        gyr_thigh_rps=gyr_thigh, gyr_shank_rps=shank6[:, :3] - gb2,
-        acc_thigh_mps2=acc_thigh, acc_shank_mps2=shank6[:, 3:] - off2,
+        gyr_thigh_rps=gyr_thigh, gyr_shank_rps=shank6[:, :3],
+        acc_thigh_mps2=acc_thigh, acc_shank_mps2=shank6[:, 3:],
         valid=valid, saturated=saturated, gaps_s=_merge_intervals(gaps), bridged_gaps=br1 + br2,
         bridged_s=_merge_intervals(noted1 + noted2), filled_s=_merge_intervals(filled1 + filled2),
         thigh_gaps_s=gaps1, thigh_filled_s=filled1, thigh_noted_s=noted1, shank_bridged=br2,
