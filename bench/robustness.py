@@ -186,6 +186,17 @@ AXES: dict[str, Axis] = {
              "nominal rate); internal oscillators without a crystal are off by 0.1-1 %. Scored on true time: each "
              "leg's output is mapped from its thigh's clock (rate and offset) to the world's, which no pipeline can "
              "know; what is left is the thigh-shank misalignment."),
+    "joint_3d": Axis("3-D hip and knee motion (the knee no hinge; x typical amplitudes)", (
+        _v("planar (the simulator's default)"),
+        _v("pelvis and hip 3-D x1", hip_3d=1.0), _v("pelvis and hip 3-D x2", hip_3d=2.0),
+        _v("knee ab/adduction and axial rotation x1", knee_3d=1.0),
+        _v("knee ab/adduction and axial rotation x2", knee_3d=2.0),
+        _v("knee varus 6 deg (static)", knee_varus_deg=6.0),
+        _v("all x1", hip_3d=1.0, knee_3d=1.0), _v("all x2, varus 6 deg", hip_3d=2.0, knee_3d=2.0, knee_varus_deg=6.0)),
+        note="Truth: the flexion of the joint coordinate system (Grood and Suntay 1983). x1: pelvic rotation and "
+             "obliquity +-4 deg, lateral sway +-2.5 cm, hip ab/adduction -6..8 deg and rotation +-5 deg, knee "
+             "ab/adduction -2.5..2 deg and tibial internal rotation 0.15 deg per deg of flexion (~9 deg in swing); "
+             "each subject 0.7-1.3 x."),
     "short": Axis("Short sessions with a thigh-shank clock offset (shanks late, exact clocks otherwise)", tuple(
         _v(f"{dur:g} s, {lag:g} ms", shank_lag_ms=lag, duration_s=dur, **_SHORT)
         for dur in (10.0, 20.0, 40.0, 60.0) for lag in (0.0, 10.0, 20.0)),

@@ -27,7 +27,10 @@ and each new random effect draws from its own ``default_rng([seed, k])`` stream)
 angle, per-leg scaled or shifted knee curves, an absolute heel-strike shock in g, larger and off-axis lever arms,
 bursty packet loss (Gilbert-Elliott two-state channel per sensor), sharper and more frequent turns, non-gait
 movements between bouts (vertical jumps, step-ups onto a stair, sit-to-stand repetitions: never strides in the
-truth), wrongly labelled sensors (legs or thigh/shank swapped) and per-axis sensitivity (gain) errors.
+truth), wrongly labelled sensors (legs or thigh/shank swapped), per-axis sensitivity (gain) errors, and 3-D joint
+motion (``knee_3d``, ``hip_3d``, ``knee_varus_deg``): each segment is then the end of a chain of rotations, pelvis
+``Rz(heading + rotation) Rx(obliquity)``, hip and knee each ``Ry(flexion) Rx(ab/adduction) Rz(axial rotation)`` in
+the order of the joint coordinate system (Grood and Suntay 1983), whose flexion is the true knee angle.
 
 Pure numpy/scipy, seeded and deterministic.
 """
@@ -92,6 +95,32 @@ _SPECS: dict[str, _PatternSpec] = {
 }
 
 
+# Typical 3-D joint motion in walking (cycle %, deg; 0 % = ipsilateral heel strike), scaled by SimConfig.knee_3d
+# and hip_3d: hip ab/adduction (+) and internal rotation (+) after Kadaba et al. 1990; the knee's ab/adduction
+# (varus +) and the tibia's internal rotation (+) beyond its coupling with flexion after bone-pin studies
+# (Lafortune et al. 1992, Benoit et al. 2006: a few deg of ab/adduction, ~9 deg of axial rotation over the cycle,
+# internal as the knee flexes: the screw-home mechanism run backwards).
+_HIP_ADD_PTS = ((0, 2), (18, 8), (40, 5), (60, -2), (72, -6), (88, -1))
+_HIP_INT_PTS = ((0, 4), (15, 6), (45, 1), (62, -5), (78, -3), (92, 3))
+_KNEE_ADD_PTS = ((0, 0.5), (15, 2), (45, 1), (62, -1), (75, -2.5), (90, 0))
+_KNEE_INT_PTS = ((0, 1), (15, 2), (45, -1), (70, 0), (90, 0.5))
+
+
+@dataclass(frozen=True)
+class _OutOfPlane:
+    """Amplitudes of the 3-D motion at ``knee_3d = hip_3d = 1`` (each subject scaled by 0.7-1.3)."""
+
+    knee_rot_per_flex: float = 0.15  # deg of tibial internal rotation per deg of knee flexion above standing
+    pelvis_rot_deg: float = 4.0  # pelvic rotation about the vertical (the stepping side forward)
+    pelvis_obl_deg: float = 4.0  # pelvic obliquity (the swing side drops)
+    pelvis_sway_m: float = 0.025  # lateral sway of the pelvis towards the stance leg
+    stand_hip_abd_deg: float = 3.0  # quiet standing with the feet apart
+    stand_hip_ext_rot_deg: float = 5.0  # and the toes out
+
+
+_OUT_OF_PLANE = _OutOfPlane()
+
+
 @dataclass
 class SimConfig:
     """What to simulate. Levels are multipliers (1 = realistic default, 0 = off) unless a unit is named."""
@@ -153,6 +182,13 @@ class SimConfig:
     gyro_gain_sd: float = 0.0
     acc_gain_sd: float = 0.0
     jump_rest_s: float = 1.0  # standing between two jumps (0: rhythmic jumping at the jump's own period)
+    # 3-D joint motion beyond the sagittal chain (multipliers of typical amplitudes, 0: the planar model above;
+    # see _OUT_OF_PLANE). knee_3d: the knee is no hinge (ab/adduction and tibial axial rotation, the rotation
+    # coupled to flexion); hip_3d: pelvic rotation, obliquity and lateral sway, hip ab/adduction and rotation.
+    # The true knee angle is then the joint coordinate system's flexion (Grood and Suntay 1983).
+    knee_3d: float = 0.0
+    hip_3d: float = 0.0
+    knee_varus_deg: float = 0.0  # static frontal alignment of both knees (varus +, as in medial knee OA)
 
 
 @dataclass(frozen=True)
@@ -486,6 +522,10 @@ def _axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
 class _LegSplines:
     thigh: BSpline
     shank: BSpline
+    # 3-D joint motion (SimConfig.knee_3d / hip_3d / knee_varus_deg): each segment's rotations after the heading,
+    # (axis, angle spline [rad]) with axis 0/1/2 = x/y/z of the frame rotated so far (:func:`_chain_motion`)
+    thigh_links: tuple[tuple[int, BSpline], ...] | None = None
+    shank_links: tuple[tuple[int, BSpline], ...] | None = None
 
 
 @dataclass
@@ -493,6 +533,9 @@ class _BodySplines:
     heading: BSpline
     speed: BSpline
     height: BSpline
+    # 3-D pelvis (SimConfig.hip_3d): its rotations after the heading and its lateral sway [m] (None: planar)
+    pelvis_links: tuple[tuple[int, BSpline], ...] | None = None
+    sway: BSpline | None = None
 
 
 def _eval3(sp: BSpline, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -525,6 +568,55 @@ def _hip_acc(body: _BodySplines, t: np.ndarray, side: float, half_width_m: float
     acc[:, 2] += ddz
     acc += side * half_width_m * (-ddpsi[:, None] * x_h - (dpsi**2)[:, None] * y_h)
     return acc
+
+
+def _elementary(axis: int, q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 3, 3) about the frame's own x (0), y (1) or z (2) axis by angles ``q`` (N,) [rad]."""
+    c, s = np.cos(q), np.sin(q)
+    out = np.zeros((q.shape[0], 3, 3))
+    i, j = [k for k in range(3) if k != axis]
+    out[:, axis, axis] = 1.0
+    sign = 1.0 if axis != 1 else -1.0  # Ry's sine sits on the other side (right-handed)
+    out[:, i, i], out[:, j, j] = c, c
+    out[:, i, j], out[:, j, i] = -sign * s, sign * s
+    return out
+
+
+def _chain_motion(body: _BodySplines, links: tuple[tuple[int, BSpline], ...], t: np.ndarray):
+    """Rotation, world angular velocity and world angular acceleration of ``Rz(heading) @ R_a0(q0) @ R_a1(q1) ...``
+    at times ``t``: each elementary rotation adds its rate about its axis as the frame so far carries it,
+    ``omega_i = omega_{i-1} + a_i dq_i``, ``alpha_i = alpha_{i-1} + a_i ddq_i + omega_{i-1} x a_i dq_i``
+    (``a_i``: the axis in world coordinates), so both are exact derivatives of the splines."""
+    psi, dpsi, ddpsi = _eval3(body.heading, t)
+    rot = _rz(psi)
+    z_w = np.zeros((t.shape[0], 3))
+    z_w[:, 2] = 1.0
+    omega = dpsi[:, None] * z_w
+    alpha = ddpsi[:, None] * z_w
+    for axis, sp in links:
+        q, dq, ddq = _eval3(sp, t)
+        a_w = rot[:, :, axis]
+        alpha = alpha + a_w * ddq[:, None] + np.cross(omega, a_w) * dq[:, None]
+        omega = omega + a_w * dq[:, None]
+        rot = rot @ _elementary(axis, q)
+    return rot, omega, alpha
+
+
+def _hip_acc_3d(body: _BodySplines, t: np.ndarray, side: float, half_width_m: float) -> np.ndarray:
+    """Acceleration of a hip joint centre of the 3-D pelvis: the pelvis centre's (forward speed, lateral sway in
+    the heading frame, height) plus the hip's rotation about it."""
+    psi, dpsi, ddpsi = _eval3(body.heading, t)
+    v, dv = body.speed(t), body.speed(t, 1)
+    ddz = body.height(t, 2)
+    s, ds, dds = _eval3(body.sway, t)
+    zero = np.zeros_like(t)
+    x_h = np.stack([np.cos(psi), np.sin(psi), zero], -1)
+    y_h = np.stack([-np.sin(psi), np.cos(psi), zero], -1)
+    # d(y_h)/dt = -dpsi x_h, d2(y_h)/dt2 = -ddpsi x_h - dpsi^2 y_h
+    acc = (dv - 2 * ds * dpsi - s * ddpsi)[:, None] * x_h + (v * dpsi + dds - s * dpsi**2)[:, None] * y_h
+    acc[:, 2] += ddz
+    rot, om, al = _chain_motion(body, body.pelvis_links or (), t)
+    return acc + _point_acc(rot, om, al, np.array([0.0, side * half_width_m, 0.0]))
 
 
 def _point_acc(rot: np.ndarray, omega: np.ndarray, alpha: np.ndarray, r_local: np.ndarray) -> np.ndarray:
@@ -685,6 +777,51 @@ def _mounting(rng: np.random.Generator, cfg: SimConfig, leg: str, seg: str, left
     return m @ left_mounts[seg] @ m @ perturb
 
 
+def _add_pelvis_3d(body: _BodySplines, tl: _Timeline, level: float, rng: np.random.Generator) -> None:
+    """The pelvis's rotation, obliquity and lateral sway in gait (``level`` x :class:`_OutOfPlane`, functions of
+    the left leg's phase, zero outside gait) into ``body``."""
+    op = _OUT_OF_PLANE
+    scale = level * rng.uniform(0.7, 1.3, 3)
+    ang = 2 * np.pi * tl.phase
+    rot = -scale[0] * np.radians(op.pelvis_rot_deg) * np.cos(ang) * tl.env  # left side forward at left heel strike
+    obl = scale[1] * np.radians(op.pelvis_obl_deg) * np.sin(ang) * tl.env  # left side up in left stance
+    sway = scale[2] * op.pelvis_sway_m * np.sin(ang) * tl.env  # towards the left in left stance
+    body.pelvis_links = ((2, make_interp_spline(tl.t, rot, k=5)), (0, make_interp_spline(tl.t, obl, k=5)))
+    body.sway = make_interp_spline(tl.t, sway, k=5)
+
+
+def _leg_chain_3d(body: _BodySplines, tl: _Timeline, leg: str, phase: np.ndarray, hip_deg: np.ndarray,
+                  knee_deg: np.ndarray, stand_knee_deg: float, cfg: SimConfig, rng: np.random.Generator
+                  ) -> tuple[_LegSplines, np.ndarray]:
+    """One leg as a 3-D chain (module docstring): hip and knee each ``Ry(flexion) Rx(ab/adduction) Rz(rotation)``
+    after the pelvis, with the typical curves (:data:`_HIP_ADD_PTS` ...) scaled by ``cfg.hip_3d`` / ``knee_3d``
+    per subject and stride. Returns the leg's splines and its true knee angle [deg] (the chain's flexion)."""
+    op = _OUT_OF_PLANE
+    t, cyc, env = tl.t, phase % 1.0, tl.env
+    side = 1.0 if leg == "left" else -1.0  # +y is lateral for the left leg: medial motion is -side * y
+
+    def curve(points: tuple[tuple[float, float], ...], level: float) -> np.ndarray:
+        amp = level * rng.uniform(0.7, 1.3) * (1 + _per_stride_signal(rng, phase, 0.1))
+        return amp * _eval_fourier(_fourier_coefs(points), cyc) * env
+
+    still = (1 - env) * cfg.hip_3d
+    hip_add = curve(_HIP_ADD_PTS, cfg.hip_3d) - still * op.stand_hip_abd_deg
+    hip_int = curve(_HIP_INT_PTS, cfg.hip_3d) - still * op.stand_hip_ext_rot_deg
+    knee_add = curve(_KNEE_ADD_PTS, cfg.knee_3d) + cfg.knee_varus_deg
+    coupling = cfg.knee_3d * op.knee_rot_per_flex * rng.uniform(0.7, 1.3)
+    knee_int = curve(_KNEE_INT_PTS, cfg.knee_3d) + coupling * (knee_deg - stand_knee_deg)
+
+    def spline(deg: np.ndarray) -> BSpline:
+        return make_interp_spline(t, np.radians(deg), k=5)
+
+    knee_sp = spline(knee_deg)
+    thigh_links = (*(body.pelvis_links or ()), (1, spline(-hip_deg)), (0, spline(-side * hip_add)),
+                   (2, spline(-side * hip_int)))
+    shank_links = (*thigh_links, (1, knee_sp), (0, spline(-side * knee_add)), (2, spline(-side * knee_int)))
+    planar = _LegSplines(spline(hip_deg), spline(hip_deg - knee_deg), thigh_links, shank_links)
+    return planar, np.degrees(knee_sp(t))
+
+
 def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the draw order is part of every seed's output
     """Simulate one recording session; see the module docstring for the model."""
     if cfg.pattern not in _SPECS:
@@ -715,6 +852,10 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
         height=make_interp_spline(t, height, k=5),
     )
 
+    three_d = bool(cfg.knee_3d or cfg.hip_3d or cfg.knee_varus_deg)
+    rng_3d = np.random.default_rng([cfg.seed, 5])  # the 3-D motion's own draws: the planar model is unchanged
+    if three_d:
+        _add_pelvis_3d(body, tl, cfg.hip_3d, rng_3d)
     legs: dict[str, _LegSplines] = {}
     truth: dict[str, LegTruth] = {}
     phases: dict[str, np.ndarray] = {}
@@ -744,6 +885,8 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
         shank = make_interp_spline(t, np.radians(hip - knee), k=5)
         legs[leg] = _LegSplines(thigh, shank)
         knee_true = np.degrees(thigh(t) - shank(t))
+        if three_d:
+            legs[leg], knee_true = _leg_chain_3d(body, tl, leg, phase, hip, knee, leg_stand, cfg, rng_3d)
         truth[leg] = _leg_truth(leg, tl, knee_true, phase, spec.stance_frac)
         truth[leg].stand_knee_deg = float(leg_stand)
 
@@ -781,13 +924,19 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
             fs = cfg.shank_fs_hz if seg == "shank" and cfg.shank_fs_hz else cfg.fs_hz
             t_true, t_rep, clock = _sample_times(rng, cfg, fs, t[-1])
             m = len(t_true)
-            rot_t, om_t, al_t = _segment_motion(body, legs[leg].thigh, t_true)
-            acc_w = _hip_acc(body, t_true, side, half_width)
+            chain = legs[leg].thigh_links is not None
+            if chain:
+                rot_t, om_t, al_t = _chain_motion(body, legs[leg].thigh_links, t_true)
+                acc_w = _hip_acc_3d(body, t_true, side, half_width)
+            else:
+                rot_t, om_t, al_t = _segment_motion(body, legs[leg].thigh, t_true)
+                acc_w = _hip_acc(body, t_true, side, half_width)
             if seg == "thigh":
                 rot, om, _ = rot_t, om_t, al_t
                 acc_w = acc_w + _point_acc(rot_t, om_t, al_t, lever + np.array([0, 0, -thigh_len]))
             else:
-                rot, om, al = _segment_motion(body, legs[leg].shank, t_true)
+                rot, om, al = _chain_motion(body, legs[leg].shank_links, t_true) if chain else \
+                    _segment_motion(body, legs[leg].shank, t_true)
                 acc_w = acc_w + _point_acc(rot_t, om_t, al_t, np.array([0, 0, -thigh_len]))
                 acc_w = acc_w + _point_acc(rot, om, al, lever)
             f_w = acc_w + np.array([0.0, 0.0, GRAVITY_MS2])

@@ -370,3 +370,95 @@ def test_gain_errors_scale_each_axis_and_change_nothing_else() -> None:
             gain = np.median(ratio, axis=0)
             assert np.all(np.abs(gain - 1.0) < 0.1) and np.any(np.abs(gain - 1.0) > 1e-4)
             assert np.allclose(y, x * gain, rtol=1e-9, atol=1e-12)  # one constant gain per axis
+
+
+def _flat_chain_body(t: np.ndarray, heading: np.ndarray):
+    from scipy.interpolate import make_interp_spline
+
+    from pipeline.simulate import _BodySplines
+
+    zero = make_interp_spline(t, np.zeros_like(t), k=5)
+    return _BodySplines(heading=make_interp_spline(t, heading, k=5), speed=zero, height=zero)
+
+
+def test_chain_of_one_flexion_is_the_planar_segment() -> None:
+    from scipy.interpolate import make_interp_spline
+
+    from pipeline.simulate import _chain_motion, _segment_motion
+
+    t = np.linspace(0, 2, 1001)
+    body = _flat_chain_body(t, 0.8 * np.sin(1.3 * t))
+    theta = make_interp_spline(t, 0.6 * np.sin(5 * t) + 0.2, k=5)
+    planar = _segment_motion(body, theta, t)
+    chain = _chain_motion(body, ((1, make_interp_spline(t, -(0.6 * np.sin(5 * t) + 0.2), k=5)),), t)
+    for a, b in zip(planar, chain, strict=True):
+        assert np.allclose(a, b, atol=1e-9)
+
+
+def test_chain_rates_are_the_derivatives_of_its_rotations() -> None:
+    """omega = vee(dR/dt R^T) and alpha = d(omega)/dt, by central differences on a 3-D chain of five rotations."""
+    from scipy.interpolate import make_interp_spline
+
+    from pipeline.simulate import _chain_motion
+
+    t = np.linspace(0, 2, 2001)
+    body = _flat_chain_body(t, 0.5 * np.sin(2 * t))
+    rng = np.random.default_rng(1)
+    links = tuple((axis, make_interp_spline(t, rng.uniform(0.2, 0.8) * np.sin(rng.uniform(2, 8) * t + k), k=5))
+                  for k, axis in enumerate((2, 0, 1, 0, 2)))
+    h = 1e-5
+    tc = np.linspace(0.3, 1.7, 50)
+    rot, om, al = _chain_motion(body, links, tc)
+    r_p, om_p, _ = _chain_motion(body, links, tc + h)
+    r_m, om_m, _ = _chain_motion(body, links, tc - h)
+    skew = (r_p - r_m) / (2 * h) @ np.transpose(rot, (0, 2, 1))
+    om_fd = np.stack([skew[:, 2, 1], skew[:, 0, 2], skew[:, 1, 0]], -1)
+    assert np.abs(om_fd - om).max() < 1e-6 * max(1.0, np.abs(om).max())
+    assert np.abs((om_p - om_m) / (2 * h) - al).max() < 1e-4 * max(1.0, np.abs(al).max())
+    assert np.abs(om).max() > 1.0 and np.abs(al[:, 0]).max() > 1.0  # a real 3-D motion, not a planar one
+
+
+def test_3d_hip_and_pelvis_keep_the_knee_a_hinge() -> None:
+    """With 3-D hip and pelvis motion but a hinge knee the relative rate about the shared y axis still integrates to
+    the true knee angle (so the 3-D chain and its truth agree)."""
+    sim = simulate_session(SimConfig(pattern="normal", fs_hz=200, seed=5, n_strides=10, hip_3d=2.0, **CLEAN))
+    flat = simulate_session(SimConfig(pattern="normal", fs_hz=200, seed=5, n_strides=10, **CLEAN))
+    for leg in ("left", "right"):
+        t, est = _knee_from_gyro(sim, leg)
+        err = est - sim.truth[leg].angle_at(t)
+        assert np.sqrt(np.mean(err**2)) < 0.2
+        # the thigh's gyro now sees ab/adduction and rotation: its axes differ from the planar session's
+        th3, th2 = _stream(sim, f"{leg[0].upper()}-thigh"), _stream(flat, f"{leg[0].upper()}-thigh")
+        n = min(len(th3.gyr), len(th2.gyr))
+        assert np.abs(th3.gyr[:n] - th2.gyr[:n]).max() > 10.0
+    assert np.allclose(sim.truth["left"].angle_deg, flat.truth["left"].angle_deg, atol=1e-6)
+
+
+def test_3d_knee_rotates_about_the_shank_with_flexion() -> None:
+    """knee_3d: the relative rotation is no longer about one axis: the tibia turns about its own long axis as the knee
+    flexes (a few deg per 10 deg), the knee's flexion stays the truth, and the joint centre stays common."""
+    cfg = SimConfig(pattern="normal", fs_hz=200, seed=7, n_strides=10, mounting="aligned", knee_3d=1.0,
+                    hip_3d=1.0, knee_varus_deg=5.0, **CLEAN)
+    sim = simulate_session(cfg)
+    th, sh = _stream(sim, "L-thigh"), _stream(sim, "L-shank")
+    n = min(len(th.gyr), len(sh.gyr))
+    t, est = _knee_from_gyro(sim, "left")
+    err = est - sim.truth["left"].angle_at(t)
+    assert 0.2 < np.sqrt(np.mean(err**2)) < 5.0  # no longer exact, still the same curve
+    axial = sh.gyr[:n, 2] - np.interp(sh.t_s[:n], th.t_s, th.gyr[:, 2])
+    flex_rate = np.gradient(sim.truth["left"].angle_at(sh.t_s[:n]), sh.t_s[:n])
+    assert np.corrcoef(axial, flex_rate)[0, 1] < -0.5  # internal rotation of a left tibia is about -z (z up)
+    peaks = [s.peak_swing_flexion_deg for s in sim.truth["left"].strides if s.steady]
+    assert 50 < np.median(peaks) < 75
+    for seg in ("thigh", "shank"):  # the knee centre is common to both segments (as in the planar test above)
+        meta = sim.info["sensors"][f"L-{seg}"]
+        assert np.allclose(np.array(meta["mounting"]), np.eye(3))
+    at_knee = {}
+    for seg in ("thigh", "shank"):
+        s = _stream(sim, f"L-{seg}")
+        r = -np.array(sim.info["sensors"][f"L-{seg}"]["lever_arm_m"])
+        w = np.radians(s.gyr)
+        a = s.acc + np.cross(w, np.cross(w, r)) + np.cross(np.gradient(w, s.t_s, axis=0), r)
+        at_knee[seg] = (s.t_s, np.linalg.norm(a, axis=1))
+    diff = (at_knee["thigh"][1] - np.interp(at_knee["thigh"][0], *at_knee["shank"]))[5:-5]
+    assert np.sqrt(np.mean(diff**2)) < 0.05
