@@ -22,6 +22,7 @@ from scipy.optimize import leastsq
 from scipy.stats import chi2
 
 from pipeline.params import WALKING, AxesParams
+from pipeline.prepare import PreparedLeg
 from pipeline.signal_utils import cross_rows, row_norm
 
 _EPS = 1e-9  # guards divisions by a norm; far below any physical value
@@ -35,6 +36,16 @@ class JointAxes:
     j2: np.ndarray  # shank frame
     rms_residual_dps: float
     n_samples: int
+    # Seel's Eq. 2 hinge when ``j1``/``j2`` are the flexion axes of a two-axis knee (:func:`fit_joint_axes` with
+    # ``up``): the hinge constraint's clock cues need the axes that satisfy it best (None: ``j1``/``j2`` themselves)
+    hinge_j1: np.ndarray | None = None
+    hinge_j2: np.ndarray | None = None
+
+    def hinge(self) -> tuple[np.ndarray, np.ndarray]:
+        """The axes of Seel's hinge constraint (Eq. 2), thigh and shank frame."""
+        if self.hinge_j1 is None or self.hinge_j2 is None:
+            return self.j1, self.j2
+        return self.hinge_j1, self.hinge_j2
 
 
 @dataclass(frozen=True)
@@ -148,6 +159,45 @@ class _AxisProblem:
         return jac
 
 
+class _AxisLagProblem:
+    """Seel Eq. 2 with the shank's clock lag ``tau`` [s] as a fifth unknown beside the two axes' spherical angles:
+    ``||g1 x j1|| - ||(g2 + tau gd2) x j2||`` (the shank's rate ``tau`` later, to first order; ``gd2`` its Eq. 1
+    derivative). A lag between the two sensors' stamps breaks the hinge constraint sample by sample; where the leg
+    also moves out of its sagittal plane (hip ab/adduction and rotation, pelvis) the axes alone can absorb part of
+    that misfit, tilting by degrees, and the lag then read with those axes is a fraction of the true one (on the
+    simulator's ``joint_3d`` axis: 21 ms read as 7). Fitted together, the axes need not explain the lag."""
+
+    def __init__(self, g1: np.ndarray, g2: np.ndarray, gd2: np.ndarray) -> None:
+        self.g1, self.g2, self.gd2 = g1, g2, gd2
+
+    def _parts(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
+        j1, j2 = _sph(x[0], x[1]), _sph(x[2], x[3])
+        w2 = self.g2 + x[4] * self.gd2
+        p1, p2 = self.g1 @ j1, w2 @ j2
+        n1 = np.sqrt(np.maximum(np.einsum("ij,ij->i", self.g1, self.g1) - p1 ** 2, _EPS))
+        n2 = np.sqrt(np.maximum(np.einsum("ij,ij->i", w2, w2) - p2 ** 2, _EPS))
+        return w2, p1, p2, n1, n2
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """Per sample ``||g1 x j1|| - ||w2 x j2||``, ``w2 = g2 + tau gd2``."""
+        _, _, _, n1, n2 = self._parts(x)
+        return n1 - n2
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """d||g x j||/dj = -(g.j) g / ||g x j|| (chained with the spherical map) and
+        d||w2 x j2||/dtau = (w2.gd2 - (w2.j2)(gd2.j2)) / ||w2 x j2||."""
+        w2, p1, p2, n1, n2 = self._parts(x)
+        jac = np.empty((self.g1.shape[0], 5))
+        for k, (g, p, n, sign) in enumerate(((self.g1, p1, n1, 1.0), (w2, p2, n2, -1.0))):
+            d_phi, d_theta = _sph_derivs(x[2 * k], x[2 * k + 1])
+            coef = -sign * p / n
+            jac[:, 2 * k] = coef * (g @ d_phi)
+            jac[:, 2 * k + 1] = coef * (g @ d_theta)
+        j2 = _sph(x[2], x[3])
+        jac[:, 4] = -(np.einsum("ij,ij->i", w2, self.gd2) - p2 * (self.gd2 @ j2)) / n2
+        return jac
+
+
 def _principal_axis(g: np.ndarray) -> np.ndarray:
     """Dominant rotation axis of a segment (McGrath et al. 2018: in gait most angular velocity is sagittal)."""
     _, _, vt = np.linalg.svd(g, full_matrices=False)
@@ -155,12 +205,26 @@ def _principal_axis(g: np.ndarray) -> np.ndarray:
 
 
 def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | None = None,
-                   params: AxesParams = WALKING.axes) -> JointAxes:
+                   params: AxesParams = WALKING.axes,
+                   up: tuple[np.ndarray, np.ndarray] | None = None, gd2_rps2: np.ndarray | None = None) -> JointAxes:
     """Joint axis of the knee in the thigh (``j1``) and shank (``j2``) sensor frames by Seel's Eq. 2
     (Rhudy et al. 2024, Eq. 2-3), solved by Levenberg-Marquardt (:func:`_lm`) on a bounded sample set.
 
     Initialised with each segment's principal rotation axis (McGrath et al. 2018) plus a few seeded restarts;
-    deterministic. Signs follow the module convention (flexion rate ``g1.j1 - g2.j2`` positive).
+    deterministic. Signs follow the module convention (flexion rate ``g1.j1 - g2.j2`` positive). ``gd2_rps2``: the
+    shank's angular acceleration (:func:`angular_acceleration` of ``g2_rps``): the solution is then refined with a
+    thigh-shank clock lag fitted alongside (:class:`_AxisLagProblem`), for data whose clocks are not yet aligned.
+
+    ``up``: per segment the direction the flexion axis is perpendicular to (:func:`level_directions`); each axis is
+    then turned towards that plane until it leans out of it by ``AxesParams.level_lean_deg`` at most, and the hinge
+    axes are kept as ``hinge_j1``/``hinge_j2`` for the clock cues. A real knee is no hinge: the tibia also turns
+    about its long axis as the knee flexes (~0.15 deg per deg, the screw-home mechanism run backwards; bone-pin
+    studies find ~9 deg over the gait cycle, Lafortune et al. 1992, Benoit et al. 2006), so the hinge that fits best
+    is an oblique axis leaning towards the segments' long axes (10-15 deg per segment at that coupling on the
+    simulator's ``joint_3d`` axis, 15-30 at twice it), the flexion rate about it takes in the axial rotation (swing
+    peak +2.4 deg at twice the coupling), and with 3-D hip motion on top the hinge fit failed outright (recall
+    0.73, peak errors of tens of degrees). The clinical flexion axis (Grood and Suntay 1983) is the femur's
+    medio-lateral axis: horizontal when the knee is level.
     """
     valid = np.ones(g1_rps.shape[0], dtype=bool) if valid is None else valid
     idx = select_fit_samples(g1_rps, g2_rps, valid, params)
@@ -184,10 +248,52 @@ def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | N
     assert best is not None
     prob = _AxisProblem(g1, g2)
     best = _lm(prob.residuals, prob.jacobian, best.x)
+    if gd2_rps2 is not None:
+        joint = _AxisLagProblem(g1, g2, gd2_rps2[idx])
+        best = _lm(joint.residuals, joint.jacobian, np.append(best.x, 0.0))
     j1, j2 = _sph(best.x[0], best.x[1]), _sph(best.x[2], best.x[3])
     j1, j2 = orient_axes(j1, j2, g1_rps, g2_rps, mask=valid)
     rms = float(np.rad2deg(np.sqrt(2.0 * best.cost / idx.size)))
-    return JointAxes(j1=j1, j2=j2, rms_residual_dps=rms, n_samples=int(idx.size))
+    if up is None:
+        return JointAxes(j1=j1, j2=j2, rms_residual_dps=rms, n_samples=int(idx.size))
+    f1, f2 = (_level_axis(j, u, np.radians(params.level_lean_deg)) for j, u in ((j1, up[0]), (j2, up[1])))
+    return JointAxes(j1=f1, j2=f2, rms_residual_dps=rms, n_samples=int(idx.size), hinge_j1=j1, hinge_j2=j2)
+
+
+def _level_axis(j: np.ndarray, up: np.ndarray, max_lean_rad: float) -> np.ndarray:
+    """``j`` turned towards the plane perpendicular to ``up`` until it leans out of it by ``max_lean_rad`` at most
+    (unchanged when it leans less)."""
+    lean = float(np.arcsin(np.clip(j @ up, -1.0, 1.0)))
+    if abs(lean) <= max_lean_rad:
+        return j
+    flat = j - (j @ up) * up
+    flat = flat / np.linalg.norm(flat)
+    keep = float(np.copysign(max_lean_rad, lean))
+    return np.cos(keep) * flat + np.sin(keep) * up
+
+
+def level_directions(acc1_mps2: np.ndarray, acc2_mps2: np.ndarray, valid: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per segment the mean specific force over the session's valid samples (sensor frame, unit), the ``up`` of
+    :func:`fit_joint_axes`: the knee's flexion axis is horizontal in quiet standing, sitting, lying on the back and,
+    on average, over every gait cycle (the pelvis level, hip ab/adduction a few deg either way), and a segment's
+    own accelerations in gait and posture changes lie mostly in its sagittal plane, so the mean of gravity plus
+    acceleration is nearly perpendicular to the flexion axis. None without a usable mean (a sensor reading zeros)."""
+    out = []
+    for acc in (acc1_mps2, acc2_mps2):
+        m = acc[valid].mean(axis=0) if valid.any() else np.zeros(3)
+        if not np.isfinite(m).all() or np.linalg.norm(m) < 1.0:
+            return None
+        out.append(m / np.linalg.norm(m))
+    return out[0], out[1]
+
+
+def axis_up(prep: PreparedLeg, params: AxesParams = WALKING.axes) -> tuple[np.ndarray, np.ndarray] | None:
+    """The ``up`` of :func:`fit_joint_axes` for a prepared leg (:func:`level_directions` of its accelerometers),
+    None when ``params.axis_level`` is off."""
+    if not params.axis_level:
+        return None
+    return level_directions(prep.acc_thigh_mps2, prep.acc_shank_mps2, prep.valid)
 
 
 def orient_axes(j1: np.ndarray, j2: np.ndarray, g1: np.ndarray, g2: np.ndarray,
@@ -512,42 +618,64 @@ def fit_margin_mask(valid: np.ndarray, fs_hz: float, params: AxesParams = WALKIN
 
 def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,
                           gd2: np.ndarray, j1: np.ndarray, j2: np.ndarray, far: np.ndarray, fs_hz: float,
-                          window: slice, max_lag_s: float, params: AxesParams = WALKING.axes) -> float | None:
+                          window: slice, max_lag_s: float, params: AxesParams = WALKING.axes,
+                          centres: np.ndarray | None = None) -> tuple[float | None, np.ndarray | None]:
     """Timestamp offset of the shank relative to the thigh [s] (sign as :func:`estimate_sync_lag_s`) from Seel's
     joint-centre constraint (Eq. 5): both accelerometers, moved to the knee centre by ``Gamma o``, measure one
     acceleration, so ``||a1 - Gamma_1 o1|| = ||a2 - Gamma_2 o2||`` sample by sample. Unlike the hinge constraint
     (Eq. 2) this holds timing information in straight walking: the knee-centre acceleration swings by several
     m/s^2 each stride, most sharply at heel strike. For each whole-sample lag the shank samples are shifted and the
-    centres fitted again (a profile of the Eq. 5 cost over the lag; keeping the zero-lag centres would let them
-    absorb part of the offset), then a parabola through the three best lags. None without a clear interior
-    minimum. Inputs on one grid: low-passed accelerations [m/s^2], gyros [rad/s] and their Eq. 1 derivatives,
-    ``far`` the samples usable for a fit (:func:`fit_margin_mask`); only samples inside ``window`` are used."""
+    window's zero-lag centres moved by one Gauss-Newton step of Eq. 5: a profile of the Eq. 5 cost over the lag,
+    since centres held fixed would absorb part of the offset (a full refit at every lag gave lag errors whose SD
+    differed by 0.2 ms at most on the sweep's tune seeds, at several times the cost); then a parabola through the
+    three best lags. None without a clear
+    interior minimum. Inputs on one grid: low-passed accelerations [m/s^2], gyros [rad/s] and their Eq. 1
+    derivatives, ``far`` the samples usable for a fit (:func:`fit_margin_mask`); only samples inside ``window``
+    are used. The zero-lag centres (o1, o2) are fitted on the window's samples, from ``centres`` when given (one
+    fit, no restarts). Returns the lag and those centres (None where the window has too few samples)."""
     k_max = max(int(round(max_lag_s * fs_hz)), 2)
     n = g1.shape[0]
     inner = np.zeros(n, dtype=bool)
     lo, hi = max(window.start or 0, k_max), min(window.stop if window.stop is not None else n, n - k_max)
     if hi - lo < 10 * k_max:
-        return None
+        return None, None
     inner[lo:hi] = far[lo:hi]
     idx = select_fit_samples(g1, g2, inner, params)
     if idx.size < 10 * k_max:
-        return None
-    # no accelerometer biases in the profile: refitted at every lag they absorb part of the offset (straight walking,
-    # 15 ms injected: 18.9 ms read; none injected: -8 ms invented), and held at the zero-lag fit's values they carry
-    # that fit's timing misfit (15 ms read as 4.9)
-    params = dataclasses.replace(params, centre_bias_prior_mps2=0.0)
-    centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], j1, j2, params)
-    x0 = np.concatenate([centres.o1, centres.o2])
-    m1 = gamma_matrices(g1[idx], gd1[idx])
+        return None, None
+    # no accelerometer biases in the profile: refitted at every lag they absorb part of the offset (straight
+    # walking, 15 ms injected: 18.9 ms read; none injected: -8 ms invented), and held at the zero-lag fit's values
+    # they carry that fit's timing misfit (15 ms read as 4.9)
+    span = np.arange(idx[0] - k_max, idx[-1] + k_max + 1)  # every shank sample a lag may reach
+    m1, m2 = gamma_matrices(g1[idx], gd1[idx]), gamma_matrices(g2[span], gd2[span])
+    if centres is None:
+        fit = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], j1, j2,
+                                dataclasses.replace(params, centre_bias_prior_mps2=0.0))
+        centres = np.concatenate([fit.o1, fit.o2])
+    else:
+        centres = _lsq_centres(centres, a1[idx], m1, a2[idx], m2[idx - span[0]], params.centre_reg).x
+    # both segments' Eq. 5 terms at the zero-lag centres: each lag then only gathers rows (the arithmetic of
+    # _CentreProblem's residuals and Jacobian at those samples)
+    v1 = a1[idx] - np.einsum("nij,j->ni", m1, centres[:3])
+    v2 = a2[span] - np.einsum("nij,j->ni", m2, centres[3:])
+    n1, n2 = row_norm(v1), row_norm(v2)
+    d1 = -np.einsum("ni,nij->nj", v1 / np.maximum(n1, _EPS)[:, None], m1)  # d(n1)/d(o1)
+    d2 = np.einsum("ni,nij->nj", v2 / np.maximum(n2, _EPS)[:, None], m2)  # -d(n2)/d(o2)
     cost = np.empty(2 * k_max + 1)
     for i, k in enumerate(range(-k_max, k_max + 1)):
         ok = far[idx + k]
-        if ok.sum() < 10 * k_max:
-            return None
-        s1, s2 = idx[ok], idx[ok] + k
-        sol = _lsq_centres(x0, a1[s1], m1[ok], a2[s2], gamma_matrices(g2[s2], gd2[s2]), params.centre_reg)
-        cost[i] = 2.0 * sol.cost / ok.sum()
-    return _parabolic_minimum_s(cost, k_max, fs_hz)
+        n_ok = int(ok.sum())
+        if n_ok < 10 * k_max:
+            return None, centres
+        s2 = idx[ok] + k - span[0]
+        w = params.centre_reg * np.sqrt(n_ok)  # the centres' pull, as in _CentreProblem
+        jac = np.column_stack([d1[ok], d2[s2]])
+        r = n1[ok] - n2[s2]
+        step = -np.linalg.solve(jac.T @ jac + w * w * np.eye(6), jac.T @ r + w * w * centres)
+        r1 = row_norm(v1[ok] - np.einsum("nij,j->ni", m1[ok], step[:3]))
+        r2 = row_norm(v2[s2] - np.einsum("nij,j->ni", m2[s2], step[3:]))
+        cost[i] = (float(np.sum((r1 - r2) ** 2)) + w * w * float(np.sum((centres + step) ** 2))) / n_ok
+    return _parabolic_minimum_s(cost, k_max, fs_hz), centres
 
 
 def _parabolic_minimum_s(cost: np.ndarray, k_max: int, fs_hz: float) -> float | None:

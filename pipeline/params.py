@@ -59,6 +59,21 @@ class AxesParams:
     """Equal time chunks the budget is spread over, so the fit set spans the whole session."""
     n_restarts: int = 2
     """Seeded restarts of the axis fit besides the principal-axis start (Eq. 2 has local minima)."""
+    fit_lag: bool = True
+    """Refine the hinge axes together with a thigh-shank clock lag (:class:`pipeline.axes._AxisLagProblem`) before
+    the clock is corrected: with 3-D hip motion the axes alone absorbed part of a lag, and the hinge cue then read
+    ~1/3 of it (21 ms as 7; sweep axis ``joint_3d``)."""
+    axis_level: bool = True
+    """Turn each segment's knee axis towards the plane perpendicular to its mean specific force
+    (:func:`pipeline.axes.level_directions`), to within ``level_lean_deg``: the flexion axis of a knee that also
+    rotates about the tibia's long axis, instead of the oblique axis of Seel's hinge fit (sweep axis ``joint_3d``)."""
+    level_lean_deg: float = 4.0
+    """Lean [deg] out of that plane left to a fitted axis: the plane's own uncertainty. A session's mean specific
+    force leans off the true vertical by what its accelerometer's residual offset tilts it (0.05 g: 3 deg) and by
+    the mean hip ab/adduction and pelvic obliquity (1-2 deg); a hinge axis leaning less than that is no evidence of
+    axial rotation and is kept. Tune seeds: 0 deg made accelerometer offsets of 0.5 and 1 m/s^2 misses (peak LoA
+    -3.3 .. 1.7 -> -3.5 .. 1.9, -4.0 .. 2.6 -> -5.9 .. 4.0) and shifted 5-10 g rows by 0.1-0.4 deg; 4 deg leaves
+    them as they were and keeps the gains on 3-D knees."""
     n_centre_starts: int = 4
     """Seeded starts of the centre fit besides the near-zero one (Eq. 5 has mirrored minima)."""
     max_lever_m: float = 0.6
@@ -109,6 +124,17 @@ class SyncParams:
     """Most windows the joint-centre cue is evaluated on, spread evenly over the session: each costs one centre fit
     per candidate lag (13 at 100 Hz), and an offset with a drift needs only a few agreeing points, so the cost of a
     long recording without turns stays that of eight windows."""
+    hinge_agree_s: float = 0.003
+    """The hinge constraint's lag line (Seel Eq. 2) is used only where the joint-centre cue's (Eq. 5) agrees with it
+    within this [s] over the session; else the joint-centre cue's. Where the knee is a hinge the two agree within
+    ~1-2 ms and the hinge is the more precise; a real knee's axial rotation and ab/adduction move the hinge's by
+    5-15 ms (sweep axis ``joint_3d``), while the joint-centre cue stays within ~2 ms."""
+    shock_g: float = 1.0
+    """High-frequency acceleration [g] (:func:`pipeline.running.impact_signal`) marking a shock whose samples the
+    joint-centre cue leaves out: a 5-10 g heel strike moved its lag by -3 to -8 ms on average (sweep tune seeds,
+    up to 16 ms), +-1.3 ms without those samples."""
+    shock_s: float = 0.06
+    """Samples left out on either side of a shock sample [s]: the simulated shock rings for ~50 ms."""
     short_window_s: float = 4.0
     """Shortest half [s] of a leg too short for two ``window_s`` windows that the joint-centre cue is run on: a 4 s
     half holds three to four strides of normal walking, so a 10 m walk test (~10 s) is covered; on the real

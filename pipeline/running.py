@@ -30,6 +30,7 @@ from pipeline.axes import (
     JointAxes,
     accelerometer_angle_deg,
     angular_acceleration,
+    axis_up,
     fit_joint_axes,
     fit_joint_centres,
     orient_axes,
@@ -313,7 +314,8 @@ def _running_axes(prep: PreparedLeg, fit_mask: np.ndarray, cycles: RunningCycles
     """Eq. 2 axes on the fit windows; signs from whole strides (within 40-80 % thigh and shank may rotate in
     opposite senses) and the thigh's from the timing of the flexion peak (:func:`thigh_axis_sign`)."""
     valid = prep.valid
-    axes = fit_joint_axes(prep.gyr_thigh_rps, prep.gyr_shank_rps, fit_mask, params.axes)
+    axes = fit_joint_axes(prep.gyr_thigh_rps, prep.gyr_shank_rps, fit_mask, params.axes,
+                          up=axis_up(prep, params.axes))
     j1, j2 = orient_axes(axes.j1, axes.j2, prep.gyr_thigh_rps[valid], prep.gyr_shank_rps[valid])
     j1 = thigh_axis_sign(j1, j2, prep.gyr_thigh_rps, prep.gyr_shank_rps, cycles.cycles, prep.fs_hz,
                          params.running)

@@ -1,7 +1,12 @@
-"""Thigh/shank clock offset and drift of one leg from Seel's hinge constraint (Seel et al. 2014, Eq. 2;
-:func:`pipeline.axes.estimate_sync_lag_s`) or, where that is flat (straight walking, jumps: no out-of-plane motion),
-from his joint-centre constraint (Eq. 5; :func:`pipeline.axes.estimate_centre_lag_s`), and the leg prepared again
-with the shank's stamps corrected.
+"""Thigh/shank clock offset and drift of one leg, and the leg prepared again with the shank's stamps corrected.
+
+Two constraints of Seel et al. 2014 carry the timing: the hinge (Eq. 2; :func:`pipeline.axes.estimate_sync_lag_s`)
+and the joint centre (Eq. 5; :func:`pipeline.axes.estimate_centre_lag_s`). Neither holds on every knee: a real knee
+is no hinge (the tibia turns about its long axis as it flexes, and ab/adducts a few degrees), and the gait-locked
+misfit reads as a lag of 5-15 ms on the simulator's ``joint_3d`` axis (and -10 / -18 ms on the hardware-synchronised
+biomechZoo trial); the joint-centre constraint needs rigid segments, which a heel-strike shock ringing through the
+shank is not for ~0.1 s (such samples are left out). So the hinge's lag is kept only where the joint-centre cue
+confirms it (it is the more precise where both hold); otherwise the joint-centre cue's is used.
 
 A 10-15 ms offset, common between two BLE sensors, would otherwise distort swing flexion by several degrees.
 """
@@ -16,15 +21,17 @@ import numpy as np
 from pipeline.axes import (
     JointAxes,
     angular_acceleration,
+    axis_up,
     estimate_centre_lag_s,
     estimate_sync_lag_s,
     fit_joint_axes,
     fit_margin_mask,
     hinge_rates,
 )
+from pipeline.constants import G_MPS2
 from pipeline.params import AxesParams, PipelineParams, SyncParams
 from pipeline.prepare import SI, PreparedLeg, nominal_fs, prepare_leg_si, to_si
-from pipeline.signal_utils import lowpass_runs_many
+from pipeline.signal_utils import lowpass_runs_many, row_norm
 from pipeline.types import RawSensorStream
 from pipeline.walking import fit_gyros, reusable_thigh_fit
 
@@ -55,7 +62,8 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
         raise ValueError("less than one second of usable samples")
     g1, g2 = fit_gyros(prep, params.axes.fit_cutoff_hz)
     fit_gyr: tuple[np.ndarray, np.ndarray] | None = (g1, g2)
-    axes = fit_joint_axes(g1, g2, prep.valid, params.axes)
+    axes = fit_joint_axes(g1, g2, prep.valid, params.axes, up=axis_up(prep, params.axes),
+                          gd2_rps2=angular_acceleration(g2, prep.fs_hz) if params.axes.fit_lag else None)
     offset, drift = clock_model(prep, g1, g2, axes, params.sync, params.axes)
     if offset is None:
         return SyncedLeg(prep, axes, None, None, fit_gyr)
@@ -74,31 +82,53 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
 def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
                 axes_params: AxesParams | None = None) -> tuple[float | None, float]:
     """Shank-vs-thigh lag at mid-session [s] and its drift [s/s]: one lag per ``window_s`` window and a straight line
-    through them (rate error clipped to ``max_drift``), from the hinge constraint; where fewer than two of its windows
-    are informative (no out-of-plane motion), from the joint-centre constraint (when ``axes_params`` is given).
-    Applied only when at least two windows are informative and agree with the line within ``agree_s``: a real knee
-    is not a perfect hinge, and on the hardware-synchronised biomechZoo trial (one 10 s window) the constraint alone
-    suggests a false 10-18 ms lag, so a single unconfirmed estimate is not used. A leg shorter than two windows gets
-    a constant lag from the joint-centre cue on its halves instead (:func:`_short_session_lag`). ``g1``, ``g2``:
-    low-passed gyros (N, 3) [rad/s]."""
+    through them (rate error clipped to ``max_drift``), from each cue (module docstring); a cue's line counts only
+    when at least two windows are informative and agree with it within ``agree_s``. The hinge's line is used where
+    the joint-centre cue (when ``axes_params`` is given) has none or agrees with it within ``hinge_agree_s``, else
+    the joint-centre cue's. A leg shorter than two windows gets a constant lag from the joint-centre cue on its
+    halves (:func:`_short_session_lag`). ``g1``, ``g2``: low-passed gyros (N, 3) [rad/s]."""
     fs = prep.fs_hz
     win = int(params.window_s * fs)
     if prep.n < 2 * win:
         return _short_session_lag(prep, g1, g2, axes, params, axes_params), 0.0
     edges = np.linspace(0, prep.n, int(prep.n // win) + 1).astype(int)
     windows = [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
-    rates = hinge_rates(g1, g2, axes.j1, axes.j2)  # once for all windows
-    hinge = [estimate_sync_lag_s(g1, g2, axes.j1, axes.j2, prep.valid, fs, window=w, rates=rates,
-                                 max_lag_s=params.max_lag_s) for w in windows]
-    offset, drift = _line_model(prep, windows, params, lambda w: hinge[windows.index(w)])
-    # the joint-centre cue only where the hinge constraint is silent (fewer than two informative windows): hinge
-    # windows that speak but disagree mark a leg whose timing is not to be trusted, and on the sweep's tune seeds
-    # the centre cue is the less accurate of the two wherever turns make both informative
-    if offset is not None or axes_params is None or sum(lag is not None for lag in hinge) >= 2:
-        return offset, drift
-    pick = np.unique(np.linspace(0, len(windows) - 1, min(len(windows), params.max_centre_windows)).round())
-    return _line_model(prep, [windows[int(i)] for i in pick], params,
-                       _centre_lag_of(prep, g1, g2, axes, params, axes_params))
+    h1, h2 = axes.hinge()
+    rates = hinge_rates(g1, g2, h1, h2)  # once for all windows
+    hinge_lags = [estimate_sync_lag_s(g1, g2, h1, h2, prep.valid, fs, window=w, rates=rates,
+                                      max_lag_s=params.max_lag_s) for w in windows]
+    hinge = _line_model(prep, windows, params, lambda w: hinge_lags[windows.index(w)])
+    if axes_params is None:
+        return hinge
+    picked = [windows[int(i)] for i in
+              np.unique(np.linspace(0, len(windows) - 1, min(len(windows), params.max_centre_windows)).round())]
+    lag_of = _memo(_centre_lag_of(prep, g1, g2, axes, params, axes_params))
+    half_span = 0.5 * float(prep.t_s[-1] - prep.t_s[0])
+
+    def agrees(centre: tuple[float | None, float]) -> bool:
+        return hinge[0] is not None and centre[0] is not None and \
+            abs(hinge[0] - centre[0]) + abs(hinge[1] - centre[1]) * half_span <= params.hinge_agree_s
+
+    # the first, middle and last windows first: where they confirm the hinge, the rest would not be needed
+    check = [picked[i] for i in sorted({0, len(picked) // 2, len(picked) - 1})]
+    if len(check) < len(picked) and agrees(_line_model(prep, check, params, lag_of)):
+        return hinge
+    centre = _line_model(prep, picked, params, lag_of)
+    if centre[0] is None or agrees(centre):
+        return hinge
+    return centre
+
+
+def _memo(lag_of: Callable[[slice], float | None]) -> Callable[[slice], float | None]:
+    """``lag_of`` evaluated once per window."""
+    seen: dict[tuple[int, int], float | None] = {}
+
+    def cached(w: slice) -> float | None:
+        key = (w.start, w.stop)
+        if key not in seen:
+            seen[key] = lag_of(w)
+        return seen[key]
+    return cached
 
 
 def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
@@ -126,8 +156,33 @@ def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: Join
                                                             axes_params.fit_cutoff_hz, fs))
     gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)
     far = fit_margin_mask(prep.valid, fs, axes_params)
-    return lambda w: estimate_centre_lag_s(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, far, fs, w, params.max_lag_s,
-                                           axes_params)
+    far &= ~shock_mask(((prep.acc_thigh_mps2, a1), (prep.acc_shank_mps2, a2)), prep.valid, fs, params)
+    # the first window that fits centres hands them on: the others start from them (one fit, no restarts, each)
+    centres: list[np.ndarray] = []
+
+    def lag_of(w: slice) -> float | None:
+        lag, fitted = estimate_centre_lag_s(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, far, fs, w,
+                                            params.max_lag_s, axes_params, centres[0] if centres else None)
+        if fitted is not None and not centres:
+            centres.append(fitted)
+        return lag
+    return lag_of
+
+
+def shock_mask(acc: tuple[tuple[np.ndarray, np.ndarray], ...], valid: np.ndarray, fs_hz: float,
+               params: SyncParams) -> np.ndarray:
+    """(N,) bool: within ``shock_s`` of a sample where a segment's acceleration departs from its low-passed self
+    (``acc``: pairs of raw and low-passed (N, 3) [m/s^2]) by more than ``shock_g``: a heel-strike or landing shock,
+    ringing above the gait band, during which the two accelerometers do not measure one rigid knee-centre
+    acceleration (Seel Eq. 5)."""
+    shock = np.zeros(valid.shape[0], dtype=bool)
+    for raw, low in acc:
+        shock |= row_norm(np.nan_to_num(raw) - low) > params.shock_g * G_MPS2
+    shock &= valid
+    if not shock.any():
+        return shock
+    half = int(np.ceil(params.shock_s * fs_hz))
+    return np.convolve(shock.astype(float), np.ones(2 * half + 1), mode="same") > 0
 
 
 def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
