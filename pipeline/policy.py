@@ -289,7 +289,8 @@ def _choose(flags: _StrideFlags, k: int, absolute_ok: bool, quiet_count: int, p:
             use_go = False
     if flags.bridged[k]:
         reasons.append("bridged_gap")
-    if use_go and flags.mismatch[k]:
+    if flags.mismatch[k]:
+        # either estimator may be the wrong one: a CF fallback is no more vouched for than GO when they disagree
         reasons.append("go_cf_mismatch")
     if not use_go:
         reasons.append("cf_fallback")

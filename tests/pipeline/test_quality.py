@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from pipeline.params import WALKING, FusionParams
+from pipeline.policy import _choose, _StrideFlags
 from pipeline.quality import edge_reasons, gap_reasons, stride_quality
 
 
@@ -53,3 +56,19 @@ def test_long_cubic_bridges_under_the_peak_add_only_the_peak_reason() -> None:
     out = gap_reasons(t, [], angle, strides, bridged_s=[(1.45, 1.57), (2.1, 2.22)], peak_lead_s=0.15)
     # the policy already notes the bridge itself (bridged_gap); here only what it does to the peak
     assert out == [(), ("peak_in_gap",), ()]
+
+
+def _flags(**set_true: bool) -> _StrideFlags:
+    names = ("go_complete", "no_crossing", "drifted", "saturated", "bridged", "mismatch")
+    return _StrideFlags(**{n: np.array([set_true.get(n, n == "go_complete")]) for n in names})
+
+
+@pytest.mark.parametrize("failure", ["no_crossing", "drifted"])
+def test_a_cf_fallback_that_disagrees_with_go_is_not_vouched_for(failure: str) -> None:
+    """GO failed its own check and the CF replaced it: when the two disagree in shape as well, either may be the wrong
+    one, so the stride stays out of trends (agreeing, it keeps the fallback's trend quality)."""
+    agree = _choose(_flags(**{failure: True}), 0, True, 100, FusionParams(), WALKING.quality)
+    disagree = _choose(_flags(**{failure: True, "mismatch": True}), 0, True, 100, FusionParams(), WALKING.quality)
+    assert agree.estimator == disagree.estimator == "cf"
+    assert agree.quality >= 0.5 and "go_cf_mismatch" not in agree.reasons
+    assert disagree.quality < 0.5 and "go_cf_mismatch" in disagree.reasons
