@@ -129,9 +129,10 @@ AXES: dict[str, Axis] = {
         _v("lever arms x2 (thigh sensor up to 50 cm from the knee)", lever_scale=2.0),
         _v("+5 cm off the segment axis", lever_offaxis_m=0.05),
         _v("+10 cm off the segment axis", lever_offaxis_m=0.10))),
-    "wobble": Axis("Soft-tissue wobble of the thigh sensor (x default)", (
+    "wobble": Axis("Soft tissue under the thigh sensor: wobble (x default) and a turn about the femur with flexion", (
         _v("x0", wobble_level=0.0), _v("x1", wobble_level=1.0), _v("x2", wobble_level=2.0),
-        _v("x3", wobble_level=3.0))),
+        _v("x3", wobble_level=3.0), _v("skin turns 5 deg about the femur at 60 deg of flexion", thigh_sta_deg=5.0),
+        _v("skin turns 10 deg", thigh_sta_deg=10.0))),
     "packet_size": Axis("BLE packet size at 3 % bursty loss (Gilbert-Elliott, mean burst 4 packets)", (
         _v("5 samples", packet_samples=5, packet_loss=0.03, **_BURSTY),
         _v("10 samples", packet_samples=10, packet_loss=0.03, **_BURSTY),

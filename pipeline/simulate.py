@@ -28,7 +28,8 @@ angle, per-leg scaled or shifted knee curves, an absolute heel-strike shock in g
 bursty packet loss (Gilbert-Elliott two-state channel per sensor), sharper and more frequent turns, non-gait
 movements between bouts (vertical jumps, step-ups onto a stair, sit-to-stand repetitions: never strides in the
 truth), wrongly labelled sensors (legs or thigh/shank swapped), per-axis sensitivity (gain) errors, and 3-D joint
-motion (``knee_3d``, ``hip_3d``, ``knee_varus_deg``): each segment is then the end of a chain of rotations, pelvis
+motion (``knee_3d``, ``hip_3d``, ``knee_varus_deg``; the thigh sensor's skin turning about the femur with flexion,
+``thigh_sta_deg``): each segment is then the end of a chain of rotations, pelvis
 ``Rz(heading + rotation) Rx(obliquity)``, hip and knee each ``Ry(flexion) Rx(ab/adduction) Rz(axial rotation)`` in
 the order of the joint coordinate system (Grood and Suntay 1983), whose flexion is the true knee angle.
 
@@ -189,6 +190,9 @@ class SimConfig:
     knee_3d: float = 0.0
     hip_3d: float = 0.0
     knee_varus_deg: float = 0.0  # static frontal alignment of both knees (varus +, as in medial knee OA)
+    # soft-tissue artefact of the thigh sensor: the skin (and strap) turns about the femur's long axis with knee
+    # flexion, this many deg at 60 deg of flexion (bone-pin vs skin-marker studies: up to ~10 deg, Benoit et al. 2006)
+    thigh_sta_deg: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -526,6 +530,8 @@ class _LegSplines:
     # (axis, angle spline [rad]) with axis 0/1/2 = x/y/z of the frame rotated so far (:func:`_chain_motion`)
     thigh_links: tuple[tuple[int, BSpline], ...] | None = None
     shank_links: tuple[tuple[int, BSpline], ...] | None = None
+    # the thigh sensor's own chain: the femur's plus the skin's turn about the femur's long axis (thigh_sta_deg)
+    thigh_sensor_links: tuple[tuple[int, BSpline], ...] | None = None
 
 
 @dataclass
@@ -818,7 +824,9 @@ def _leg_chain_3d(body: _BodySplines, tl: _Timeline, leg: str, phase: np.ndarray
     thigh_links = (*(body.pelvis_links or ()), (1, spline(-hip_deg)), (0, spline(-side * hip_add)),
                    (2, spline(-side * hip_int)))
     shank_links = (*thigh_links, (1, knee_sp), (0, spline(-side * knee_add)), (2, spline(-side * knee_int)))
-    planar = _LegSplines(spline(hip_deg), spline(hip_deg - knee_deg), thigh_links, shank_links)
+    sta = cfg.thigh_sta_deg * (knee_deg - stand_knee_deg) / 60.0  # the skin turns outwards as the knee flexes
+    sensor_links = (*thigh_links, (2, spline(side * sta))) if cfg.thigh_sta_deg else thigh_links
+    planar = _LegSplines(spline(hip_deg), spline(hip_deg - knee_deg), thigh_links, shank_links, sensor_links)
     return planar, np.degrees(knee_sp(t))
 
 
@@ -852,7 +860,7 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
         height=make_interp_spline(t, height, k=5),
     )
 
-    three_d = bool(cfg.knee_3d or cfg.hip_3d or cfg.knee_varus_deg)
+    three_d = bool(cfg.knee_3d or cfg.hip_3d or cfg.knee_varus_deg or cfg.thigh_sta_deg)
     rng_3d = np.random.default_rng([cfg.seed, 5])  # the 3-D motion's own draws: the planar model is unchanged
     if three_d:
         _add_pelvis_3d(body, tl, cfg.hip_3d, rng_3d)
@@ -932,6 +940,9 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
                 rot_t, om_t, al_t = _segment_motion(body, legs[leg].thigh, t_true)
                 acc_w = _hip_acc(body, t_true, side, half_width)
             if seg == "thigh":
+                if chain and legs[leg].thigh_sensor_links is not legs[leg].thigh_links:
+                    # the skin turns about the femur's axis (through hip and knee): the lever turns with it
+                    rot_t, om_t, al_t = _chain_motion(body, legs[leg].thigh_sensor_links, t_true)
                 rot, om, _ = rot_t, om_t, al_t
                 acc_w = acc_w + _point_acc(rot_t, om_t, al_t, lever + np.array([0, 0, -thigh_len]))
             else:

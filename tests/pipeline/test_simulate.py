@@ -462,3 +462,18 @@ def test_3d_knee_rotates_about_the_shank_with_flexion() -> None:
         at_knee[seg] = (s.t_s, np.linalg.norm(a, axis=1))
     diff = (at_knee["thigh"][1] - np.interp(at_knee["thigh"][0], *at_knee["shank"]))[5:-5]
     assert np.sqrt(np.mean(diff**2)) < 0.05
+
+
+def test_thigh_skin_turns_about_the_femur_with_flexion() -> None:
+    """thigh_sta_deg: the thigh sensor (not the femur) turns about the femur's long axis as the knee flexes; the
+    shank sensor and the truth stay as they are."""
+    base = dict(pattern="normal", fs_hz=200, seed=4, n_strides=8, mounting="aligned", hip_3d=1.0, **CLEAN)
+    sta = simulate_session(SimConfig(thigh_sta_deg=10.0, **base))
+    bone = simulate_session(SimConfig(**base))
+    th_sta, th_bone = _stream(sta, "L-thigh"), _stream(bone, "L-thigh")
+    extra_z = th_sta.gyr[:, 2] - th_bone.gyr[:, 2]  # aligned mounting: sensor z = the femur's long axis
+    flex_rate = np.gradient(sta.truth["left"].angle_at(th_sta.t_s), th_sta.t_s)
+    # 10 deg per 60 deg of flexion, outwards (+z for a left thigh)
+    assert np.polyfit(flex_rate, extra_z, 1)[0] == pytest.approx(10.0 / 60.0, rel=0.05)
+    assert np.array_equal(_stream(sta, "L-shank").gyr, _stream(bone, "L-shank").gyr)
+    assert np.array_equal(sta.truth["left"].angle_deg, bone.truth["left"].angle_deg)
