@@ -187,10 +187,9 @@ def _mask_on_grid(t_grid: np.ndarray, t_s: np.ndarray, mask: np.ndarray) -> np.n
     return np.interp(t_grid, t_s, mask.astype(float)) > 0
 
 
-_INTERP_BLOCK = 4096
-"""Grid samples interpolated per block: the block's (rows, 6) temporaries stay in cache (the whole grid's do not),
-which halves the time of the memory-bound evaluation; each value is computed the same way, so blocking does not
-change it."""
+_INTERP_BLOCK = 16384
+"""Grid samples interpolated per block: the block's (6, rows) temporaries stay in cache (the whole grid's do not);
+each value is computed the same way, so blocking does not change it."""
 
 
 def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray, max_bridge_s: float) -> np.ndarray:
@@ -212,34 +211,37 @@ def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray, max_bridge_
         i_all = np.empty(n_new, dtype=np.int64)
         hermite_eval(np.ascontiguousarray(t_new, dtype=float), t, x, m, dt, i_all, out)
         return _straight_across_gaps(out, t_new, t, x, dt, long_gap, i_all)
-    # slopes: central differences inside, one-sided at the ends and next to long gaps
-    m = np.empty_like(x)
-    for a in range(1, n - 1, _INTERP_BLOCK):
-        b = min(a + _INTERP_BLOCK, n - 1)
-        m[a:b] = (x[a + 1:b + 1] - x[a - 1:b - 1]) / (t[a + 1:b + 1] - t[a - 1:b - 1])[:, None]
-    _one_sided_slopes(m, x, dt, long_gap)
+    # slopes: central differences inside, one-sided at the ends and next to long gaps. Computed and gathered with
+    # the channels as rows ((C, N), each channel's samples contiguous): the gathers then copy single values with
+    # numpy's fast path instead of one 48-byte row at a time, and the products run along contiguous rows
+    xt = np.ascontiguousarray(x.T)
+    mt = np.empty_like(xt)
+    mt[:, 1:n - 1] = (xt[:, 2:] - xt[:, :-2]) / (t[2:] - t[:-2])
+    _one_sided_slopes(mt.T, x, dt, long_gap)
     i_all = np.clip(np.searchsorted(t, t_new, side="right") - 1, 0, n - 2)
-    scratch = np.empty((min(_INTERP_BLOCK, n_new), x.shape[1]))
-    for a in range(0, n_new, _INTERP_BLOCK):
-        b = min(a + _INTERP_BLOCK, n_new)
+    block = min(_INTERP_BLOCK, n_new)
+    scratch, block_out = np.empty((x.shape[1], block)), np.empty((x.shape[1], block))
+    for a in range(0, n_new, block):
+        b = min(a + block, n_new)
         i = i_all[a:b]
         h = dt[i]
         u = (t_new[a:b] - t[i]) / h
         u2, u3 = u * u, u * u * u
         # same sums in the same order as the textbook one-liner (h00 x0 + h10 h m0 + h01 x1 + h11 h m1),
         # accumulated in place with one scratch array
-        o, tmp = out[a:b], scratch[:b - a]
-        np.take(x, i, axis=0, out=tmp)
-        np.multiply((2 * u3 - 3 * u2 + 1)[:, None], tmp, out=o)
-        np.take(m, i, axis=0, out=tmp)
-        tmp *= ((u3 - 2 * u2 + u) * h)[:, None]
+        o, tmp = block_out[:, :b - a], scratch[:, :b - a]
+        np.take(xt, i, axis=1, out=tmp)
+        np.multiply(2 * u3 - 3 * u2 + 1, tmp, out=o)
+        np.take(mt, i, axis=1, out=tmp)
+        tmp *= (u3 - 2 * u2 + u) * h
         o += tmp
-        np.take(x, i + 1, axis=0, out=tmp)
-        tmp *= (-2 * u3 + 3 * u2)[:, None]
+        np.take(xt, i + 1, axis=1, out=tmp)
+        tmp *= -2 * u3 + 3 * u2
         o += tmp
-        np.take(m, i + 1, axis=0, out=tmp)
-        tmp *= ((u3 - u2) * h)[:, None]
+        np.take(mt, i + 1, axis=1, out=tmp)
+        tmp *= (u3 - u2) * h
         o += tmp
+        out[a:b] = o.T
     return _straight_across_gaps(out, t_new, t, x, dt, long_gap, i_all)
 
 
