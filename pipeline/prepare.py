@@ -446,7 +446,7 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
         and reuse.shank_saturated_raw.shape[0] == g2.shape[0] else saturation_mask(g2, params)
     saturated = sat_thigh | _mask_on_grid(t_grid, t2, sat_shank)
     if keep_grid:
-        # the first pass's arrays themselves (never modified in place): same values and memory layout
+        # the first pass's arrays (cut to the kept grid; never modified in place): same values and memory layout
         gyr_thigh, acc_thigh = _cut(reuse.gyr_thigh_rps, kept), _cut(reuse.acc_thigh_mps2, kept)
         off1, gb1 = reuse.acc_offset_thigh_mps2, reuse.gyr_bias_thigh_rps
         gaps1, filled1 = reuse.thigh_gaps_s, reuse.thigh_filled_s
@@ -484,7 +484,7 @@ def _kept_grid(reuse: PreparedLeg | None, t2: np.ndarray, fs_hz: float) -> slice
     of a sample to a few samples, and the thigh's channels on the first grid do not depend on the shank's clock, so
     the grid keeps its phase and only loses the samples at its ends that the shank no longer covers. Rebuilding it
     from the re-stamped span instead would shift its phase by the correction and interpolate the thigh once more,
-    for no measurable difference in any result (README, "Processing speed")."""
+    for no measurable difference in the accuracy tables (README, "Processing speed")."""
     if reuse is None or reuse.fs_hz != fs_hz:
         return None
     lo = int(np.searchsorted(reuse.t_s, t2[0], side="left"))
