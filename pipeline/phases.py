@@ -75,17 +75,23 @@ def _swing_lobes(ws: np.ndarray, min_height: float) -> list[tuple[int, int, int]
 
 def _merge_lobes(ws: np.ndarray, lobes: list[tuple[int, int, int]], fs_hz: float, stance_neg_dps: float
                  ) -> list[tuple[int, int, int]]:
-    """Merge lobes separated only by a shallow, short dip (noise inside one swing) - keep the higher peak."""
-    merged: list[tuple[int, int, int]] = []
-    for lobe in lobes:
-        if merged:
-            a, p, b = merged[-1]
-            dip = ws[b:lobe[0]]
-            if (dip.size == 0 or dip.min() > -stance_neg_dps) and (lobe[0] - b) < 0.15 * fs_hz:
-                peak = p if ws[p] >= ws[lobe[1]] else lobe[1]
-                merged[-1] = (a, peak, lobe[2])
-                continue
-        merged.append(lobe)
+    """Merge lobes separated only by a shallow, short dip (noise inside one swing) - keep the higher peak.
+
+    A merged lobe ends where its last lobe ends, so the dip before each lobe is the one after its predecessor
+    whether or not that was merged: all dips are tested at once (standing noise makes thousands of lobes)."""
+    if len(lobes) < 2:
+        return list(lobes)
+    arr = np.asarray(lobes)
+    after, before = arr[:-1, 2], arr[1:, 0]  # each dip [after, before): never empty between two positive runs
+    dip_min = np.minimum.reduceat(ws, np.column_stack([after, before]).ravel())[::2]
+    joins = np.where(before > after, dip_min > -stance_neg_dps, True) & (before - after < 0.15 * fs_hz)
+    merged = [lobes[0]]
+    for lobe, join in zip(lobes[1:], joins.tolist(), strict=True):
+        if join:
+            a, p, _ = merged[-1]
+            merged[-1] = (a, p if ws[p] >= ws[lobe[1]] else lobe[1], lobe[2])
+        else:
+            merged.append(lobe)
     return merged
 
 

@@ -28,7 +28,7 @@ from pipeline.constants import G_MPS2
 from pipeline.leg_input import LegInput
 from pipeline.params import WALKING, PostureParams
 from pipeline.prepare import PreparedLeg
-from pipeline.signal_utils import slower_than, true_runs
+from pipeline.signal_utils import long_runs, slower_than
 
 
 def _norm(x: np.ndarray) -> np.ndarray:
@@ -42,11 +42,7 @@ def quiet_mask(prep: PreparedLeg, params: PostureParams = WALKING.posture) -> np
     still &= slower_than(prep.gyr_shank_rps, params.still_dps)
     for acc in (prep.acc_thigh_mps2, prep.acc_shank_mps2):
         still &= np.abs(_norm(acc) - G_MPS2) < params.force_tol * G_MPS2
-    out = np.zeros(prep.n, dtype=bool)
-    for a, b in true_runs(still):
-        if b - a >= params.quiet_min_s * prep.fs_hz:
-            out[a:b] = True
-    return out
+    return long_runs(still, params.quiet_min_s * prep.fs_hz)
 
 
 def leg_quiet(leg: LegInput) -> np.ndarray:
@@ -71,12 +67,7 @@ def standing_mask(leg: LegInput, quiet: np.ndarray | None = None, exclude: np.nd
         cand = np.flatnonzero(stand)  # the upright test only where it can still matter (row by row: same values)
         a = acc[cand]
         stand[cand] = np.abs(np.degrees(np.arctan2(a @ y, a @ up))) < p.upright_deg
-    min_len = p.quiet_min_s * prep.fs_hz
-    out = np.zeros_like(stand)
-    for a, b in true_runs(stand):
-        if b - a >= min_len:
-            out[a:b] = True
-    return out
+    return long_runs(stand, p.quiet_min_s * prep.fs_hz)
 
 
 def posture_labels(leg: LegInput, quiet: np.ndarray | None = None) -> np.ndarray:

@@ -50,7 +50,8 @@ class PreparedLeg:
     bridged_s: list[tuple[float, float]] = field(default_factory=list)  # bridged gaps worth a quality note
     # gaps filled from the neighbouring strides (:func:`periodic_fill`): valid, but the samples are a model
     filled_s: list[tuple[float, float]] = field(default_factory=list)
-    # the thigh's own masked and filled gaps, so a re-stamped shank can reuse the thigh channels
+    # the thigh's own masked and filled gaps, so a re-stamped shank can reuse the thigh channels (on this grid, or cut
+    # to the part the re-stamped shank covers)
     thigh_gaps_s: list[tuple[float, float]] = field(default_factory=list)
     thigh_filled_s: list[tuple[float, float]] = field(default_factory=list)
     thigh_noted_s: list[tuple[float, float]] = field(default_factory=list)
@@ -157,9 +158,10 @@ def saturation_mask(gyr: np.ndarray, params: PrepareParams = WALKING.prepare) ->
     samples in a row (clipped sensor)."""
     run_len = params.saturation_run
     out = np.zeros(gyr.shape[0], dtype=bool)
-    # the peaks first, all axes in one pass: most recordings never come near a clipping range, and then no axis
-    # needs more (the maximum is exact, so the same peaks)
-    peaks = np.abs(gyr).max(axis=0, initial=0.0)
+    # the peaks first: most recordings never come near a clipping range, and then no axis needs more. One column at
+    # a time: a maximum over axis 0 of an (N, 3) array runs numpy's inner loop once per row, ten times slower (the
+    # maximum is exact, so the same peaks)
+    peaks = np.array([np.abs(gyr[:, axis]).max(initial=0.0) for axis in range(gyr.shape[1])])
     if saturated_runs is not None and gyr.shape[0] >= run_len:
         # the axes worth testing get their threshold (peak * 0.999, as below), the others none
         thr = np.where(np.rad2deg(peaks) < params.saturation_min_dps, np.nan, peaks * 0.999)
@@ -177,10 +179,18 @@ def saturation_mask(gyr: np.ndarray, params: PrepareParams = WALKING.prepare) ->
     return out
 
 
-_INTERP_BLOCK = 4096
-"""Grid samples interpolated per block: the block's (rows, 6) temporaries stay in cache (the whole grid's do not),
-which halves the time of the memory-bound evaluation; each value is computed the same way, so blocking does not
-change it."""
+def _mask_on_grid(t_grid: np.ndarray, t_s: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """A raw sample mask (at stamps ``t_s``) on the grid: True where the straight line between the neighbouring raw
+    samples' flags is above zero, i.e. next to a flagged sample. Without a flagged sample that line is zero
+    everywhere, so no interpolation is needed (the usual case: clipped gyros are rare)."""
+    if not mask.any():
+        return np.zeros(t_grid.shape[0], dtype=bool)
+    return np.interp(t_grid, t_s, mask.astype(float)) > 0
+
+
+_INTERP_BLOCK = 16384
+"""Grid samples interpolated per block: the block's (6, rows) temporaries stay in cache (the whole grid's do not);
+each value is computed the same way, so blocking does not change it."""
 
 
 def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray, max_bridge_s: float) -> np.ndarray:
@@ -202,34 +212,37 @@ def _interp_columns(t_new: np.ndarray, t: np.ndarray, x: np.ndarray, max_bridge_
         i_all = np.empty(n_new, dtype=np.int64)
         hermite_eval(np.ascontiguousarray(t_new, dtype=float), t, x, m, dt, i_all, out)
         return _straight_across_gaps(out, t_new, t, x, dt, long_gap, i_all)
-    # slopes: central differences inside, one-sided at the ends and next to long gaps
-    m = np.empty_like(x)
-    for a in range(1, n - 1, _INTERP_BLOCK):
-        b = min(a + _INTERP_BLOCK, n - 1)
-        m[a:b] = (x[a + 1:b + 1] - x[a - 1:b - 1]) / (t[a + 1:b + 1] - t[a - 1:b - 1])[:, None]
-    _one_sided_slopes(m, x, dt, long_gap)
+    # slopes: central differences inside, one-sided at the ends and next to long gaps. Computed and gathered with
+    # the channels as rows ((C, N), each channel's samples contiguous): the gathers then copy single values with
+    # numpy's fast path instead of one 48-byte row at a time, and the products run along contiguous rows
+    xt = np.ascontiguousarray(x.T)
+    mt = np.empty_like(xt)
+    mt[:, 1:n - 1] = (xt[:, 2:] - xt[:, :-2]) / (t[2:] - t[:-2])
+    _one_sided_slopes(mt.T, x, dt, long_gap)
     i_all = np.clip(np.searchsorted(t, t_new, side="right") - 1, 0, n - 2)
-    scratch = np.empty((min(_INTERP_BLOCK, n_new), x.shape[1]))
-    for a in range(0, n_new, _INTERP_BLOCK):
-        b = min(a + _INTERP_BLOCK, n_new)
+    block = min(_INTERP_BLOCK, n_new)
+    scratch, block_out = np.empty((x.shape[1], block)), np.empty((x.shape[1], block))
+    for a in range(0, n_new, block):
+        b = min(a + block, n_new)
         i = i_all[a:b]
         h = dt[i]
         u = (t_new[a:b] - t[i]) / h
         u2, u3 = u * u, u * u * u
         # same sums in the same order as the textbook one-liner (h00 x0 + h10 h m0 + h01 x1 + h11 h m1),
         # accumulated in place with one scratch array
-        o, tmp = out[a:b], scratch[:b - a]
-        np.take(x, i, axis=0, out=tmp)
-        np.multiply((2 * u3 - 3 * u2 + 1)[:, None], tmp, out=o)
-        np.take(m, i, axis=0, out=tmp)
-        tmp *= ((u3 - 2 * u2 + u) * h)[:, None]
+        o, tmp = block_out[:, :b - a], scratch[:, :b - a]
+        np.take(xt, i, axis=1, out=tmp)
+        np.multiply(2 * u3 - 3 * u2 + 1, tmp, out=o)
+        np.take(mt, i, axis=1, out=tmp)
+        tmp *= (u3 - 2 * u2 + u) * h
         o += tmp
-        np.take(x, i + 1, axis=0, out=tmp)
-        tmp *= (-2 * u3 + 3 * u2)[:, None]
+        np.take(xt, i + 1, axis=1, out=tmp)
+        tmp *= -2 * u3 + 3 * u2
         o += tmp
-        np.take(m, i + 1, axis=0, out=tmp)
-        tmp *= ((u3 - u2) * h)[:, None]
+        np.take(mt, i + 1, axis=1, out=tmp)
+        tmp *= (u3 - u2) * h
         o += tmp
+        out[a:b] = o.T
     return _straight_across_gaps(out, t_new, t, x, dt, long_gap, i_all)
 
 
@@ -315,6 +328,10 @@ def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.nd
     a2 = a ** 2
     score = np.full(lags.size, -np.inf)
     fast = shifted_context is not None and bad.dtype == np.bool_ and bad.flags.c_contiguous
+    # the rows any shift can reach, centred once: g[k] - mean is the same difference whether taken before or after
+    # the gather, and these few hundred rows stay in cache (the (lags, context, 3) products are ten times larger)
+    lo, hi = max(int(c[0]) - int(lags[-1]), 0), min(int(c[-1]) + int(lags[-1]) + 1, n)
+    centred = None if fast else g[lo:hi] - mean
     for sign in (-1, 1):
         if fast:
             b = np.empty((lags.size, c.size, 3))
@@ -326,9 +343,9 @@ def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.nd
             src = c[None, :] + sign * lags[:, None]  # (lags, context)
             ok = (src >= 0) & (src < n)
             ok[ok] = ~bad[src[ok]]
-            b = g[np.clip(src, 0, n - 1)]  # (lags, context, 3)
-            b -= mean
-            w = ok[:, :, None]
+            b = centred[np.clip(src, lo, hi - 1) - lo]  # (lags, context, 3)
+            # 0.0 or 1.0 as floats: the products are those with the booleans, without a cast per element
+            w = ok[:, :, None].astype(float)
             # w is 0 or 1, so w * b * b == (w * b) ** 2 and w * a * b == a * (w * b) exactly: the masked terms
             # in place
             b *= w
@@ -397,8 +414,9 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
                    params: PrepareParams = WALKING.prepare, posture: PostureParams = WALKING.posture) -> PreparedLeg:
     """:func:`prepare_leg` on streams already converted by :func:`to_si` (``(t_s, gyr_rps, acc_mps2)`` each, at
     nominal rates ``fs1``/``fs2``), so a second pass with corrected shank time stamps skips the conversion.
-    ``reuse``: a first pass of the same streams; its grid and thigh channels (rest offsets removed) are kept when
-    the re-stamped shank still covers that grid (only the shank is interpolated again)."""
+    ``reuse``: a first pass of the same streams; its grid and thigh channels (rest offsets removed) are kept, cut
+    to the part of the grid the re-stamped shank still covers (:func:`_kept_grid`): only the shank is interpolated
+    again."""
     for name, si in (("thigh", si1), ("shank", si2)):
         if si[0].shape[0] < 2:
             raise ValueError(f"{leg} {name} sensor has fewer than 2 usable samples")
@@ -410,23 +428,26 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
     t_start, t_stop = max(t1[0], t2[0]), min(t1[-1], t2[-1])
     if t_stop - t_start < 2.0 / fs_hz:
         raise ValueError(f"{leg} leg: thigh and shank recordings do not overlap in time")
-    n = int(np.floor((t_stop - t_start) * fs_hz + 1e-9)) + 1
-    t_grid = t_start + np.arange(n) / fs_hz
-    keep_grid = reuse is not None and reuse.t_s[0] >= t2[0] and reuse.t_s[-1] <= t2[-1] and reuse.fs_hz == fs_hz
-    if keep_grid:
-        t_grid, t_start = reuse.t_s, float(reuse.t_s[0])
+    kept = _kept_grid(reuse, t2, fs_hz)
+    if kept is not None:
+        t_grid = _cut(reuse.t_s, kept)
+        t_start = float(t_grid[0])
+    else:
+        n = int(np.floor((t_stop - t_start) * fs_hz + 1e-9)) + 1
+        t_grid = t_start + np.arange(n) / fs_hz
+    keep_grid = kept is not None
     gaps2, br2, noted2 = find_gaps(t2, fs2, params)
     if keep_grid and reuse.thigh_saturated is not None:
-        sat_thigh = reuse.thigh_saturated  # same stamps, same grid: the same samples
+        sat_thigh = _cut(reuse.thigh_saturated, kept)  # same stamps, same grid: the same samples
     else:
-        sat_thigh = np.interp(t_grid, t1, saturation_mask(g1, params).astype(float)) > 0
+        sat_thigh = _mask_on_grid(t_grid, t1, saturation_mask(g1, params))
     # the shank's samples are the same in a re-stamped pass (only their stamps moved): the same raw mask
     sat_shank = reuse.shank_saturated_raw if reuse is not None and reuse.shank_saturated_raw is not None \
         and reuse.shank_saturated_raw.shape[0] == g2.shape[0] else saturation_mask(g2, params)
-    saturated = sat_thigh | (np.interp(t_grid, t2, sat_shank.astype(float)) > 0)
+    saturated = sat_thigh | _mask_on_grid(t_grid, t2, sat_shank)
     if keep_grid:
-        # the first pass's arrays themselves (never modified in place): same values and memory layout
-        gyr_thigh, acc_thigh = reuse.gyr_thigh_rps, reuse.acc_thigh_mps2
+        # the first pass's arrays (cut to the kept grid; never modified in place): same values and memory layout
+        gyr_thigh, acc_thigh = _cut(reuse.gyr_thigh_rps, kept), _cut(reuse.acc_thigh_mps2, kept)
         off1, gb1 = reuse.acc_offset_thigh_mps2, reuse.gyr_bias_thigh_rps
         gaps1, filled1 = reuse.thigh_gaps_s, reuse.thigh_filled_s
         br1, noted1 = reuse.bridged_gaps - reuse.shank_bridged, reuse.thigh_noted_s
@@ -455,6 +476,27 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
         thigh_saturated=sat_thigh, shank_saturated_raw=sat_shank,
         acc_offset_thigh_mps2=off1, acc_offset_shank_mps2=off2, gyr_bias_thigh_rps=gb1, gyr_bias_shank_rps=gb2,
     )
+
+
+def _kept_grid(reuse: PreparedLeg | None, t2: np.ndarray, fs_hz: float) -> slice | None:
+    """The part of ``reuse``'s grid inside the re-stamped shank's span ``t2`` (a slice of it), None when there is
+    no first pass to keep or too little of it is left. The clock correction moves the shank's stamps by a fraction
+    of a sample to a few samples, and the thigh's channels on the first grid do not depend on the shank's clock, so
+    the grid keeps its phase and only loses the samples at its ends that the shank no longer covers. Rebuilding it
+    from the re-stamped span instead would shift its phase by the correction and interpolate the thigh once more,
+    for no measurable difference in the accuracy tables (README, "Processing speed")."""
+    if reuse is None or reuse.fs_hz != fs_hz:
+        return None
+    lo = int(np.searchsorted(reuse.t_s, t2[0], side="left"))
+    hi = int(np.searchsorted(reuse.t_s, t2[-1], side="right"))
+    if hi - lo < 2:
+        return None
+    return slice(None) if lo == 0 and hi == reuse.n else slice(lo, hi)
+
+
+def _cut(x: np.ndarray, kept: slice) -> np.ndarray:
+    """``x[kept]``, or ``x`` itself for the whole grid (the first pass's arrays, not new views of them)."""
+    return x if kept == slice(None) else x[kept]
 
 
 def _merge_intervals(intervals: list[tuple[float, float]]) -> list[tuple[float, float]]:

@@ -28,7 +28,7 @@ import numpy as np
 
 from pipeline.constants import G_MPS2
 from pipeline.params import WALKING, PostureParams
-from pipeline.signal_utils import row_norm, slower_than, true_runs
+from pipeline.signal_utils import row_norm, run_bounds, slower_than
 
 
 def rest_block_starts(gyr_rps: np.ndarray, valid: np.ndarray, fs_hz: float,
@@ -38,8 +38,12 @@ def rest_block_starts(gyr_rps: np.ndarray, valid: np.ndarray, fs_hz: float,
     (N, 3) of one sensor; ``valid``: (N,) bool."""
     still = valid & slower_than(gyr_rps, params.still_dps)
     n_blk = max(int(round(params.quiet_min_s * fs_hz)), 1)
-    starts = [np.arange(a, b - n_blk + 1, n_blk) for a, b in true_runs(still) if b - a >= n_blk]
-    return (np.concatenate(starts) if starts else np.zeros(0, dtype=int)), n_blk
+    a, b = run_bounds(still)
+    # each run [a, b) holds (b - a) // n_blk whole blocks, at a, a + n_blk, ...: all runs' blocks in one array
+    count = (b - a) // n_blk
+    first = np.repeat(a, count)
+    k = np.arange(first.shape[0]) - np.repeat(np.cumsum(count) - count, count)
+    return first + k * n_blk, n_blk
 
 
 def block_means(x: np.ndarray, starts: np.ndarray, n_blk: int) -> np.ndarray:

@@ -40,13 +40,29 @@ def lowpass(x: np.ndarray, cutoff_hz: float, fs_hz: float, order: int = 2) -> np
     return out.reshape(x.shape)
 
 
-def true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """Half-open index ranges ``[start, stop)`` of the runs of True in a boolean array."""
+def run_bounds(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Starts and stops (int arrays) of the half-open runs ``[start, stop)`` of True in a boolean array."""
     m = np.concatenate(([False], np.asarray(mask, dtype=bool), [False]))
     d = np.diff(m.astype(np.int8))
-    starts = np.flatnonzero(d == 1)
-    stops = np.flatnonzero(d == -1)
+    return np.flatnonzero(d == 1), np.flatnonzero(d == -1)
+
+
+def true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Half-open index ranges ``[start, stop)`` of the runs of True in a boolean array."""
+    starts, stops = run_bounds(mask)
     return list(zip(starts.tolist(), stops.tolist(), strict=True))
+
+
+def long_runs(mask: np.ndarray, min_len: float) -> np.ndarray:
+    """``mask`` without its runs of True shorter than ``min_len`` samples. Vectorised: a still or standing mask
+    has hundreds of runs, too many for a loop over them."""
+    starts, stops = run_bounds(mask)
+    keep = stops - starts >= min_len
+    # the kept runs are disjoint and never touch (a False lies between two runs), so no index is set twice
+    delta = np.zeros(mask.shape[0] + 1, dtype=np.int8)
+    delta[starts[keep]] = 1
+    delta[stops[keep]] = -1
+    return np.cumsum(delta[:-1]) > 0
 
 
 def fill_invalid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -38,9 +38,9 @@ def fit_gyros(prep: PreparedLeg, cutoff_hz: float, thigh: np.ndarray | None = No
 
 def reusable_thigh_fit(first: PreparedLeg, prep: PreparedLeg, thigh_fit: np.ndarray) -> np.ndarray | None:
     """The thigh's fit gyros of ``first`` (:func:`fit_gyros`) when they are also ``prep``'s: ``prep`` is the same leg
-    with only the shank re-stamped, keeping ``first``'s thigh channels and mask
+    with only the shank re-stamped, keeping ``first``'s whole grid, thigh channels and mask
     (:func:`pipeline.prepare.prepare_leg_si` with ``reuse``). The filter runs column by column, so filtering the
-    thigh again would give the same values. None otherwise."""
+    thigh again would give the same values. None otherwise (a grid cut at its ends filters differently there)."""
     if prep.gyr_thigh_rps is first.gyr_thigh_rps and np.array_equal(prep.valid, first.valid):
         return thigh_fit
     return None

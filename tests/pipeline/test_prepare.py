@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pipeline.prepare import EDGE_TOL_S, MAX_BRIDGE_S, _mask_intervals, prepare_leg
+from pipeline.prepare import EDGE_TOL_S, MAX_BRIDGE_S, _mask_intervals, prepare_leg, prepare_leg_si, to_si
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, simulate_session
 from pipeline.types import RawSensorStream
@@ -129,3 +129,23 @@ def test_lossy_session_is_stable_under_last_bit_noise() -> None:
             assert np.array_equal(np.isfinite(other.angle_deg), np.isfinite(lr.angle_deg))
             peaks = np.array([s.peak_swing_flexion_deg for s in lr.strides])
             assert np.abs(np.array([s.peak_swing_flexion_deg for s in other.strides]) - peaks).max() < 1e-8
+
+
+def test_a_re_stamped_shank_keeps_the_first_grid_cut_to_its_span() -> None:
+    """The clock correction re-stamps the shank only: the thigh's channels on the first pass's grid are kept, and
+    the grid loses just the samples the moved shank no longer covers (its phase stays)."""
+    t = np.arange(0, 20, 0.01)
+    g, a = _signals(t)
+    si = to_si(_stream("thigh", t, g, a, 100)), to_si(_stream("shank", t + 0.0005, g, a, 100))
+    first = prepare_leg_si("left", *si, 100.0, 100.0)
+    assert first.t_s[0] == 0.0005
+    same = prepare_leg_si("left", *si, 100.0, 100.0, shank_shift_s=-0.0004, reuse=first)
+    assert same.t_s is first.t_s and same.gyr_thigh_rps is first.gyr_thigh_rps
+    later = prepare_leg_si("left", *si, 100.0, 100.0, shank_shift_s=0.003, reuse=first)
+    np.testing.assert_array_equal(later.t_s, first.t_s[1:])  # the first grid sample is before the moved shank
+    np.testing.assert_array_equal(later.gyr_thigh_rps, first.gyr_thigh_rps[1:])
+    np.testing.assert_array_equal(later.acc_thigh_mps2, first.acc_thigh_mps2[1:])
+    assert later.t0_s == later.t_s[0] and later.n == first.n - 1
+    # and the shank is the re-stamped one: its samples of g(t), stamped t + 0.0005, now sit at t + 0.0035
+    expected = np.deg2rad(100 * np.sin(2 * np.pi * (later.t_s - 0.0035)))
+    np.testing.assert_allclose(later.gyr_shank_rps[:, 0], expected, atol=1e-3)
