@@ -47,6 +47,12 @@ class JointAxes:
             return self.j1, self.j2
         return self.hinge_j1, self.hinge_j2
 
+    def leans(self) -> bool:
+        """True when the hinge leaned out of the level by more than ``AxesParams.level_lean_deg`` and the flexion
+        axes were turned back (:func:`fit_joint_axes`): the knee's motion is no hinge's."""
+        h1, h2 = self.hinge()
+        return not (np.array_equal(h1, self.j1) and np.array_equal(h2, self.j2))
+
 
 @dataclass(frozen=True)
 class _Fit:

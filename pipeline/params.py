@@ -124,11 +124,6 @@ class SyncParams:
     """Most windows the joint-centre cue is evaluated on, spread evenly over the session: each costs one centre fit
     per candidate lag (13 at 100 Hz), and an offset with a drift needs only a few agreeing points, so the cost of a
     long recording without turns stays that of eight windows."""
-    hinge_agree_s: float = 0.003
-    """The hinge constraint's lag line (Seel Eq. 2) is used only where the joint-centre cue's (Eq. 5) agrees with it
-    within this [s] over the session; else the joint-centre cue's. Where the knee is a hinge the two agree within
-    ~1-2 ms and the hinge is the more precise; a real knee's axial rotation and ab/adduction move the hinge's by
-    5-15 ms (sweep axis ``joint_3d``), while the joint-centre cue stays within ~2 ms."""
     shock_g: float = 1.0
     """High-frequency acceleration [g] (:func:`pipeline.running.impact_signal`) marking a shock whose samples the
     joint-centre cue leaves out: a 5-10 g heel strike moved its lag by -3 to -8 ms on average (sweep tune seeds,

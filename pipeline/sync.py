@@ -1,12 +1,14 @@
 """Thigh/shank clock offset and drift of one leg, and the leg prepared again with the shank's stamps corrected.
 
 Two constraints of Seel et al. 2014 carry the timing: the hinge (Eq. 2; :func:`pipeline.axes.estimate_sync_lag_s`)
-and the joint centre (Eq. 5; :func:`pipeline.axes.estimate_centre_lag_s`). Neither holds on every knee: a real knee
-is no hinge (the tibia turns about its long axis as it flexes, and ab/adducts a few degrees), and the gait-locked
-misfit reads as a lag of 5-15 ms on the simulator's ``joint_3d`` axis (and -10 / -18 ms on the hardware-synchronised
-biomechZoo trial); the joint-centre constraint needs rigid segments, which a heel-strike shock ringing through the
-shank is not for ~0.1 s (such samples are left out). So the hinge's lag is kept only where the joint-centre cue
-confirms it (it is the more precise where both hold); otherwise the joint-centre cue's is used.
+and the joint centre (Eq. 5; :func:`pipeline.axes.estimate_centre_lag_s`). Neither holds on every knee. A real knee
+is no hinge: the tibia turns about its long axis as the knee flexes and ab/adducts a few degrees, and the
+gait-locked misfit reads as a lag (5-15 ms on the simulator's ``joint_3d`` axis; -10 / -18 ms on the
+hardware-synchronised biomechZoo trial). Such a knee shows itself in the hinge fit, whose axes lean towards the
+segments' long axes (:meth:`pipeline.axes.JointAxes.leans`): its timing then comes from the joint centre. The
+joint-centre constraint needs rigid segments, which a heel-strike shock ringing through the shank is not for
+~0.1 s: those samples are left out (:func:`shock_mask`). Where the knee is a hinge, the hinge cue is the more precise
+of the two and is used wherever it speaks (out-of-plane motion: turns, hip ab/adduction).
 
 A 10-15 ms offset, common between two BLE sensors, would otherwise distort swing flexion by several degrees.
 """
@@ -82,53 +84,35 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
 def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
                 axes_params: AxesParams | None = None) -> tuple[float | None, float]:
     """Shank-vs-thigh lag at mid-session [s] and its drift [s/s]: one lag per ``window_s`` window and a straight line
-    through them (rate error clipped to ``max_drift``), from each cue (module docstring); a cue's line counts only
-    when at least two windows are informative and agree with it within ``agree_s``. The hinge's line is used where
-    the joint-centre cue (when ``axes_params`` is given) has none or agrees with it within ``hinge_agree_s``, else
-    the joint-centre cue's. A leg shorter than two windows gets a constant lag from the joint-centre cue on its
-    halves (:func:`_short_session_lag`). ``g1``, ``g2``: low-passed gyros (N, 3) [rad/s]."""
+    through them (rate error clipped to ``max_drift``), applied only when at least two windows are informative and
+    agree with the line within ``agree_s``. The hinge constraint's lags where the knee moves as a hinge and they
+    speak; the joint-centre constraint's (when ``axes_params`` is given) where the hinge's own fit leans towards the
+    segments' long axes (:meth:`pipeline.axes.JointAxes.leans`: the tibia turns as the knee flexes, and the
+    gait-locked misfit reads as a lag) or where the hinge constraint is silent (straight walking, jumps: no
+    out-of-plane motion). Hinge windows that speak but disagree mark a leg whose timing is not to be trusted (no
+    correction). A leg shorter than two windows gets a constant lag from the joint-centre cue on its halves
+    (:func:`_short_session_lag`). ``g1``, ``g2``: low-passed gyros (N, 3) [rad/s]."""
     fs = prep.fs_hz
     win = int(params.window_s * fs)
     if prep.n < 2 * win:
         return _short_session_lag(prep, g1, g2, axes, params, axes_params), 0.0
     edges = np.linspace(0, prep.n, int(prep.n // win) + 1).astype(int)
     windows = [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
-    h1, h2 = axes.hinge()
-    rates = hinge_rates(g1, g2, h1, h2)  # once for all windows
-    hinge_lags = [estimate_sync_lag_s(g1, g2, h1, h2, prep.valid, fs, window=w, rates=rates,
-                                      max_lag_s=params.max_lag_s) for w in windows]
-    hinge = _line_model(prep, windows, params, lambda w: hinge_lags[windows.index(w)])
-    if axes_params is None:
-        return hinge
-    picked = [windows[int(i)] for i in
-              np.unique(np.linspace(0, len(windows) - 1, min(len(windows), params.max_centre_windows)).round())]
-    lag_of = _memo(_centre_lag_of(prep, g1, g2, axes, params, axes_params))
-    half_span = 0.5 * float(prep.t_s[-1] - prep.t_s[0])
-
-    def agrees(centre: tuple[float | None, float]) -> bool:
-        return hinge[0] is not None and centre[0] is not None and \
-            abs(hinge[0] - centre[0]) + abs(hinge[1] - centre[1]) * half_span <= params.hinge_agree_s
-
-    # the first, middle and last windows first: where they confirm the hinge, the rest would not be needed
-    check = [picked[i] for i in sorted({0, len(picked) // 2, len(picked) - 1})]
-    if len(check) < len(picked) and agrees(_line_model(prep, check, params, lag_of)):
-        return hinge
-    centre = _line_model(prep, picked, params, lag_of)
-    if centre[0] is None or agrees(centre):
-        return hinge
-    return centre
-
-
-def _memo(lag_of: Callable[[slice], float | None]) -> Callable[[slice], float | None]:
-    """``lag_of`` evaluated once per window."""
-    seen: dict[tuple[int, int], float | None] = {}
-
-    def cached(w: slice) -> float | None:
-        key = (w.start, w.stop)
-        if key not in seen:
-            seen[key] = lag_of(w)
-        return seen[key]
-    return cached
+    if not axes.leans():
+        h1, h2 = axes.hinge()
+        rates = hinge_rates(g1, g2, h1, h2)  # once for all windows
+        hinge = [estimate_sync_lag_s(g1, g2, h1, h2, prep.valid, fs, window=w, rates=rates,
+                                     max_lag_s=params.max_lag_s) for w in windows]
+        offset, drift = _line_model(prep, windows, params, lambda w: hinge[windows.index(w)])
+        # on a hinge knee the centre cue is the less accurate of the two wherever turns make both informative
+        # (sweep and accuracy tune seeds: crouch gait, long lever arms)
+        if offset is not None or axes_params is None or sum(lag is not None for lag in hinge) >= 2:
+            return offset, drift
+    elif axes_params is None:
+        return None, 0.0
+    pick = np.unique(np.linspace(0, len(windows) - 1, min(len(windows), params.max_centre_windows)).round())
+    return _line_model(prep, [windows[int(i)] for i in pick], params,
+                       _centre_lag_of(prep, g1, g2, axes, params, axes_params))
 
 
 def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,

@@ -75,6 +75,7 @@ def test_the_hinge_fit_leans_and_the_flexion_axis_is_levelled(rotating_tibia) ->
         assert _angle_deg(axes.j1, y1) < _angle_deg(h1, y1) - 5.0
         for j, u in ((axes.j1, up[0]), (axes.j2, up[1])):
             assert abs(np.degrees(np.arcsin(abs(j @ u)))) <= WALKING.axes.level_lean_deg + 1e-6
+        assert axes.leans()
 
 
 def test_a_lean_within_the_level_uncertainty_is_kept() -> None:
@@ -84,6 +85,7 @@ def test_a_lean_within_the_level_uncertainty_is_kept() -> None:
     g1, g2 = fit_gyros(prep, WALKING.axes.fit_cutoff_hz)
     axes = fit_joint_axes(g1, g2, prep.valid, WALKING.axes, up=axis_up(prep, WALKING.axes))
     assert np.array_equal(axes.j1, axes.hinge()[0]) and np.array_equal(axes.j2, axes.hinge()[1])
+    assert not axes.leans()
 
 
 def test_level_directions_need_a_reading_accelerometer() -> None:
@@ -115,8 +117,8 @@ def test_axes_fitted_with_the_lag_are_not_bent_by_it() -> None:
 
 
 def test_the_hinge_clock_cue_is_not_trusted_on_a_rotating_tibia() -> None:
-    """The tibia's axial rotation makes the hinge cue read a lag that is not there; the joint-centre cue does not
-    confirm it, so the leg's clock follows the joint-centre cue (within 3 ms of the truth)."""
+    """The tibia's axial rotation makes the hinge cue read a lag that is not there; the hinge fit leans, so the leg's
+    clock follows the joint-centre cue (within 3 ms of the truth)."""
     sim = simulate_session(SimConfig(pattern="normal", seed=0, duration_s=90.0, bout_strides=12, knee_3d=1.0,
                                      sync_offset_ms=5.0))
     errors = {}
