@@ -36,10 +36,12 @@ class JointAxes:
     j2: np.ndarray  # shank frame
     rms_residual_dps: float
     n_samples: int
-    # Seel's Eq. 2 hinge when ``j1``/``j2`` are the flexion axes of a two-axis knee (:func:`fit_joint_axes` with
-    # ``up``): the hinge constraint's clock cues need the axes that satisfy it best (None: ``j1``/``j2`` themselves)
+    # Seel's Eq. 2 hinge before ``j1``/``j2`` were levelled (:func:`fit_joint_axes`; None: ``j1``/``j2`` themselves)
     hinge_j1: np.ndarray | None = None
     hinge_j2: np.ndarray | None = None
+    # the hinge leaned out of the level by more than ``AxesParams.level_lean_deg`` and ``j1``/``j2`` were turned back:
+    # the knee's motion is no hinge's
+    leaning: bool = False
 
     def hinge(self) -> tuple[np.ndarray, np.ndarray]:
         """The axes of Seel's hinge constraint (Eq. 2), thigh and shank frame."""
@@ -47,11 +49,6 @@ class JointAxes:
             return self.j1, self.j2
         return self.hinge_j1, self.hinge_j2
 
-    def leans(self) -> bool:
-        """True when the hinge leaned out of the level by more than ``AxesParams.level_lean_deg`` and the flexion
-        axes were turned back (:func:`fit_joint_axes`): the knee's motion is no hinge's."""
-        h1, h2 = self.hinge()
-        return not (np.array_equal(h1, self.j1) and np.array_equal(h2, self.j2))
 
 
 @dataclass(frozen=True)
@@ -222,11 +219,11 @@ def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | N
     thigh-shank clock lag fitted alongside (:class:`_AxisLagProblem`), for data whose clocks are not yet aligned.
 
     ``up``: per segment the direction the flexion axis is perpendicular to (:func:`level_directions`); each axis is
-    then turned towards that plane until it leans out of it by ``AxesParams.level_lean_deg`` at most, and the hinge
-    axes are kept as ``hinge_j1``/``hinge_j2`` for the clock cues. A real knee is no hinge: the tibia also turns
-    about its long axis as the knee flexes (~0.15 deg per deg, the screw-home mechanism run backwards; bone-pin
-    studies find ~9 deg over the gait cycle, Lafortune et al. 1992, Benoit et al. 2006), so the hinge that fits best
-    is an oblique axis leaning towards the segments' long axes (10-15 deg per segment at that coupling on the
+    then turned towards that plane until it leans out of it by ``AxesParams.level_lean_deg`` at most (``leaning``),
+    and the hinge axes are kept as ``hinge_j1``/``hinge_j2`` for the clock cues. A real knee is no hinge: the tibia
+    also turns about its long axis as the knee flexes (~0.15 deg per deg, the screw-home mechanism run backwards;
+    bone-pin studies find ~9 deg over the gait cycle, Lafortune et al. 1992, Benoit et al. 2006), so the hinge that
+    fits best is an oblique axis leaning towards the segments' long axes (10-15 deg per segment at that coupling on the
     simulator's ``joint_3d`` axis, 15-30 at twice it), the flexion rate about it takes in the axial rotation (swing
     peak +2.4 deg at twice the coupling), and with 3-D hip motion on top the hinge fit failed outright (recall
     0.73, peak errors of tens of degrees). The clinical flexion axis (Grood and Suntay 1983) is the femur's
@@ -263,7 +260,10 @@ def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | N
     if up is None:
         return JointAxes(j1=j1, j2=j2, rms_residual_dps=rms, n_samples=int(idx.size))
     f1, f2 = (_level_axis(j, u, np.radians(params.level_lean_deg)) for j, u in ((j1, up[0]), (j2, up[1])))
-    return JointAxes(j1=f1, j2=f2, rms_residual_dps=rms, n_samples=int(idx.size), hinge_j1=j1, hinge_j2=j2)
+    if f1 is j1 and f2 is j2:
+        return JointAxes(j1=j1, j2=j2, rms_residual_dps=rms, n_samples=int(idx.size))
+    return JointAxes(j1=f1, j2=f2, rms_residual_dps=rms, n_samples=int(idx.size), hinge_j1=j1, hinge_j2=j2,
+                     leaning=True)
 
 
 def _level_axis(j: np.ndarray, up: np.ndarray, max_lean_rad: float) -> np.ndarray:

@@ -5,7 +5,7 @@ and the joint centre (Eq. 5; :func:`pipeline.axes.estimate_centre_lag_s`). Neith
 is no hinge: the tibia turns about its long axis as the knee flexes and ab/adducts a few degrees, and the
 gait-locked misfit reads as a lag (5-15 ms on the simulator's ``joint_3d`` axis; -10 / -18 ms on the
 hardware-synchronised biomechZoo trial). Such a knee shows itself in the hinge fit, whose axes lean towards the
-segments' long axes (:meth:`pipeline.axes.JointAxes.leans`): its timing then comes from the joint centre. The
+segments' long axes (``pipeline.axes.JointAxes.leaning``): its timing then comes from the joint centre. The
 joint-centre constraint needs rigid segments, which a heel-strike shock ringing through the shank is not for
 ~0.1 s: those samples are left out (:func:`shock_mask`). Where the knee is a hinge, the hinge cue is the more precise
 of the two and is used wherever it speaks (out-of-plane motion: turns, hip ab/adduction).
@@ -87,7 +87,7 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
     through them (rate error clipped to ``max_drift``), applied only when at least two windows are informative and
     agree with the line within ``agree_s``. The hinge constraint's lags where the knee moves as a hinge and they
     speak; the joint-centre constraint's (when ``axes_params`` is given) where the hinge's own fit leans towards the
-    segments' long axes (:meth:`pipeline.axes.JointAxes.leans`: the tibia turns as the knee flexes, and the
+    segments' long axes (``JointAxes.leaning``: the tibia turns as the knee flexes, and the
     gait-locked misfit reads as a lag) or where the hinge constraint is silent (straight walking, jumps: no
     out-of-plane motion). Hinge windows that speak but disagree mark a leg whose timing is not to be trusted (no
     correction). A leg shorter than two windows gets a constant lag from the joint-centre cue on its halves
@@ -98,7 +98,7 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
         return _short_session_lag(prep, g1, g2, axes, params, axes_params), 0.0
     edges = np.linspace(0, prep.n, int(prep.n // win) + 1).astype(int)
     windows = [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
-    if not axes.leans():
+    if not axes.leaning:
         h1, h2 = axes.hinge()
         rates = hinge_rates(g1, g2, h1, h2)  # once for all windows
         hinge = [estimate_sync_lag_s(g1, g2, h1, h2, prep.valid, fs, window=w, rates=rates,

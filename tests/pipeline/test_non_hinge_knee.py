@@ -75,7 +75,7 @@ def test_the_hinge_fit_leans_and_the_flexion_axis_is_levelled(rotating_tibia) ->
         assert _angle_deg(axes.j1, y1) < _angle_deg(h1, y1) - 5.0
         for j, u in ((axes.j1, up[0]), (axes.j2, up[1])):
             assert abs(np.degrees(np.arcsin(abs(j @ u)))) <= WALKING.axes.level_lean_deg + 1e-6
-        assert axes.leans()
+        assert axes.leaning
 
 
 def test_a_lean_within_the_level_uncertainty_is_kept() -> None:
@@ -84,8 +84,8 @@ def test_a_lean_within_the_level_uncertainty_is_kept() -> None:
     prep = prepare_leg("left", *_streams(sim, "left"))
     g1, g2 = fit_gyros(prep, WALKING.axes.fit_cutoff_hz)
     axes = fit_joint_axes(g1, g2, prep.valid, WALKING.axes, up=axis_up(prep, WALKING.axes))
-    assert np.array_equal(axes.j1, axes.hinge()[0]) and np.array_equal(axes.j2, axes.hinge()[1])
-    assert not axes.leans()
+    assert axes.hinge_j1 is None and axes.hinge_j2 is None
+    assert not axes.leaning
 
 
 def test_level_directions_need_a_reading_accelerometer() -> None:
@@ -98,7 +98,7 @@ def test_level_directions_need_a_reading_accelerometer() -> None:
 
 def test_axes_fitted_with_the_lag_are_not_bent_by_it() -> None:
     """3-D hip motion and a 20 ms shank lag: the axes alone absorb part of the lag and the hinge cue then reads a
-    fraction of it; fitted together with the lag, the axes stay within a degree and the hinge reads the lag."""
+    fraction of it; fitted together with the lag, the axes stay within a degree and the hinge cue reads the lag."""
     sim = simulate_session(SimConfig(pattern="normal", seed=1, duration_s=90.0, bout_strides=12, hip_3d=1.0,
                                      sync_offset_ms=10.0, **_CLEAN))
     lag_ms = _true_lag_ms(sim, "left")
