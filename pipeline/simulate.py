@@ -826,8 +826,8 @@ def _leg_chain_3d(body: _BodySplines, tl: _Timeline, leg: str, phase: np.ndarray
     shank_links = (*thigh_links, (1, knee_sp), (0, spline(-side * knee_add)), (2, spline(-side * knee_int)))
     sta = cfg.thigh_sta_deg * (knee_deg - stand_knee_deg) / 60.0  # the skin turns outwards as the knee flexes
     sensor_links = (*thigh_links, (2, spline(side * sta))) if cfg.thigh_sta_deg else thigh_links
-    planar = _LegSplines(spline(hip_deg), spline(hip_deg - knee_deg), thigh_links, shank_links, sensor_links)
-    return planar, np.degrees(knee_sp(t))
+    chain = _LegSplines(spline(hip_deg), spline(hip_deg - knee_deg), thigh_links, shank_links, sensor_links)
+    return chain, np.degrees(knee_sp(t))
 
 
 def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the draw order is part of every seed's output
