@@ -4,6 +4,7 @@
     python -m bench.robustness --seeds tune      # TUNE seeds (0-4): tune on these, report on the others
     python -m bench.robustness --axes loss,labels --quick   # one seed, short sessions (smoke test)
     python -m bench.robustness --axes short      # 10-60 s sessions with a thigh-shank offset (not in the default)
+    python -m bench.robustness --axes joint_3d_mixed  # 3-D motion with sitting, jumps, 40 Hz, loss, running
 
 Every case is a ``normal`` walking session (90 s unless the axis says otherwise, in bouts of 12 strides, 100 Hz,
 random mounting, default noise, standing, turns and sitting between bouts; pipeline.simulate.SimConfig) with one
@@ -198,12 +199,22 @@ AXES: dict[str, Axis] = {
              "obliquity +-4 deg, lateral sway +-2.5 cm, hip ab/adduction -6..8 deg and rotation +-5 deg, knee "
              "ab/adduction -2.5..2 deg and tibial internal rotation 0.15 deg per deg of flexion (~9 deg in swing); "
              "each subject 0.7-1.3 x."),
+    "joint_3d_mixed": Axis("Typical 3-D hip and knee motion (x1) together with other axes", tuple(
+        _v(label, **{"hip_3d": 1.0, "knee_3d": 1.0, **over}) for label, over in (
+            ("seated 90 deg", {"activities": ("sitting",)}),
+            ("3 sit-to-stand repetitions", {"activities": ("sit_to_stand",)}),
+            ("jumps, stairs, sit-to-stand", {"activities": ("jump", "stairs", "sit_to_stand")}),
+            ("40 Hz", {"fs_hz": 40.0}),
+            ("5 % bursty loss (20-sample packets, 128 Hz)", {"packet_samples": 20, "fs_hz": 128.0, "packet_loss": 0.05,
+                                                             **_BURSTY}),
+            ("running, 6 g", {**_RUN, "impact_g": 6.0}))),
+        note="Not in the default axes (`--axes joint_3d_mixed`)."),
     "short": Axis("Short sessions with a thigh-shank clock offset (shanks late, exact clocks otherwise)", tuple(
         _v(f"{dur:g} s, {lag:g} ms", shank_lag_ms=lag, duration_s=dur, **_SHORT)
         for dur in (10.0, 20.0, 40.0, 60.0) for lag in (0.0, 10.0, 20.0)),
         note="Shorter than two 40 s sync windows (pipeline.params.SyncParams.window_s); not in the default axes."),
 }
-DEFAULT_AXES = [name for name in AXES if name != "short"]
+DEFAULT_AXES = [name for name in AXES if name not in ("short", "joint_3d_mixed")]
 
 HEADER = ["strides", "recall", "precision", "coverage", "peak bias (deg)", "peak LoA (deg)",
           "ROM bias (deg)", "ROM LoA (deg)", "RMSE in strides (deg)", "RMSE outside gait (deg)", "non-gait strides",
@@ -464,7 +475,7 @@ def main(argv: list[str] | None = None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", choices=["tune", "report"], default="report")
     ap.add_argument("--axes", default=",".join(DEFAULT_AXES),
-                    help=f"comma list of axes (default all but short: {', '.join(DEFAULT_AXES)}; also: short)")
+                    help=f"comma list of axes (default: {', '.join(DEFAULT_AXES)}; also: short, joint_3d_mixed)")
     ap.add_argument("--quick", action="store_true", help="one seed, the first two values per axis, short sessions")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
     ap.add_argument("--no-real", action="store_true", help="skip the real recordings")
