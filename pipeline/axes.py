@@ -42,6 +42,8 @@ class JointAxes:
     # the hinge leaned out of the level by more than ``AxesParams.level_lean_deg`` and ``j1``/``j2`` were turned back:
     # the knee's motion is no hinge's
     leaning: bool = False
+    # how far the hinge axes leaned out of the level (thigh, shank) [deg]; None when no level was given
+    lean_deg: tuple[float, float] | None = None
 
     def hinge(self) -> tuple[np.ndarray, np.ndarray]:
         """The axes of Seel's hinge constraint (Eq. 2), thigh and shank frame."""
@@ -260,18 +262,24 @@ def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | N
     if up is None:
         return JointAxes(j1=j1, j2=j2, rms_residual_dps=rms, n_samples=int(idx.size))
     f1, f2 = (_level_axis(j, u, np.radians(params.level_lean_deg)) for j, u in ((j1, up[0]), (j2, up[1])))
+    lean = (_lean_deg(j1, up[0]), _lean_deg(j2, up[1]))
     if f1 is j1 and f2 is j2:
-        return JointAxes(j1=j1, j2=j2, rms_residual_dps=rms, n_samples=int(idx.size))
+        return JointAxes(j1=j1, j2=j2, rms_residual_dps=rms, n_samples=int(idx.size), lean_deg=lean)
     return JointAxes(j1=f1, j2=f2, rms_residual_dps=rms, n_samples=int(idx.size), hinge_j1=j1, hinge_j2=j2,
-                     leaning=True)
+                     leaning=True, lean_deg=lean)
+
+
+def _lean_deg(j: np.ndarray, up: np.ndarray) -> float:
+    """How far [deg] the unit axis ``j`` leans out of the plane perpendicular to the unit vector ``up``."""
+    return float(np.degrees(np.arcsin(min(1.0, abs(float(j @ up))))))
 
 
 def _level_axis(j: np.ndarray, up: np.ndarray, max_lean_rad: float) -> np.ndarray:
     """``j`` turned towards the plane perpendicular to ``up`` until it leans out of it by ``max_lean_rad`` at most
     (unchanged when it leans less)."""
-    lean = float(np.arcsin(np.clip(j @ up, -1.0, 1.0)))
-    if abs(lean) <= max_lean_rad:
+    if np.radians(_lean_deg(j, up)) <= max_lean_rad:
         return j
+    lean = float(np.arcsin(np.clip(j @ up, -1.0, 1.0)))
     flat = j - (j @ up) * up
     flat = flat / np.linalg.norm(flat)
     keep = float(np.copysign(max_lean_rad, lean))

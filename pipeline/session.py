@@ -353,4 +353,6 @@ def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, stride
         acc_offset_thigh_mps2=tuple(np.round(synced.prep.acc_offset_thigh_mps2, 3).tolist()),
         acc_offset_shank_mps2=tuple(np.round(synced.prep.acc_offset_shank_mps2, 3).tolist()),
         gyr_bias_thigh_dps=tuple(np.round(np.degrees(synced.prep.gyr_bias_thigh_rps), 2).tolist()),
-        gyr_bias_shank_dps=tuple(np.round(np.degrees(synced.prep.gyr_bias_shank_rps), 2).tolist()))
+        gyr_bias_shank_dps=tuple(np.round(np.degrees(synced.prep.gyr_bias_shank_rps), 2).tolist()),
+        hinge_lean_deg=None if axes.lean_deg is None else tuple(round(x, 1) for x in axes.lean_deg),
+        knee_axes_levelled=axes.leaning)

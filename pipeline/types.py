@@ -141,6 +141,10 @@ class LegDiagnostics:
     acc_offset_shank_mps2: tuple[float, ...] = (0.0, 0.0, 0.0)
     gyr_bias_thigh_dps: tuple[float, ...] = (0.0, 0.0, 0.0)
     gyr_bias_shank_dps: tuple[float, ...] = (0.0, 0.0, 0.0)
+    # how far Seel's hinge axes leaned out of the level (thigh, shank) [deg]; beyond AxesParams.level_lean_deg the
+    # knee axes were levelled and the clock taken from the joint centre (a knee that turns as it flexes)
+    hinge_lean_deg: tuple[float, ...] | None = None
+    knee_axes_levelled: bool = False
 
 
 @dataclass

@@ -156,3 +156,15 @@ def test_the_levelling_can_be_switched_off() -> None:
     prep = prepare_leg("left", *_streams(sim, "left"))
     off = dataclasses.replace(WALKING.axes, axis_level=False)
     assert axis_up(prep, off) is None
+
+
+def test_the_diagnostics_say_how_far_the_hinge_leaned(rotating_tibia) -> None:
+    res = process_session(rotating_tibia.streams, activity="walking")
+    for lr in res.legs.values():
+        d = lr.diagnostics
+        assert d is not None and d.knee_axes_levelled
+        assert d.hinge_lean_deg is not None and max(d.hinge_lean_deg) > WALKING.axes.level_lean_deg
+    planar = simulate_session(SimConfig(pattern="normal", seed=2, duration_s=40.0, bout_strides=8, **_CLEAN))
+    for lr in process_session(planar.streams, activity="walking").legs.values():
+        assert not lr.diagnostics.knee_axes_levelled
+        assert max(lr.diagnostics.hinge_lean_deg) <= WALKING.axes.level_lean_deg
