@@ -122,12 +122,13 @@ class SyncParams:
     """A correction smaller than this share of a sample period is not applied (re-preparing costs time)."""
     max_centre_windows: int = 8
     """Most windows the joint-centre cue is evaluated on, spread evenly over the session: each costs one centre fit
-    per candidate lag (13 at 100 Hz), and an offset with a drift needs only a few agreeing points, so the cost of a
-    long recording without turns stays that of eight windows."""
+    and a Gauss-Newton step per candidate lag (13 at 100 Hz), and an offset with a drift needs only a few agreeing
+    points, so the cost of a long recording without turns stays that of eight windows."""
     shock_g: float = 1.0
-    """High-frequency acceleration [g] (:func:`pipeline.running.impact_signal`) marking a shock whose samples the
-    joint-centre cue leaves out: a 5-10 g heel strike moved its lag by -3 to -8 ms on average (sweep tune seeds,
-    up to 16 ms), +-1.3 ms without those samples."""
+    """Acceleration above the fit band [g] (a sensor's raw acceleration minus its ``AxesParams.fit_cutoff_hz``
+    low-pass, :func:`pipeline.sync.shock_mask`) marking a shock whose samples the joint-centre cue leaves out: 5 and
+    10 g heel strikes moved its lag by -3.1 +- 4.6 and -7.5 +- 5.4 ms (sweep tune seeds, up to 16 ms), -0.1 +- 1.3 and
+    -0.2 +- 1.3 ms without those samples."""
     shock_s: float = 0.06
     """Samples left out on either side of a shock sample [s]: the simulated shock rings for ~50 ms."""
     short_window_s: float = 4.0
