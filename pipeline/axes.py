@@ -357,8 +357,8 @@ def hinge_rates(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray) 
 
 def estimate_sync_lag_s(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray, valid: np.ndarray,
                         fs_hz: float, window: slice | None = None,
-                        rates: tuple[np.ndarray, np.ndarray] | None = None, max_lag_s: float = WALKING.sync.max_lag_s
-                        ) -> float | None:
+                        rates: tuple[np.ndarray, np.ndarray] | None = None, max_lag_s: float = WALKING.sync.max_lag_s,
+                        centre_s: float = 0.0) -> float | None:
     """Timestamp offset of the shank relative to the thigh [s], from Seel's hinge constraint (Eq. 2): for a hinge,
     the angular velocity perpendicular to the axis is the same vector in both segments, so ||g1 x j1|| = ||g2 x j2||
     sample by sample. A clock offset between the sensors shifts one against the other; the lag (within +-max_lag_s)
@@ -366,7 +366,8 @@ def estimate_sync_lag_s(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.n
     Positive: shank events appear late on the common grid. None when the cost has no clear minimum (a leg that never
     leaves its joint plane carries no timing information here). Inputs low-passed gyros [rad/s]; ``window``
     restricts the samples compared (clock drift: one estimate per window). ``rates``: :func:`hinge_rates` of the
-    whole ``g1``/``g2`` when already computed (several windows of one session), else computed here."""
+    whole ``g1``/``g2`` when already computed (several windows of one session), else computed here. ``centre_s``:
+    the lags searched are ``centre_s +- max_lag_s`` (a drifting lag followed from window to window)."""
     if window is not None:
         valid = valid[window]
         if rates is None:
@@ -375,22 +376,28 @@ def estimate_sync_lag_s(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.n
             rates = (rates[0][window], rates[1][window])
     m1, m2 = hinge_rates(g1, g2, j1, j2) if rates is None else rates
     k_max = max(int(round(max_lag_s * fs_hz)), 2)
+    k0 = int(round(centre_s * fs_hz))
     n = m1.shape[0]
-    idx = np.flatnonzero(valid[k_max:n - k_max]) + k_max
+    lo, hi = max(k_max - k0, 0), min(n - k_max - k0, n)  # every lag k0 +- k_max stays inside the arrays
+    if hi - lo < 10 * k_max:
+        return None
+    idx = np.flatnonzero(valid[lo:hi]) + lo
     if idx.size < 10 * k_max:
         return None
     ok2 = valid.astype(bool)
-    if idx.size == n - 2 * k_max and ok2.all():
+    if idx.size == hi - lo and ok2.all():
         # no masked sample in the window: every lag compares the same samples, so all lags at once as rows of one
         # matrix (a row-wise mean sums each row exactly as the per-lag mean does)
-        shifted = np.lib.stride_tricks.sliding_window_view(m2, n - 2 * k_max)
-        cost = np.mean((m1[k_max:n - k_max][None, :] - shifted) ** 2, axis=1)
+        first = lo + k0 - k_max
+        shifted = np.lib.stride_tricks.sliding_window_view(m2, hi - lo)[first:first + 2 * k_max + 1]
+        cost = np.mean((m1[lo:hi][None, :] - shifted) ** 2, axis=1)
     else:
         cost = np.empty(2 * k_max + 1)
-        for i, k in enumerate(range(-k_max, k_max + 1)):
+        for i, k in enumerate(range(k0 - k_max, k0 + k_max + 1)):
             sel = idx[ok2[idx + k]]
             cost[i] = np.mean((m1[sel] - m2[sel + k]) ** 2) if sel.size else np.inf
-    return _parabolic_minimum_s(cost, k_max, fs_hz)
+    lag = _parabolic_minimum_s(cost, k_max, fs_hz)
+    return None if lag is None else lag + k0 / fs_hz
 
 
 def angular_acceleration(g: np.ndarray, fs_hz: float) -> np.ndarray:
@@ -633,7 +640,8 @@ def fit_margin_mask(valid: np.ndarray, fs_hz: float, params: AxesParams = WALKIN
 def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,
                           gd2: np.ndarray, j1: np.ndarray, j2: np.ndarray, far: np.ndarray, fs_hz: float,
                           window: slice, max_lag_s: float, params: AxesParams = WALKING.axes,
-                          centres: np.ndarray | None = None) -> tuple[float | None, np.ndarray | None]:
+                          centres: np.ndarray | None = None, centre_s: float = 0.0
+                          ) -> tuple[float | None, np.ndarray | None]:
     """Timestamp offset of the shank relative to the thigh [s] (sign as :func:`estimate_sync_lag_s`) from Seel's
     joint-centre constraint (Eq. 5): both accelerometers, moved to the knee centre by ``Gamma o``, measure one
     acceleration, so ``||a1 - Gamma_1 o1|| = ||a2 - Gamma_2 o2||`` sample by sample. Unlike the hinge constraint
@@ -645,12 +653,15 @@ def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: n
     three best lags. None without a clear
     interior minimum. Inputs on one grid: low-passed accelerations [m/s^2], gyros [rad/s] and their Eq. 1
     derivatives, ``far`` the samples usable for a fit (:func:`fit_margin_mask`); only samples inside ``window``
-    are used. The zero-lag centres (o1, o2) are fitted on the window's samples, from ``centres`` when given (one
+    are used. The lags searched are ``centre_s +- max_lag_s`` (a drifting lag followed from window to window). The
+    centres (o1, o2) at the lag ``centre_s`` are fitted on the window's samples, from ``centres`` when given (one
     fit, no restarts). Returns the lag and those centres (None where the window has too few samples)."""
     k_max = max(int(round(max_lag_s * fs_hz)), 2)
+    k0 = int(round(centre_s * fs_hz))
     n = g1.shape[0]
     inner = np.zeros(n, dtype=bool)
-    lo, hi = max(window.start or 0, k_max), min(window.stop if window.stop is not None else n, n - k_max)
+    lo = max(window.start or 0, k_max - k0, 0)
+    hi = min(window.stop if window.stop is not None else n, n - k_max - k0, n)
     if hi - lo < 10 * k_max:
         return None, None
     inner[lo:hi] = far[lo:hi]
@@ -660,15 +671,16 @@ def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: n
     # no accelerometer biases in the profile: refitted at every lag they absorb part of the offset (straight
     # walking, 15 ms injected: 18.9 ms read; none injected: -8 ms invented), and held at the zero-lag fit's values
     # they carry that fit's timing misfit (15 ms read as 4.9)
-    span = np.arange(idx[0] - k_max, idx[-1] + k_max + 1)  # every shank sample a lag may reach
+    span = np.arange(idx[0] + k0 - k_max, idx[-1] + k0 + k_max + 1)  # every shank sample a lag may reach
     m1, m2 = gamma_matrices(g1[idx], gd1[idx]), gamma_matrices(g2[span], gd2[span])
+    at = idx + k0  # the shank's samples at the lag ``centre_s``
     if centres is None:
-        fit = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], j1, j2,
+        fit = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[at], g2[at], gd2[at], j1, j2,
                                 dataclasses.replace(params, centre_bias_prior_mps2=0.0))
         centres = np.concatenate([fit.o1, fit.o2])
     else:
-        centres = _lsq_centres(centres, a1[idx], m1, a2[idx], m2[idx - span[0]], params.centre_reg).x
-    # both segments' Eq. 5 terms at the zero-lag centres: each lag then only gathers rows (the arithmetic of
+        centres = _lsq_centres(centres, a1[idx], m1, a2[at], m2[at - span[0]], params.centre_reg).x
+    # both segments' Eq. 5 terms at those centres: each lag then only gathers rows (the arithmetic of
     # _CentreProblem's residuals and Jacobian at those samples)
     v1 = a1[idx] - np.einsum("nij,j->ni", m1, centres[:3])
     v2 = a2[span] - np.einsum("nij,j->ni", m2, centres[3:])
@@ -676,7 +688,7 @@ def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: n
     d1 = -np.einsum("ni,nij->nj", v1 / np.maximum(n1, _EPS)[:, None], m1)  # d(n1)/d(o1)
     d2 = np.einsum("ni,nij->nj", v2 / np.maximum(n2, _EPS)[:, None], m2)  # -d(n2)/d(o2)
     cost = np.empty(2 * k_max + 1)
-    for i, k in enumerate(range(-k_max, k_max + 1)):
+    for i, k in enumerate(range(k0 - k_max, k0 + k_max + 1)):
         ok = far[idx + k]
         n_ok = int(ok.sum())
         if n_ok < 10 * k_max:
@@ -689,7 +701,8 @@ def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: n
         r1 = row_norm(v1[ok] - np.einsum("nij,j->ni", m1[ok], step[:3]))
         r2 = row_norm(v2[s2] - np.einsum("nij,j->ni", m2[s2], step[3:]))
         cost[i] = (float(np.sum((r1 - r2) ** 2)) + w * w * float(np.sum((centres + step) ** 2))) / n_ok
-    return _parabolic_minimum_s(cost, k_max, fs_hz), centres
+    lag = _parabolic_minimum_s(cost, k_max, fs_hz)
+    return (None if lag is None else lag + k0 / fs_hz), centres
 
 
 def _parabolic_minimum_s(cost: np.ndarray, k_max: int, fs_hz: float) -> float | None:

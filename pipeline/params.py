@@ -109,11 +109,13 @@ class SyncParams:
     """Thigh/shank clock offset and drift from the hinge constraint (:mod:`pipeline.sync`)."""
 
     window_s: float = 40.0
-    """One lag estimate per window [s]: long enough for a stable minimum, short against crystal drift."""
+    """One lag estimate per window [s]: long enough for a stable minimum, short against crystal drift. A leg of two
+    to three windows is cut into three shorter ones, so that its drift is seen."""
     max_drift: float = 500e-6
     """Largest credible rate error [s/s] between a thigh's and a shank's clock: crystals are specified to +-20-50
     ppm and move by tens more with temperature and age, so two of them differ by up to ~200 ppm; beyond 500 ppm the
-    estimate is wrong or the clock has no crystal (a ~1 % oscillator, whose lags leave ``max_lag_s`` anyway)."""
+    estimate is wrong or the clock has no crystal (a ~1 % oscillator): window lags that run apart faster leave the
+    leg uncorrected and its strides out of trends (``clock_disagreement``)."""
     agree_s: float = 0.006
     """The window lags must agree with the fitted line within this [s], or no correction is applied."""
     max_lag_s: float = 0.06
@@ -351,9 +353,9 @@ class QualityParams:
     those strides were within 3 deg of the truth (p95 5 deg), and far fewer with long lever arms or around jumps."""
     default_penalty: float = 0.1
     """Quality lost for a reason not listed."""
-    untrusted: tuple[str, ...] = ("peak_in_gap",)
-    """Reasons that leave the stride's metrics unobserved or the stride not gait: quality is capped below the
-    trend threshold."""
+    untrusted: tuple[str, ...] = ("peak_in_gap", "clock_disagreement")
+    """Reasons that leave the stride's metrics unobserved or unmeasurable: quality is capped below the trend
+    threshold."""
     untrusted_cap: float = 0.3
     """Quality ceiling of a stride with an untrusted reason."""
     peak_lead_s: float = 0.15

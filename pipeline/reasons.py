@@ -22,5 +22,8 @@ REASONS: dict[str, str] = {
     "peak_in_gap": "the swing peak, the stance minimum or the rise to the peak fell inside a modelled gap "
                    "(out of trends)",
     "bout_edge": "first or last stride of a walking bout",
+    "clock_disagreement": "the thigh and shank clocks drift apart in a way no credible clock rate explains "
+                          "(SyncParams.max_drift): the timing between the two segments, and so the angle, is "
+                          "unknown (out of trends)",
 }
 """Code -> meaning. ``(out of trends)``: the reason alone keeps the stride below the trend threshold."""

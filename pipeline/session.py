@@ -180,13 +180,14 @@ def _check_thigh_pairing(legs: dict[str, LegResult], swings: dict[str, np.ndarra
 def _alternating_strides(legs: dict[str, LegResult], swings: dict[str, np.ndarray], warnings: list[str]
                          ) -> dict[str, LegResult]:
     """Each leg without the strides in which the other leg does not swing in anti-phase (jumps, squats,
-    sit-to-stand: :mod:`pipeline.bilateral`); a leg alone is not judged."""
+    sit-to-stand: :mod:`pipeline.bilateral`); a leg alone is not judged, nor against a leg whose shank clock is
+    unknown (its swings may lie anywhere)."""
     if set(legs) != {"left", "right"}:
         return legs
     out = dict(legs)
     for leg, other in (("left", "right"), ("right", "left")):
         lr = legs[leg]
-        if not lr.strides:
+        if not lr.strides or _clock_unknown(legs[other]):
             continue
         t0, to, t1 = np.array([(s.t_start_s, s.t_toe_off_s, s.t_end_s) for s in lr.strides]).T
         spans = np.column_stack([t0, mid_swings_s(np.sort(swings[leg]), to, t1), t1])
@@ -203,6 +204,11 @@ def _alternating_strides(legs: dict[str, LegResult], swings: dict[str, np.ndarra
         warnings.append(f"{leg} leg: {len(drop)} stride(s) dropped: the other leg did not swing in anti-phase "
                         "(not gait)")
     return out
+
+
+def _clock_unknown(lr: LegResult) -> bool:
+    """Whether the leg's shank clock could not be brought onto its thigh's (``LegDiagnostics.clock_disagreement``)."""
+    return lr.diagnostics is not None and lr.diagnostics.clock_disagreement
 
 
 def _streams_by_leg(streams: Sequence[RawSensorStream], warnings: list[str]
@@ -248,8 +254,8 @@ def _other_legs(synced: Mapping[str, SyncedLeg], events: Mapping[str, tuple[np.n
     if set(events) != {"left", "right"}:
         return {}
     seen = {leg: OtherLeg(np.sort(synced[leg].prep.t_s[ev.ms]), tuple(synced[leg].prep.gaps_s))
-            for leg, (_, ev) in events.items()}
-    return {"left": seen["right"], "right": seen["left"]}
+            for leg, (_, ev) in events.items() if not synced[leg].clock_disagreement}
+    return {leg: seen[other] for leg, other in (("left", "right"), ("right", "left")) if other in seen}
 
 
 def _leg_input(synced: SyncedLeg, activity: str, params: PipelineParams | None,
@@ -295,7 +301,7 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
         _warnings.simplefilter("ignore", RuntimeWarning)
         data, running = _leg_input(synced, activity, params, calibration, other, events)
         result = auto(data) if estimator == "auto" else single_estimator(data, estimator)
-    strides = _strides(leg, data, result)
+    strides = _strides(leg, data, result, ("clock_disagreement",) if synced.clock_disagreement else ())
     diagnostics = _diagnostics(data, synced, result, strides, running, calibration)
     return LegResult(leg=leg, fs_hz=data.fs_hz, t_s=data.prep.t_s, angle_deg=result.angle_deg,
                      estimator=result.estimator, strides=strides, gaps_s=list(data.prep.gaps_s),
@@ -303,9 +309,11 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
                      diagnostics=diagnostics), data.prep.t_s[data.events.ms]
 
 
-def _strides(leg: str, data: LegInput, result: PolicyResult) -> list[StrideMetrics]:
+def _strides(leg: str, data: LegInput, result: PolicyResult, leg_reasons: tuple[str, ...] = ()
+             ) -> list[StrideMetrics]:
     """Metrics of every stride whose angle is finite throughout, with the policy's choice for it and the data's
-    own reasons (:mod:`pipeline.quality`: filled gaps and long bridges, unsteady bout edges)."""
+    own reasons (:mod:`pipeline.quality`: filled gaps and long bridges, unsteady bout edges; ``leg_reasons``: those
+    of every stride of the leg)."""
     angle, t_s = result.angle_deg, data.prep.t_s
     events = data.events
     out: list[StrideMetrics] = []
@@ -323,7 +331,7 @@ def _strides(leg: str, data: LegInput, result: PolicyResult) -> list[StrideMetri
     edge = edge_reasons(triples, events.bout[np.asarray(ks, dtype=int)].tolist(), swing_dps)
     values = stride_values_many(angle, t_s, triples, data.params.metrics)
     for (_, choice), g, e, v in zip(kept, gap, edge, values, strict=True):
-        extra = tuple(r for r in (*g, *e) if r not in choice.reasons)
+        extra = tuple(r for r in (*g, *e, *leg_reasons) if r not in choice.reasons)
         reasons = (*choice.reasons, *extra)
         quality = min(float(choice.quality), stride_quality(reasons, qp)) if extra else float(choice.quality)
         out.append(StrideMetrics(leg=leg, index=len(out), estimator=choice.estimator, quality=quality,
@@ -355,4 +363,4 @@ def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, stride
         gyr_bias_thigh_dps=tuple(np.round(np.degrees(synced.prep.gyr_bias_thigh_rps), 2).tolist()),
         gyr_bias_shank_dps=tuple(np.round(np.degrees(synced.prep.gyr_bias_shank_rps), 2).tolist()),
         hinge_lean_deg=None if axes.lean_deg is None else tuple(round(x, 1) for x in axes.lean_deg),
-        knee_axes_levelled=axes.leaning)
+        knee_axes_levelled=axes.leaning, clock_disagreement=synced.clock_disagreement)

@@ -11,6 +11,13 @@ joint-centre constraint needs rigid segments, which a heel-strike shock ringing 
 of the two and is used wherever it speaks (out-of-plane motion: turns, hip ab/adduction).
 
 A 10-15 ms offset, common between two BLE sensors, would otherwise distort swing flexion by several degrees.
+
+Two clocks also run at their own rates, so the lag drifts: one lag per window, a line through them. A window's lag is
+that of the samples that carry the cue (turns for the hinge, heel strikes for the centre), so it is placed at their
+weighted time, not at the window's middle (with 300 ppm the window lags then fit their line within ~1 ms, instead of
+scattering by several); each window's search follows the line of the windows before it, so a lag that drifts out of
+``SyncParams.max_lag_s`` is still found. A line steeper than ``SyncParams.max_drift`` is no crystal clock: no
+correction, and the leg's strides are kept out of trends (``clock_disagreement``).
 """
 
 from __future__ import annotations
@@ -48,6 +55,16 @@ class SyncedLeg:
     shank_drift_ppm: float | None
     fit_gyr: tuple[np.ndarray, np.ndarray] | None  # :func:`pipeline.walking.fit_gyros` of ``prep`` when computed
     thigh_fit: np.ndarray | None = None  # else its thigh half when known (:func:`pipeline.walking.reusable_thigh_fit`)
+    clock_disagreement: bool = False  # :attr:`ClockFit.disagreement`: the leg's thigh-shank timing is unknown
+
+
+@dataclass(frozen=True)
+class ClockFit:
+    """The shank-vs-thigh clock model of one leg: ``lag(t) = offset_s + drift * (t - t_mid)``."""
+
+    offset_s: float | None  # lag at mid-session [s]; None: no correction applied
+    drift: float = 0.0  # [s/s]
+    disagreement: bool = False  # the window lags run apart faster than ``SyncParams.max_drift``: timing unknown
 
 
 def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, params: PipelineParams,
@@ -66,9 +83,10 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     fit_gyr: tuple[np.ndarray, np.ndarray] | None = (g1, g2)
     axes = fit_joint_axes(g1, g2, prep.valid, params.axes, up=axis_up(prep, params.axes),
                           gd2_rps2=angular_acceleration(g2, prep.fs_hz) if params.axes.fit_lag else None)
-    offset, drift = clock_model(prep, g1, g2, axes, params.sync, params.axes)
+    clock = clock_model(prep, g1, g2, axes, params.sync, params.axes)
+    offset, drift = clock.offset_s, clock.drift
     if offset is None:
-        return SyncedLeg(prep, axes, None, None, fit_gyr)
+        return SyncedLeg(prep, axes, None, None, fit_gyr, clock_disagreement=clock.disagreement)
     # lag(t) = offset + drift * (t - t_mid): shift the shank's stamps back by it
     t_mid = float(prep.t_s[prep.n // 2])
     if max(abs(offset), abs(drift) * (prep.t_s[-1] - prep.t_s[0]) / 2) * prep.fs_hz > params.sync.min_shift_samples:
@@ -82,37 +100,42 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
 
 
 def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
-                axes_params: AxesParams | None = None) -> tuple[float | None, float]:
-    """Shank-vs-thigh lag at mid-session [s] and its drift [s/s]: one lag per ``window_s`` window and a straight line
-    through them (rate error clipped to ``max_drift``), applied only when at least two windows are informative and
-    agree with the line within ``agree_s``. The hinge constraint's lags where the knee moves as a hinge and they
-    speak; the joint-centre constraint's (when ``axes_params`` is given) where the hinge's own fit leans towards the
-    segments' long axes (``JointAxes.leaning``: the tibia turns as the knee flexes, and the
-    gait-locked misfit reads as a lag) or where the hinge constraint is silent (straight walking, jumps: no
-    out-of-plane motion). Hinge windows that speak but disagree mark a leg whose timing is not to be trusted (no
-    correction). A leg shorter than two windows gets a constant lag from the joint-centre cue on its halves
-    (:func:`_short_session_lag`). ``g1``, ``g2``: low-passed gyros (N, 3) [rad/s]."""
+                axes_params: AxesParams | None = None) -> ClockFit:
+    """Shank-vs-thigh lag at mid-session [s] and its drift [s/s] (:func:`_line_model`): one lag per ``window_s``
+    window, at least three windows, so that a drift shows as a slope and the windows can disagree with a line. The
+    hinge constraint's lags where the knee moves as a hinge and they speak; the joint-centre constraint's (when
+    ``axes_params`` is given) where the hinge's own fit leans towards the segments' long axes
+    (``JointAxes.leaning``: the tibia turns as the knee flexes, and the gait-locked misfit reads as a lag) or where
+    the hinge constraint is silent (straight walking, jumps: no out-of-plane motion). Hinge windows that speak but
+    scatter mark a leg whose timing is not corrected. A leg shorter than two windows gets a constant lag from the
+    joint-centre cue on its halves (:func:`_short_session_lag`). ``g1``, ``g2``: low-passed gyros (N, 3) [rad/s]."""
     fs = prep.fs_hz
     win = int(params.window_s * fs)
     if prep.n < 2 * win:
-        return _short_session_lag(prep, g1, g2, axes, params, axes_params), 0.0
-    edges = np.linspace(0, prep.n, int(prep.n // win) + 1).astype(int)
+        return ClockFit(_short_session_lag(prep, g1, g2, axes, params, axes_params))
+    edges = np.linspace(0, prep.n, max(int(prep.n // win), 3) + 1).astype(int)
     windows = [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
     if not axes.leaning:
         h1, h2 = axes.hinge()
         rates = hinge_rates(g1, g2, h1, h2)  # once for all windows
-        hinge = [estimate_sync_lag_s(g1, g2, h1, h2, prep.valid, fs, window=w, rates=rates,
-                                     max_lag_s=params.max_lag_s) for w in windows]
-        offset, drift = _line_model(prep, windows, params, lambda w: hinge[windows.index(w)])
+        hinge: list[float | None] = []
+
+        def hinge_lag(w: slice, centre_s: float) -> float | None:
+            hinge.append(estimate_sync_lag_s(g1, g2, h1, h2, prep.valid, fs, window=w, rates=rates,
+                                             max_lag_s=params.max_lag_s, centre_s=centre_s))
+            return hinge[-1]
+        # the cue's information on the lag: the squared slope of the compared rate (mostly in turns)
+        weight = np.gradient(rates[1]) ** 2 * prep.valid
+        fit = _line_model(prep, windows, params, hinge_lag, weight=weight)
         # on a hinge knee the centre cue is the less accurate of the two wherever turns make both informative
         # (sweep and accuracy tune seeds: crouch gait, long lever arms)
-        if offset is not None or axes_params is None or sum(lag is not None for lag in hinge) >= 2:
-            return offset, drift
+        if fit.offset_s is not None or axes_params is None or sum(lag is not None for lag in hinge) >= 2:
+            return fit
     elif axes_params is None:
-        return None, 0.0
+        return ClockFit(None)
     pick = np.unique(np.linspace(0, len(windows) - 1, min(len(windows), params.max_centre_windows)).round())
-    return _line_model(prep, [windows[int(i)] for i in pick], params,
-                       _centre_lag_of(prep, g1, g2, axes, params, axes_params))
+    lag_of, weight = _centre_lag_of(prep, g1, g2, axes, params, axes_params)
+    return _line_model(prep, [windows[int(i)] for i in pick], params, lag_of, weight=weight)
 
 
 def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
@@ -128,13 +151,16 @@ def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
     if axes_params is None or half < params.short_window_s * prep.fs_hz:
         return None
     halves = [slice(0, half), slice(half, prep.n)]
-    lag = _line_model(prep, halves, params, _centre_lag_of(prep, g1, g2, axes, params, axes_params))[0]
+    lag = _line_model(prep, halves, params, _centre_lag_of(prep, g1, g2, axes, params, axes_params)[0],
+                      drifting=False).offset_s
     return lag if lag is not None and abs(lag) > params.short_min_lag_s else None
 
 
 def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
-                   axes_params: AxesParams) -> Callable[[slice], float | None]:
-    """The joint-centre lag of one window (:func:`pipeline.axes.estimate_centre_lag_s`), its inputs prepared once."""
+                   axes_params: AxesParams) -> tuple[Callable[[slice, float], float | None], np.ndarray]:
+    """The joint-centre lag of one window (:func:`pipeline.axes.estimate_centre_lag_s`), its inputs prepared once,
+    and where in a window that lag is measured: (N,) the squared slope of the shank's acceleration on the fitted
+    samples (the knee-centre acceleration changes most sharply at heel strike)."""
     fs = prep.fs_hz
     a1, a2 = (np.nan_to_num(a) for a in lowpass_runs_many((prep.acc_thigh_mps2, prep.acc_shank_mps2), prep.valid,
                                                             axes_params.fit_cutoff_hz, fs))
@@ -144,13 +170,14 @@ def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: Join
     # the first window that fits centres hands them on: the others start from them (one fit, no restarts, each)
     centres: list[np.ndarray] = []
 
-    def lag_of(w: slice) -> float | None:
+    def lag_of(w: slice, centre_s: float) -> float | None:
         lag, fitted = estimate_centre_lag_s(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, far, fs, w,
-                                            params.max_lag_s, axes_params, centres[0] if centres else None)
+                                            params.max_lag_s, axes_params, centres[0] if centres else None,
+                                            centre_s)
         if fitted is not None and not centres:
             centres.append(fitted)
         return lag
-    return lag_of
+    return lag_of, row_norm(np.gradient(a2, axis=0)) ** 2 * far
 
 
 def shock_mask(acc: tuple[tuple[np.ndarray, np.ndarray], ...], valid: np.ndarray, fs_hz: float,
@@ -169,22 +196,52 @@ def shock_mask(acc: tuple[tuple[np.ndarray, np.ndarray], ...], valid: np.ndarray
     return np.convolve(shock.astype(float), np.ones(2 * half + 1), mode="same") > 0
 
 
+def _predicted_lag(pts: list[tuple[float, float]], t: float, params: SyncParams) -> float:
+    """The lag [s] at time ``t`` that the (time, lag) points so far predict: none 0, one its lag, more their line
+    (rate clipped to ``max_drift``)."""
+    if len(pts) < 2:
+        return pts[0][1] if pts else 0.0
+    tt, lag = np.array(pts).T
+    drift = float(np.clip(np.polyfit(tt, lag, 1)[0], -params.max_drift, params.max_drift))
+    return float(np.median(lag - drift * tt) + drift * t)
+
+
 def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
-                lag_of: Callable[[slice], float | None]) -> tuple[float | None, float]:
-    """Offset at mid-session and drift of the window lags ``lag_of(window)``; None unless at least two windows are
-    informative and all agree with the line within ``agree_s``."""
+                lag_of: Callable[[slice, float], float | None], drifting: bool = True,
+                weight: np.ndarray | None = None) -> ClockFit:
+    """Offset at mid-session and drift of the window lags ``lag_of(window, centre_s)``, each searched around the
+    lag the windows before it predict (``centre_s``: their line, clipped to ``max_drift``, at the window's time, so
+    that a drifting lag is followed beyond ``max_lag_s``); no correction unless at least two
+    windows are informative and all agree with the line within ``agree_s``; a disagreement where the lags run apart
+    faster than ``max_drift``.
+    ``drifting``: the windows are long apart, so two informative ones that differ by more than ``agree_s`` give the
+    drift between them (else the halves of a short session: a constant offset). ``weight``: (N,) where in each
+    window its lag is measured (the window is placed at the weighted mean time, not at its centre: under a drift a
+    window's lag is that of its turns or heel strikes)."""
     t_mid = float(prep.t_s[prep.n // 2])
     pts = []
     for w in windows:
-        lag = lag_of(w)
+        t_w = float(prep.t_s[(w.start + w.stop) // 2])
+        if weight is not None and weight[w].sum() > 0:
+            t_w = float(np.average(prep.t_s[w], weights=weight[w]))
+        lag = lag_of(w, _predicted_lag(pts, t_w - t_mid, params) if drifting else 0.0)
         if lag is not None:
-            pts.append((float(prep.t_s[(w.start + w.stop) // 2]) - t_mid, lag))
+            pts.append((t_w - t_mid, lag))
     if len(pts) < 2:
-        return None, 0.0
+        return ClockFit(None)
     t, lag = np.array(pts).T
-    # a line through two points always "agrees": two windows give a constant offset, three or more a drift too
-    drift = float(np.clip(np.polyfit(t, lag, 1)[0], -params.max_drift, params.max_drift)) if len(pts) >= 3 else 0.0
+    if len(pts) >= 3:
+        drift = float(np.polyfit(t, lag, 1)[0])
+    elif drifting and abs(lag[1] - lag[0]) > params.agree_s:
+        # a line through two points cannot disagree with them: their slope is taken only where a constant cannot
+        # explain them (a difference beyond the window noise)
+        drift = float((lag[1] - lag[0]) / (t[1] - t[0]))
+    else:
+        drift = 0.0
+    if abs(drift) > params.max_drift:
+        # the lag runs away faster than two crystal clocks can drift apart: the shank's timing is unknown
+        return ClockFit(None, disagreement=True)
     offset = float(np.median(lag - drift * t))
     if np.max(np.abs(lag - offset - drift * t)) > params.agree_s:
-        return None, 0.0
-    return offset, drift
+        return ClockFit(None)  # scattered windows (a noisy cue), no clock seen: nothing corrected
+    return ClockFit(offset, drift)

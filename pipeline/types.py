@@ -145,6 +145,9 @@ class LegDiagnostics:
     # knee axes were levelled and the clock taken from the joint centre (a knee that turns as it flexes)
     hinge_lean_deg: tuple[float, ...] | None = None
     knee_axes_levelled: bool = False
+    # the clock windows' thigh-shank lags disagreed with every credible clock model (pipeline.sync.ClockFit): no
+    # correction applied and every stride flagged ``clock_disagreement``
+    clock_disagreement: bool = False
 
 
 @dataclass

@@ -33,6 +33,7 @@ REASONS = {
     "bridged_gap": "a short data gap was bridged",
     "go_cf_mismatch": "the two estimators disagree",
     "cf_fallback": "complementary filter used instead of the gyroscope-only estimator",
+    "clock_disagreement": "the thigh and shank sensors' clocks ran apart: the angle's timing cannot be trusted",
 }
 
 ESTIMATORS = {

@@ -52,7 +52,7 @@ def test_injected_lag_in_straight_walking_is_recovered(straight, lag_ms: float) 
     for leg in ("left", "right"):
         thigh, shank = _leg_streams(straight.streams, leg, lag_ms / 1000)
         prep, g1, g2, axes = _prepared(thigh, shank)
-        assert clock_model(prep, g1, g2, axes, WALKING.sync)[0] is None  # hinge alone: flat
+        assert clock_model(prep, g1, g2, axes, WALKING.sync).offset_s is None  # hinge alone: flat
         synced = synchronised_leg(leg, thigh, shank, WALKING)
         assert synced.shank_lag_ms is not None and abs(synced.shank_lag_ms - lag_ms) < 2.0
 
@@ -105,7 +105,7 @@ def test_the_centre_cue_runs_on_a_bounded_number_of_windows(straight, monkeypatc
     monkeypatch.setattr("pipeline.sync.estimate_centre_lag_s", counted)
     prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
     params = dataclasses.replace(WALKING.sync, window_s=10.0, max_centre_windows=3)
-    offset, _ = clock_model(prep, g1, g2, axes, params, WALKING.axes)
+    offset = clock_model(prep, g1, g2, axes, params, WALKING.axes).offset_s
     assert len(calls) == 3  # of 9 windows
     assert calls[0].start == 0 and calls[-1].stop == prep.n  # the first and the last: spread over the session
     assert offset is not None and abs(offset - 0.012) < 0.003
@@ -136,8 +136,8 @@ def test_short_session_without_lag_is_not_moved(short_walk) -> None:
 def test_short_session_with_too_short_halves_is_left_alone(short_walk) -> None:
     prep, g1, g2, axes = _prepared(*_leg_streams(short_walk.streams, "left", 0.018))
     params = dataclasses.replace(WALKING.sync, short_window_s=prep.n / prep.fs_hz / 2 + 0.5)
-    assert clock_model(prep, g1, g2, axes, params, WALKING.axes)[0] is None
-    assert clock_model(prep, g1, g2, axes, WALKING.sync, WALKING.axes)[0] is not None
+    assert clock_model(prep, g1, g2, axes, params, WALKING.axes).offset_s is None
+    assert clock_model(prep, g1, g2, axes, WALKING.sync, WALKING.axes).offset_s is not None
 
 
 @pytest.mark.realdata
@@ -185,3 +185,75 @@ def test_heel_strike_shocks_are_left_out_of_the_centre_cue() -> None:
     for leg in ("left", "right"):
         synced = synchronised_leg(leg, *_leg_streams(shocked.streams, leg, 0.012), WALKING)
         assert synced.shank_lag_ms is not None and abs(synced.shank_lag_ms - 12.0) < 3.0
+
+
+# four minutes of walking with turns between bouts, exact clocks unless a drift is injected
+_LONG = dict(pattern="normal", duration_s=240.0, sync_offset_ms=0.0, clock_drift_ppm=0.0)
+
+
+@pytest.fixture(scope="module")
+def long_walk():
+    return simulate_session(SimConfig(seed=11, **_LONG))
+
+
+def _drifting(shank, offset_s: float, drift: float):
+    """The shank's stamps ``offset_s`` late at mid-recording and running ``drift`` [s/s] fast."""
+    t = np.asarray(shank.t_s, dtype=float)
+    t_mid = 0.5 * (t[0] + t[-1])
+    return dataclasses.replace(shank, t_s=t + offset_s + drift * (t - t_mid))
+
+
+def test_drifting_shank_clock_is_followed_beyond_the_search_range(long_walk) -> None:
+    """350 ppm (a shank clock off by more than a crystal's tolerance) on a 25 ms offset: the lag runs from -17 to
+    +67 ms over the recording, beyond the +-60 ms each window searches. Each window searches around the line of the
+    ones before it, so the whole line is found: rate within 20 ppm, mid-session offset within 2 ms."""
+    for leg in ("left", "right"):
+        thigh, shank = _leg_streams(long_walk.streams, leg)
+        synced = synchronised_leg(leg, thigh, _drifting(shank, 0.025, 350e-6), WALKING)
+        assert not synced.clock_disagreement
+        assert synced.shank_drift_ppm is not None and abs(synced.shank_drift_ppm - 350.0) < 20.0
+        assert synced.shank_lag_ms is not None and abs(synced.shank_lag_ms - 25.0) < 2.0
+
+
+def test_window_lags_are_placed_where_the_cue_is(long_walk, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Under a 300 ppm drift each window's lag lies within 1.5 ms of the true lag at the window's weighted time (at
+    the windows' middles they were off by up to 6 ms: the hinge cue speaks in the turns)."""
+    import pipeline.sync as sync_module
+
+    thigh, shank = _leg_streams(long_walk.streams, "left")
+    shank = _drifting(shank, 0.0, 300e-6)
+    t_mid = 0.5 * (shank.t_s[0] + shank.t_s[-1])
+    seen: list[tuple[float, float]] = []
+    line_model = sync_module._line_model
+
+    def spy(prep, windows, params, lag_of, drifting=True, weight=None):  # noqa: ANN001, ANN202
+        def rec(w: slice, centre_s: float) -> float | None:
+            lag = lag_of(w, centre_s)
+            if lag is not None:
+                seen.append((float(np.average(prep.t_s[w], weights=weight[w])), lag))
+            return lag
+        return line_model(prep, windows, params, rec, drifting, weight)
+
+    monkeypatch.setattr(sync_module, "_line_model", spy)
+    prep, g1, g2, axes = _prepared(thigh, shank)
+    clock_model(prep, g1, g2, axes, WALKING.sync, WALKING.axes)
+    assert len(seen) >= 3
+    for t, lag in seen:
+        assert abs(lag - 300e-6 * (t - t_mid)) < 0.0015
+
+
+def test_runaway_clock_keeps_the_leg_out_of_trends(long_walk) -> None:
+    """800 ppm: no pair of crystal clocks drifts so fast (``SyncParams.max_drift`` 500 ppm). Nothing is corrected,
+    the leg says so, and every stride of it carries ``clock_disagreement`` below the trend threshold, while the other
+    leg, whose clocks agree, keeps its strides in trends."""
+    thigh, shank = _leg_streams(long_walk.streams, "left")
+    synced = synchronised_leg("left", thigh, _drifting(shank, 0.0, 800e-6), WALKING)
+    assert synced.clock_disagreement and synced.shank_lag_ms is None
+    streams = [(_drifting(s, 0.0, 800e-6) if s.leg == "left" and s.segment == "shank" else s)
+               for s in long_walk.streams]
+    res = process_session(streams, activity="walking")
+    left, right = res.legs["left"], res.legs["right"]
+    assert left.diagnostics.clock_disagreement and not right.diagnostics.clock_disagreement
+    assert left.strides and all("clock_disagreement" in s.quality_reasons and s.quality < 0.5 for s in left.strides)
+    assert len(right.strides) > 100 and not any("clock_disagreement" in s.quality_reasons for s in right.strides)
+    assert sum(s.quality >= 0.5 for s in right.strides) > 0.9 * len(right.strides)
