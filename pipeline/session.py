@@ -27,7 +27,7 @@ from pipeline.policy import PolicyResult, auto, single_estimator
 from pipeline.prepare import SI, to_si
 from pipeline.quality import edge_reasons, gap_reasons, stride_quality
 from pipeline.running import build_running_leg_input, detect_running
-from pipeline.sync import SyncedLeg, synchronised_leg
+from pipeline.sync import SyncedLeg, stride_clock_runaway, synchronised_leg
 from pipeline.types import (
     KneeCalibration,
     LegDiagnostics,
@@ -301,8 +301,9 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
         _warnings.simplefilter("ignore", RuntimeWarning)
         data, running = _leg_input(synced, activity, params, calibration, other, events)
         result = auto(data) if estimator == "auto" else single_estimator(data, estimator)
-    strides = _strides(leg, data, result, ("clock_disagreement",) if synced.clock_disagreement else ())
-    diagnostics = _diagnostics(data, synced, result, strides, running, calibration)
+    clock_unknown = synced.clock_disagreement or _clock_runaway(data)
+    strides = _strides(leg, data, result, ("clock_disagreement",) if clock_unknown else ())
+    diagnostics = _diagnostics(data, synced, result, strides, running, calibration, clock_unknown)
     return LegResult(leg=leg, fs_hz=data.fs_hz, t_s=data.prep.t_s, angle_deg=result.angle_deg,
                      estimator=result.estimator, strides=strides, gaps_s=list(data.prep.gaps_s),
                      walking_s=float(sum(s.duration_s for s in strides)), activity=data.activity,
@@ -340,8 +341,17 @@ def _strides(leg: str, data: LegInput, result: PolicyResult, leg_reasons: tuple[
     return out
 
 
+def _clock_runaway(data: LegInput) -> bool:
+    """:func:`pipeline.sync.stride_clock_runaway` on the leg's mid-swing peaks in walking bouts."""
+    ev = data.events
+    ms = ev.ms[(ev.ms >= 0) & (ev.bout >= 0)]
+    return stride_clock_runaway(data.prep.t_s, data.rate_dps + data.shank_sag_dps, ms, data.fs_hz,
+                                data.params.sync)
+
+
 def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, strides: list[StrideMetrics],
-                 running: RunningDiagnostics | None, calibration: KneeCalibration | None) -> LegDiagnostics:
+                 running: RunningDiagnostics | None, calibration: KneeCalibration | None,
+                 clock_unknown: bool) -> LegDiagnostics:
     axes, centres, events = data.axes, data.centres, data.events
     return LegDiagnostics(
         activity=data.activity, axis_rms_residual_dps=round(axes.rms_residual_dps, 2),
@@ -363,4 +373,4 @@ def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, stride
         gyr_bias_thigh_dps=tuple(np.round(np.degrees(synced.prep.gyr_bias_thigh_rps), 2).tolist()),
         gyr_bias_shank_dps=tuple(np.round(np.degrees(synced.prep.gyr_bias_shank_rps), 2).tolist()),
         hinge_lean_deg=None if axes.lean_deg is None else tuple(round(x, 1) for x in axes.lean_deg),
-        knee_axes_levelled=axes.leaning, clock_disagreement=synced.clock_disagreement)
+        knee_axes_levelled=axes.leaning, clock_disagreement=clock_unknown)

@@ -26,6 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import theilslopes
 
 from pipeline.axes import (
     JointAxes,
@@ -136,6 +137,32 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
     pick = np.unique(np.linspace(0, len(windows) - 1, min(len(windows), params.max_centre_windows)).round())
     lag_of, weight = _centre_lag_of(prep, g1, g2, axes, params, axes_params)
     return _line_model(prep, [windows[int(i)] for i in pick], params, lag_of, weight=weight)
+
+
+def stride_clock_runaway(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndarray, fs_hz: float,
+                         params: SyncParams) -> bool:
+    """Whether the stride timing shows the shank's clock running away from the thigh's faster than ``max_drift``
+    after the clock model: a check the window lags cannot make once a drift smears a window's lag beyond the search
+    range (beyond ~1000 ppm in 40 s windows), nor after a wrong correction. Each stride's thigh swing peak (the hip
+    flexes fastest in early swing) follows the shank's mid-swing peak ``ms`` (indices) by a nearly constant time
+    (SD ~8 ms on the simulator's 4-minute walks); a clock drift adds ``drift * t``. True when the 95 % interval of
+    the Theil-Sen slope of that time over the session lies wholly beyond ``max_drift`` (at least
+    ``stride_cue_min_strides`` strides over ``stride_cue_min_span_s``). ``thigh_sag_dps`` (N,) g1.j1 on the grid."""
+    before, after = (int(round(x * fs_hz)) for x in params.stride_cue_window_s)
+    ms = np.asarray(ms, dtype=int)
+    ms = ms[(ms >= before) & (ms + after < t_s.shape[0])]
+    if ms.size < params.stride_cue_min_strides:
+        return False
+    seg = thigh_sag_dps[ms[:, None] + np.arange(-before, after + 1)]
+    ok = np.isfinite(seg).all(axis=1)
+    if ok.sum() < params.stride_cue_min_strides:
+        return False
+    t = t_s[ms[ok]]
+    if t[-1] - t[0] < params.stride_cue_min_span_s:
+        return False
+    delta = (np.argmax(seg[ok], axis=1) - before) / fs_hz
+    _, _, low, high = theilslopes(delta, t)
+    return bool(low > params.max_drift or high < -params.max_drift)
 
 
 def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,

@@ -19,7 +19,7 @@ from pipeline.prepare import nominal_fs, prepare_leg_si, to_si
 from pipeline.session import process_session
 from pipeline.signal_utils import lowpass_runs_many
 from pipeline.simulate import SimConfig, simulate_session
-from pipeline.sync import clock_model, shock_mask, synchronised_leg
+from pipeline.sync import clock_model, shock_mask, stride_clock_runaway, synchronised_leg
 from pipeline.walking import fit_gyros
 from tests.conftest import skip_without_real_data
 
@@ -257,3 +257,35 @@ def test_runaway_clock_keeps_the_leg_out_of_trends(long_walk) -> None:
     assert left.strides and all("clock_disagreement" in s.quality_reasons and s.quality < 0.5 for s in left.strides)
     assert len(right.strides) > 100 and not any("clock_disagreement" in s.quality_reasons for s in right.strides)
     assert sum(s.quality >= 0.5 for s in right.strides) > 0.9 * len(right.strides)
+
+
+@pytest.mark.parametrize("drift", [1500e-6, -3000e-6])
+def test_clock_too_fast_for_the_windows_is_seen_in_the_stride_timing(long_walk, drift: float) -> None:
+    """Beyond ~1000 ppm a 40 s window's lag smears past the search range and the window lags fall silent or
+    scatter; the thigh's swing peak, which follows the shank's by a near-constant time, still shows the drift. The
+    leg is flagged; the other leg, and the same leg at a crystal's 300 ppm, are not."""
+    streams = [(_drifting(s, 0.0, drift) if s.leg == "right" and s.segment == "shank" else s)
+               for s in long_walk.streams]
+    res = process_session(streams, activity="walking")
+    assert res.legs["right"].diagnostics.clock_disagreement
+    assert all("clock_disagreement" in s.quality_reasons for s in res.legs["right"].strides)
+    assert not res.legs["left"].diagnostics.clock_disagreement
+    crystal = [(_drifting(s, 0.0, 300e-6) if s.leg == "right" and s.segment == "shank" else s)
+               for s in long_walk.streams]
+    assert not process_session(crystal, activity="walking").legs["right"].diagnostics.clock_disagreement
+
+
+def test_stride_timing_check_needs_enough_strides() -> None:
+    """A thigh peak that drifts 3000 ppm against the shank's mid-swing is flagged over 60 strides in 66 s, but
+    not from 10 strides, nor from 25 strides within 24 s (no verdict: False)."""
+    fs = 100.0
+    t = np.arange(8000) / fs
+
+    def case(ms: np.ndarray) -> bool:
+        thigh = np.zeros(t.size)
+        thigh[ms - 12 - np.round(3000e-6 * t[ms] * fs).astype(int)] = 1.0
+        return stride_clock_runaway(t, thigh, ms, fs, WALKING.sync)
+
+    assert case(np.arange(100, 100 + 60 * 110, 110))
+    assert not case(np.arange(100, 100 + 10 * 110, 110))
+    assert not case(np.arange(100, 100 + 25 * 100, 100))
