@@ -17,7 +17,8 @@ that of the samples that carry the cue (turns for the hinge, heel strikes for th
 weighted time, not at the window's middle (with 300 ppm the window lags then fit their line within ~1 ms, instead of
 scattering by several); each window's search follows the line of the windows before it, so a lag that drifts out of
 ``SyncParams.max_lag_s`` is still found. A line steeper than ``SyncParams.max_drift`` is no crystal clock: no
-correction, and the leg's strides are kept out of trends (``clock_disagreement``).
+correction, and the leg's strides are kept out of trends (``clock_disagreement``). Faster clocks smear a window's lag
+beyond the search range, so the stride timing checks the result (:func:`stride_clock_runaway`).
 """
 
 from __future__ import annotations
