@@ -162,6 +162,9 @@ def stride_clock_runaway(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndar
     if t[-1] - t[0] < params.stride_cue_min_span_s:
         return False
     delta = (np.argmax(seg[ok], axis=1) - before) / fs_hz
+    if t.size > params.stride_cue_max_strides:  # Theil-Sen takes every pair: bounded work on long recordings
+        keep = np.linspace(0, t.size - 1, params.stride_cue_max_strides).round().astype(int)
+        t, delta = t[keep], delta[keep]
     _, _, low, high = theilslopes(delta, t)
     return bool(low > params.max_drift or high < -params.max_drift)
 

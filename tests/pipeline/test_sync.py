@@ -289,3 +289,30 @@ def test_stride_timing_check_needs_enough_strides() -> None:
     assert case(np.arange(100, 100 + 60 * 110, 110))
     assert not case(np.arange(100, 100 + 10 * 110, 110))
     assert not case(np.arange(100, 100 + 25 * 100, 100))
+
+
+def test_stride_timing_check_is_bounded_on_long_recordings(monkeypatch: pytest.MonkeyPatch) -> None:
+    """600 strides (11 minutes): the check compares at most ``stride_cue_max_strides`` of them (Theil-Sen takes
+    every pair), sees a 600 ppm drift and no drift where there is none."""
+    import pipeline.sync as sync_module
+
+    sizes: list[int] = []
+    real = sync_module.theilslopes
+
+    def counted(y, x):  # noqa: ANN001, ANN202
+        sizes.append(len(x))
+        return real(y, x)
+
+    monkeypatch.setattr(sync_module, "theilslopes", counted)
+    fs = 100.0
+    ms = np.arange(100, 100 + 600 * 110, 110)
+    t = np.arange(ms[-1] + 200) / fs
+
+    def thigh(drift: float) -> np.ndarray:
+        out = np.zeros(t.size)
+        out[ms + np.round((0.10 - drift * t[ms]) * fs).astype(int)] = 1.0
+        return out
+
+    assert stride_clock_runaway(t, thigh(600e-6), ms, fs, WALKING.sync)
+    assert not stride_clock_runaway(t, thigh(0.0), ms, fs, WALKING.sync)
+    assert sizes == [WALKING.sync.stride_cue_max_strides] * 2
