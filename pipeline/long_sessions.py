@@ -195,6 +195,7 @@ class _Leg:
     bouts: int = 0
     bridged: int = 0
     masked: int = 0
+    clock_disagreement: bool = False  # in any chunk
 
 
 class _Merged:
@@ -250,6 +251,7 @@ class _Merged:
                 leg.bouts += lr.diagnostics.bouts
                 leg.bridged += lr.diagnostics.bridged_gaps
                 leg.masked += lr.diagnostics.masked_implausible_samples
+                leg.clock_disagreement |= lr.diagnostics.clock_disagreement
 
     def _warnings(self) -> list[str]:
         for lo, hi, legs in self.chunks:
@@ -274,7 +276,8 @@ class _Merged:
             if diag is not None:
                 diag = dataclasses.replace(diag, n_strides=len(strides),
                                            n_fallback=sum(1 for s in strides if s.fallback), bouts=leg.bouts,
-                                           bridged_gaps=leg.bridged, masked_implausible_samples=leg.masked)
+                                           bridged_gaps=leg.bridged, masked_implausible_samples=leg.masked,
+                                           clock_disagreement=leg.clock_disagreement)
             legs[name] = dataclasses.replace(
                 leg.best, fs_hz=leg.trace.fs_hz, t_s=t_s, angle_deg=angle, estimator=est, strides=strides,
                 gaps_s=leg.gaps, walking_s=float(sum(s.duration_s for s in strides)),

@@ -96,6 +96,9 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
     legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
                                         warnings, others)
     legs = _alternating_strides(legs, swings, warnings)
+    warnings += [f"{leg} leg: its thigh and shank clocks run apart faster than crystal clocks can; the knee angle's "
+                 "timing is unknown and its strides are kept out of trends (clock_disagreement)"
+                 for leg in sorted(legs) if _clock_unknown(legs[leg])]
     for leg, how in assigned.items():
         lr = legs.get(leg)
         if lr is not None and lr.diagnostics is not None:

@@ -254,6 +254,9 @@ def test_runaway_clock_keeps_the_leg_out_of_trends(long_walk) -> None:
     res = process_session(streams, activity="walking")
     left, right = res.legs["left"], res.legs["right"]
     assert left.diagnostics.clock_disagreement and not right.diagnostics.clock_disagreement
+    assert [w for w in res.warnings if "clock_disagreement" in w] == [
+        w for w in res.warnings if w.startswith("left leg: its thigh and shank clocks run apart")]
+    assert any(w.startswith("left leg: its thigh and shank clocks") for w in res.warnings)
     assert left.strides and all("clock_disagreement" in s.quality_reasons and s.quality < 0.5 for s in left.strides)
     assert len(right.strides) > 100 and not any("clock_disagreement" in s.quality_reasons for s in right.strides)
     assert sum(s.quality >= 0.5 for s in right.strides) > 0.9 * len(right.strides)
