@@ -647,15 +647,15 @@ def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: n
     acceleration, so ``||a1 - Gamma_1 o1|| = ||a2 - Gamma_2 o2||`` sample by sample. Unlike the hinge constraint
     (Eq. 2) this holds timing information in straight walking: the knee-centre acceleration swings by several
     m/s^2 each stride, most sharply at heel strike. For each whole-sample lag the shank samples are shifted and the
-    window's zero-lag centres moved by one Gauss-Newton step of Eq. 5: a profile of the Eq. 5 cost over the lag,
-    since centres held fixed would absorb part of the offset (a full refit at every lag gave lag errors whose SD
-    differed by 0.2 ms at most on the sweep's tune seeds, at several times the cost); then a parabola through the
-    three best lags. None without a clear
-    interior minimum. Inputs on one grid: low-passed accelerations [m/s^2], gyros [rad/s] and their Eq. 1
-    derivatives, ``far`` the samples usable for a fit (:func:`fit_margin_mask`); only samples inside ``window``
-    are used. The lags searched are ``centre_s +- max_lag_s`` (a drifting lag followed from window to window). The
-    centres (o1, o2) at the lag ``centre_s`` are fitted on the window's samples, from ``centres`` when given (one
-    fit, no restarts). Returns the lag and those centres (None where the window has too few samples)."""
+    window's centres (fitted at the lag ``centre_s``) moved by one Gauss-Newton step of Eq. 5: a profile of the
+    Eq. 5 cost over the lag, since centres held fixed would absorb part of the offset (a full refit at every lag
+    gave lag errors whose SD differed by 0.2 ms at most on the sweep's tune seeds, at several times the cost); then
+    a parabola through the three best lags. None without a clear interior minimum. Inputs on one grid: low-passed
+    accelerations [m/s^2], gyros [rad/s] and their Eq. 1 derivatives, ``far`` the samples usable for a fit
+    (:func:`fit_margin_mask`); only samples inside ``window`` are used. The lags searched are ``centre_s +-
+    max_lag_s`` (a drifting lag followed from window to window). The centres (o1, o2) at the lag ``centre_s`` are
+    fitted on the window's samples, from ``centres`` when given (one fit, no restarts). Returns the lag and those
+    centres (None where the window has too few samples)."""
     k_max = max(int(round(max_lag_s * fs_hz)), 2)
     k0 = int(round(centre_s * fs_hz))
     n = g1.shape[0]

@@ -183,14 +183,14 @@ def _check_thigh_pairing(legs: dict[str, LegResult], swings: dict[str, np.ndarra
 def _alternating_strides(legs: dict[str, LegResult], swings: dict[str, np.ndarray], warnings: list[str]
                          ) -> dict[str, LegResult]:
     """Each leg without the strides in which the other leg does not swing in anti-phase (jumps, squats,
-    sit-to-stand: :mod:`pipeline.bilateral`); a leg alone is not judged, nor against a leg whose shank clock is
-    unknown (its swings may lie anywhere)."""
+    sit-to-stand: :mod:`pipeline.bilateral`); a leg alone is not judged, nor is a leg whose shank clock is unknown
+    or judged against one (its swings may lie anywhere)."""
     if set(legs) != {"left", "right"}:
         return legs
     out = dict(legs)
     for leg, other in (("left", "right"), ("right", "left")):
         lr = legs[leg]
-        if not lr.strides or _clock_unknown(legs[other]):
+        if not lr.strides or _clock_unknown(lr) or _clock_unknown(legs[other]):
             continue
         t0, to, t1 = np.array([(s.t_start_s, s.t_toe_off_s, s.t_end_s) for s in lr.strides]).T
         spans = np.column_stack([t0, mid_swings_s(np.sort(swings[leg]), to, t1), t1])

@@ -127,7 +127,10 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
                                              max_lag_s=params.max_lag_s, centre_s=centre_s))
             return hinge[-1]
         # the cue's information on the lag: the squared slope of the compared rate (mostly in turns)
-        weight = np.gradient(rates[1]) ** 2 * prep.valid
+        inner = prep.valid.copy()  # no slope across a hole's edge: the rates are zero-filled inside it
+        inner[1:] &= prep.valid[:-1]
+        inner[:-1] &= prep.valid[1:]
+        weight = np.gradient(rates[1]) ** 2 * inner
         fit = _line_model(prep, windows, params, hinge_lag, weight=weight)
         # on a hinge knee the centre cue is the less accurate of the two wherever turns make both informative
         # (sweep and accuracy tune seeds: crouch gait, long lever arms)
@@ -145,7 +148,7 @@ def stride_clock_runaway(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndar
     """Whether the stride timing shows the shank's clock running away from the thigh's faster than ``max_drift``
     after the clock model: a check the window lags cannot make once a drift smears a window's lag beyond the search
     range (beyond ~1000 ppm in 40 s windows), nor after a wrong correction. Each stride's thigh swing peak (the hip
-    flexes fastest in early swing) follows the shank's mid-swing peak ``ms`` (indices) by a nearly constant time
+    flexes fastest in early swing) leads the shank's mid-swing peak ``ms`` (indices) by a nearly constant time
     (SD ~8 ms on the simulator's 4-minute walks); a clock drift adds ``drift * t``. True when the 95 % interval of
     the Theil-Sen slope of that time over the session lies wholly beyond ``max_drift`` (at least
     ``stride_cue_min_strides`` strides over ``stride_cue_min_span_s``). ``thigh_sag_dps`` (N,) g1.j1 on the grid."""
@@ -159,7 +162,7 @@ def stride_clock_runaway(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndar
     if ok.sum() < params.stride_cue_min_strides:
         return False
     t = t_s[ms[ok]]
-    if t[-1] - t[0] < params.stride_cue_min_span_s:
+    if t.size < 2 or t[-1] - t[0] < params.stride_cue_min_span_s:
         return False
     delta = (np.argmax(seg[ok], axis=1) - before) / fs_hz
     if t.size > params.stride_cue_max_strides:  # Theil-Sen takes every pair: bounded work on long recordings
@@ -243,8 +246,8 @@ def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
     """Offset at mid-session and drift of the window lags ``lag_of(window, centre_s)``, each searched around the
     lag the windows before it predict (``centre_s``: their line, clipped to ``max_drift``, at the window's time, so
     that a drifting lag is followed beyond ``max_lag_s``); no correction unless at least two
-    windows are informative and all agree with the line within ``agree_s``; a disagreement where the lags run apart
-    faster than ``max_drift``.
+    windows are informative and all agree with the line within ``agree_s``; a disagreement where they agree on a
+    line steeper than ``max_drift``.
     ``drifting``: the windows are long apart, so two informative ones that differ by more than ``agree_s`` give the
     drift between them (else the halves of a short session: a constant offset). ``weight``: (N,) where in each
     window its lag is measured (the window is placed at the weighted mean time, not at its centre: under a drift a
@@ -269,10 +272,10 @@ def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
         drift = float((lag[1] - lag[0]) / (t[1] - t[0]))
     else:
         drift = 0.0
-    if abs(drift) > params.max_drift:
-        # the lag runs away faster than two crystal clocks can drift apart: the shank's timing is unknown
-        return ClockFit(None, disagreement=True)
     offset = float(np.median(lag - drift * t))
     if np.max(np.abs(lag - offset - drift * t)) > params.agree_s:
         return ClockFit(None)  # scattered windows (a noisy cue), no clock seen: nothing corrected
+    if abs(drift) > params.max_drift:
+        # the windows agree on a lag that runs away faster than two crystal clocks drift apart: timing unknown
+        return ClockFit(None, disagreement=True)
     return ClockFit(offset, drift)

@@ -145,8 +145,9 @@ class LegDiagnostics:
     # knee axes were levelled and the clock taken from the joint centre (a knee that turns as it flexes)
     hinge_lean_deg: tuple[float, ...] | None = None
     knee_axes_levelled: bool = False
-    # the clock windows' thigh-shank lags disagreed with every credible clock model (pipeline.sync.ClockFit): no
-    # correction applied and every stride flagged ``clock_disagreement``
+    # the thigh's and shank's clocks run apart faster than crystal clocks can, as the clock windows
+    # (pipeline.sync.ClockFit; then no correction was applied) or the stride timing (pipeline.sync.
+    # stride_clock_runaway; after any correction) show: every stride flagged ``clock_disagreement``
     clock_disagreement: bool = False
 
 
