@@ -23,7 +23,7 @@ from scipy.stats import chi2
 
 from pipeline.params import WALKING, AxesParams
 from pipeline.prepare import PreparedLeg
-from pipeline.signal_utils import cross_rows, row_norm
+from pipeline.signal_utils import away_from_holes, cross_rows, row_norm
 
 _EPS = 1e-9  # guards divisions by a norm; far below any physical value
 
@@ -633,8 +633,7 @@ def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.nd
 def fit_margin_mask(valid: np.ndarray, fs_hz: float, params: AxesParams = WALKING.axes) -> np.ndarray:
     """Samples at least ``fit_margin_s`` from any masked gap: the filters and Eq. 1 differences are unreliable
     within a few samples of one."""
-    margin = max(int(params.fit_margin_s * fs_hz), 1)
-    return ~np.convolve(~valid, np.ones(2 * margin + 1), mode="same").astype(bool)
+    return away_from_holes(valid, max(int(params.fit_margin_s * fs_hz), 1))
 
 
 def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,

@@ -65,6 +65,12 @@ def long_runs(mask: np.ndarray, min_len: float) -> np.ndarray:
     return np.cumsum(delta[:-1]) > 0
 
 
+def away_from_holes(valid: np.ndarray, margin: int) -> np.ndarray:
+    """(N,) bool: the valid samples with no invalid one within ``margin`` samples (beyond the ends counts as
+    valid)."""
+    return ~np.convolve(~np.asarray(valid, dtype=bool), np.ones(2 * margin + 1), mode="same").astype(bool)
+
+
 def fill_invalid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Invalid samples replaced by linear interpolation between the valid ones (constant at the ends)."""
     x = np.asarray(x, dtype=float)

@@ -42,7 +42,7 @@ from pipeline.axes import (
 from pipeline.constants import G_MPS2
 from pipeline.params import AxesParams, PipelineParams, SyncParams
 from pipeline.prepare import SI, PreparedLeg, nominal_fs, prepare_leg_si, to_si
-from pipeline.signal_utils import lowpass_runs_many, row_norm
+from pipeline.signal_utils import away_from_holes, lowpass_runs_many, row_norm
 from pipeline.types import RawSensorStream
 from pipeline.walking import fit_gyros, reusable_thigh_fit
 
@@ -127,10 +127,8 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
                                              max_lag_s=params.max_lag_s, centre_s=centre_s))
             return hinge[-1]
         # the cue's information on the lag: the squared slope of the compared rate (mostly in turns)
-        inner = prep.valid.copy()  # no slope across a hole's edge: the rates are zero-filled inside it
-        inner[1:] &= prep.valid[:-1]
-        inner[:-1] &= prep.valid[1:]
-        weight = np.gradient(rates[1]) ** 2 * inner
+        # (no slope across a hole's edge: the rates are zero-filled inside it)
+        weight = np.gradient(rates[1]) ** 2 * away_from_holes(prep.valid, 1)
         fit = _line_model(prep, windows, params, hinge_lag, weight=weight)
         # on a hinge knee the centre cue is the less accurate of the two wherever turns make both informative
         # (sweep and accuracy tune seeds: crouch gait, long lever arms)
