@@ -7,7 +7,7 @@ bit-identical either way:
   each; the filter's own recursion is a small part of the time);
 - :func:`central_slopes`, :func:`hermite_eval`: the slopes, interval search and cubic Hermite evaluation of
   :func:`pipeline.prepare._interp_columns` in one pass each instead of a dozen array passes;
-- :func:`shifted_context`: the shifted, masked context rows of :func:`pipeline.prepare._periodic_hole` (the
+- :func:`shifted_context`: the shifted, masked context rows of :func:`pipeline.prepare._context_scores` (the
   correlation sums stay numpy's own);
 - :func:`saturated_runs`: the clipped-gyro run tests of :func:`pipeline.prepare.saturation_mask`;
 - :func:`si_block`: the unit conversion and the finiteness and order checks of :func:`pipeline.prepare.to_si` in
@@ -187,7 +187,7 @@ if numba is not None:
     def _shifted_context(g: np.ndarray, bad: np.ndarray, c: np.ndarray, lags: np.ndarray, sign: int,
                          mean: np.ndarray, b: np.ndarray, ok: np.ndarray) -> None:
         """``src = c + sign * lag``: ``ok[l, j]`` = src inside the signal and not masked, ``b[l, j]`` =
-        ``(g[clip(src)] - mean) * ok`` (the rows :func:`pipeline.prepare._periodic_hole` correlates)."""
+        ``(g[clip(src)] - mean) * ok`` (the rows :func:`pipeline.prepare._context_scores` correlates)."""
         n = g.shape[0]
         for li in range(lags.shape[0]):
             for j in range(c.shape[0]):

@@ -35,6 +35,12 @@ class PrepareParams:
     """Search range of the stride period [s] for the periodic fill (running ~0.6, very slow walking ~2.5)."""
     periodic_context_s: float = 0.8
     """Data [s] on either side of the hole compared with the same data one period earlier/later."""
+    periodic_edge_s: float = 0.25
+    """Data [s] at each edge of a hole aligned on its own with the template stride: a quarter of a stride holds a
+    gait event's shape (a swing peak or a heel strike) to align on, and stays within the stride the hole is in."""
+    periodic_max_warp: float = 0.08
+    """Largest shift of the template at a hole's edge, as a share of the period: consecutive strides differ in
+    duration by 2-3 % (CV) in steady walking (Hausdorff 2005), more at turns and in patients."""
     periodic_min_corr: float = 0.8
     """Least correlation between the hole's context and its one-period-shifted copy: gait repeats with r > 0.9
     from stride to stride; standing noise, turns and transitions do not, and their holes stay masked."""

@@ -6,8 +6,9 @@ a cubic keeps swing peaks that straight lines would cut. A gap is a step between
 ``PrepareParams.gap_factor`` nominal periods. Gaps up to ``PrepareParams.max_bridge_s`` (one or two lost BLE
 packets; shorter than the swing-flexion phase, so the cubic still sees both sides of any knee event) are bridged by
 the cubic and reported (``bridged_s``, strides touching one get a quality note). Longer gaps up to
-``PrepareParams.periodic_bridge_s`` inside periodic gait are filled from the sensor's own neighbouring strides
-(:func:`periodic_fill`, reported in ``filled_s``); the rest is masked: no angle, no stride across.
+``PrepareParams.periodic_bridge_s`` inside periodic gait are filled from the sensor's own neighbouring strides,
+warped to the hole's own timing (:func:`periodic_fill`, reported in ``filled_s``); the rest is masked: no angle, no
+stride across.
 """
 
 from __future__ import annotations
@@ -280,18 +281,22 @@ def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, flo
     Gait is periodic: a shank or thigh IMU's signal one stride earlier and later predicts the missing one well
     (stride-to-stride correlation of the shank rate > 0.9 in steady walking). The stride period T is the lag in
     ``periodic_period_s`` that best aligns the ``periodic_context_s`` of data on both sides of the hole with the same
-    data shifted by T (the autocorrelation period estimate of gait cycles, Moe-Nilssen and Helbostad 2004); the hole
-    is the mean of the samples one period before and after (what is available) - the phase-aligned mean of the
-    neighbouring strides - plus a straight line that matches it to the measured samples at both edges of the hole.
-    ``x`` (N, C): the sensor's grid channels, gyro in the first three (the only ones scored). A gap longer than
-    ``periodic_bridge_s``, without periodic context (correlation below ``periodic_min_corr``) or at the grid's edge
-    stays a gap. Returns the filled channels, the filled gaps and the remaining gaps."""
+    data shifted by T (the autocorrelation period estimate of gait cycles, Moe-Nilssen and Helbostad 2004); where
+    only one side is gait (the hole at a bout's first or last stride), that side alone with the stride on its side.
+    The template is the stride one period before and/or after (what is wholly available), warped in time: its
+    shift is fitted separately to the ``periodic_edge_s`` of data at either edge of the hole and runs linearly
+    between them (piecewise-linear registration of gait cycles, Sadeghi et al. 2000), since consecutive strides
+    differ in timing by a few per cent. A straight line then matches the template to the measured samples at both
+    edges. ``x`` (N, C): the sensor's grid channels, gyro in the first three (the only ones scored). A gap longer
+    than ``periodic_bridge_s``, without periodic context (correlation below ``periodic_min_corr``) or at the grid's
+    edge stays a gap. Returns the filled channels, the filled gaps and the remaining gaps."""
     if not gaps:
         return x, [], []
     n = t_grid.shape[0]
     bad = _mask_intervals(t_grid, gaps)
     lags = np.arange(max(int(params.periodic_period_s[0] * fs_hz), 1), int(params.periodic_period_s[1] * fs_hz) + 1)
     ctx = max(int(params.periodic_context_s * fs_hz), 2)
+    edge = max(int(round(params.periodic_edge_s * fs_hz)), 3)
     out = x
     filled: list[tuple[float, float]] = []
     kept: list[tuple[float, float]] = []
@@ -303,7 +308,7 @@ def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, flo
         if g1 - g0 > params.periodic_bridge_s or i0 < 1 or i1 >= n:
             kept.append((g0, g1))
             continue
-        fill = _periodic_hole(x, bad, i0, i1, lags, ctx, params.periodic_min_corr)
+        fill = _periodic_hole(x, bad, i0, i1, lags, ctx, edge, params)
         if fill is None:
             kept.append((g0, g1))
             continue
@@ -314,24 +319,77 @@ def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, flo
     return out, filled, kept
 
 
-def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.ndarray, ctx: int, min_corr: float
-                   ) -> np.ndarray | None:
-    """Samples ``[i0, i1)`` of ``x`` from the best-aligned period (:func:`periodic_fill`), None without one."""
+_CANDIDATE_LAGS = 8
+"""Best-scoring periods tried in turn until one's template is wholly available (a neighbouring stride may have a
+hole of its own at the same phase)."""
+
+
+def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.ndarray, ctx: int, edge: int,
+                   params: PrepareParams) -> np.ndarray | None:
+    """Samples ``[i0, i1)`` of ``x`` from the best-aligned neighbouring strides (:func:`periodic_fill`), None
+    without them."""
     n = x.shape[0]
-    c = np.concatenate((np.arange(max(i0 - ctx, 0), i0), np.arange(i1, min(i1 + ctx, n))))
-    c = c[~bad[c]]
-    if c.size < ctx:
-        return None
+    pre = np.arange(max(i0 - ctx, 0), i0)
+    pre = pre[~bad[pre]]
+    post = np.arange(i1, min(i1 + ctx, n))
+    post = post[~bad[post]]
     g = x[:, :3]
+    h = np.arange(i0 - 1, i1 + 1)  # the hole with its measured edge samples
+    scores = _context_scores(g, bad, pre, post, lags)
+    none = pre[:0]
+    min_corr = params.periodic_min_corr
+    # (score per lag, per direction its own score and the context it may align its edges on)
+    tries: list[tuple[np.ndarray, tuple[tuple[int, np.ndarray, np.ndarray, np.ndarray], ...]]] = []
+    if pre.size + post.size >= ctx:
+        tries.append((np.maximum(scores["both", -1], scores["both", 1]),
+                      ((-1, scores["both", -1], pre, post), (1, scores["both", 1], pre, post))))
+    if pre.size >= ctx // 2:  # the hole at a bout's end: the stride before it alone
+        tries.append((scores["pre", -1], ((-1, scores["pre", -1], pre, none),)))
+    if post.size >= ctx // 2:  # at a bout's start: the stride after it alone
+        tries.append((scores["post", 1], ((1, scores["post", 1], none, post),)))
+    for score, directions in tries:
+        for k in np.argsort(-score, kind="stable")[:_CANDIDATE_LAGS]:
+            if not score[k] >= min_corr:
+                break
+            # a direction whose own context does not repeat (the stride after the bout's last one) is left out
+            sides = [(sign, before, after) for sign, own, before, after in directions if own[k] >= min_corr]
+            if len(directions) == 1:
+                # one side of context is less selective than two (a slow drift matches itself one lag away as
+                # well), so gait must repeat once more: the same context two periods away matches too
+                sign, before, after = sides[0]
+                side = before if sign < 0 else after
+                if not _correlation(g, bad, side, 2 * sign * int(lags[k])) >= min_corr:
+                    continue
+            tmpl = [t for t in (_warped_template(x, g, bad, h, int(lags[k]), sign, before, after, edge,
+                                                 params.periodic_max_warp) for sign, before, after in sides)
+                    if t is not None]
+            if tmpl:
+                fill = tmpl[0] if len(tmpl) == 1 else 0.5 * (tmpl[0] + tmpl[1])
+                r0, r1 = x[i0 - 1] - fill[0], x[i1] - fill[-1]
+                u = (np.arange(1, h.size - 1) / (h.size - 1))[:, None]
+                return fill[1:-1] + (1 - u) * r0 + u * r1
+    return None
+
+
+def _context_scores(g: np.ndarray, bad: np.ndarray, pre: np.ndarray, post: np.ndarray, lags: np.ndarray
+                    ) -> dict[tuple[str, int], np.ndarray]:
+    """Correlation per lag of the context before (``pre``), after (``post``) and on both sides of a hole with the
+    same samples one lag earlier (sign -1) and later (+1); masked samples are left out and a lag that loses more
+    than half of a context scores -inf. Keys ``(side, sign)``."""
+    n = g.shape[0]
+    c = np.concatenate((pre, post))
+    out: dict[tuple[str, int], np.ndarray] = {}
+    if c.size == 0:
+        return {(side, sign): np.full(lags.size, -np.inf) for side in ("both", "pre", "post") for sign in (-1, 1)}
     mean = g[c].mean(axis=0)
     a = g[c] - mean
     a2 = a ** 2
-    score = np.full(lags.size, -np.inf)
     fast = shifted_context is not None and bad.dtype == np.bool_ and bad.flags.c_contiguous
     # the rows any shift can reach, centred once: g[k] - mean is the same difference whether taken before or after
     # the gather, and these few hundred rows stay in cache (the (lags, context, 3) products are ten times larger)
     lo, hi = max(int(c[0]) - int(lags[-1]), 0), min(int(c[-1]) + int(lags[-1]) + 1, n)
     centred = None if fast else g[lo:hi] - mean
+    k = pre.size
     for sign in (-1, 1):
         if fast:
             b = np.empty((lags.size, c.size, 3))
@@ -349,29 +407,79 @@ def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.nd
             # w is 0 or 1, so w * b * b == (w * b) ** 2 and w * a * b == a * (w * b) exactly: the masked terms
             # in place
             b *= w
-        num = np.sum(a[None] * b, axis=(1, 2))
-        den = np.sqrt(np.sum(w * a2[None], axis=(1, 2)) * np.sum(np.square(b, out=b), axis=(1, 2)))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            r = np.where(ok.mean(axis=1) >= 0.5, num / den, -np.inf)
-        score = np.maximum(score, np.nan_to_num(r, nan=-np.inf))
-    k = int(np.argmax(score))
-    if not score[k] >= min_corr:
+        # per context sample: the three sums of the correlation, then summed per side
+        num = np.sum(a[None] * b, axis=2)
+        saa = np.sum(w * a2[None], axis=2)
+        sbb = np.sum(np.square(b, out=b), axis=2)
+        for side, sl in (("both", slice(None)), ("pre", slice(0, k)), ("post", slice(k, None))):
+            nu, da, db = num[:, sl].sum(axis=1), saa[:, sl].sum(axis=1), sbb[:, sl].sum(axis=1)
+            share = ok[:, sl].mean(axis=1) if ok[:, sl].shape[1] else np.zeros(lags.size)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                r = np.where(share >= 0.5, nu / np.sqrt(da * db), -np.inf)
+            out[side, sign] = np.nan_to_num(r, nan=-np.inf)
+    return out
+
+
+def _correlation(g: np.ndarray, bad: np.ndarray, idx: np.ndarray, offset: int) -> float:
+    """Correlation of ``g[idx]`` with ``g[idx + offset]`` over the pairs with both samples valid, each centred on
+    its own mean; -inf with fewer than half of ``idx`` paired."""
+    src = idx + offset
+    ok = (src >= 0) & (src < g.shape[0])
+    ok[ok] = ~bad[src[ok]]
+    if ok.sum() < max(idx.size // 2, 3):
+        return -np.inf
+    a = g[idx[ok]] - g[idx[ok]].mean(axis=0)
+    b = g[src[ok]] - g[src[ok]].mean(axis=0)
+    den = float(np.sqrt(np.sum(a * a) * np.sum(b * b)))
+    return float(np.sum(a * b)) / den if den > 0 else -np.inf
+
+
+def _warped_template(x: np.ndarray, g: np.ndarray, bad: np.ndarray, h: np.ndarray, lag: int, sign: int,
+                     pre: np.ndarray, post: np.ndarray, edge: int, max_warp: float) -> np.ndarray | None:
+    """The stride ``sign * lag`` samples away at the hole's samples ``h`` (with its edge samples), shifted at each
+    edge by what best aligns the last ``edge`` context samples before the hole (``pre``) and the first after it
+    (``post``) with it (to within ``max_warp`` of the lag) and linearly in between; one side's shift for both
+    where only one is known. Linear interpolation between samples; None where it needs a masked sample."""
+    max_d = max(int(round(max_warp * lag)), 1)
+    shifts = [_edge_shift(g, bad, side, sign * lag, max_d) for side in (pre[-edge:], post[:edge])]
+    da, db = shifts
+    if da is None and db is None:
+        da = db = 0.0
+    da = db if da is None else da
+    db = da if db is None else db
+    u = (h - h[0]) / (h[-1] - h[0])
+    pos = h + sign * lag + da + (db - da) * u
+    i = np.floor(pos).astype(np.int64)
+    if i[0] < 0 or i[-1] + 1 >= x.shape[0] or bad[i].any() or bad[i + 1].any():
         return None
-    lag = int(lags[k])
-    h = np.arange(i0 - 1, i1 + 1)  # the hole with its measured edge samples
-    acc = np.zeros((h.size, x.shape[1]))
-    cnt = np.zeros(h.size)
-    for src in (h - lag, h + lag):
-        ok = (src >= 0) & (src < n)
-        ok[ok] = ~bad[src[ok]]
-        acc[ok] += x[src[ok]]
-        cnt += ok
-    if not cnt.all():
+    f = (pos - i)[:, None]
+    return (1 - f) * x[i] + f * x[i + 1]
+
+
+def _edge_shift(g: np.ndarray, bad: np.ndarray, idx: np.ndarray, offset: int, max_d: int) -> float | None:
+    """Shift d [samples, fractional] within ``+-max_d`` minimising the mean squared difference between ``g[idx]``
+    and ``g[idx + offset + d]`` (the minimum refined by a parabola through its neighbours); None with fewer than
+    three context samples or without half of them valid at every shift."""
+    if idx.size < 3:
         return None
-    tmpl = acc / cnt[:, None]
-    r0, r1 = x[i0 - 1] - tmpl[0], x[i1] - tmpl[-1]
-    u = (np.arange(1, h.size - 1) / (h.size - 1))[:, None]
-    return tmpl[1:-1] + (1 - u) * r0 + u * r1
+    n = g.shape[0]
+    ds = np.arange(-max_d, max_d + 1)
+    src = idx[None, :] + offset + ds[:, None]
+    ok = (src >= 0) & (src < n)
+    ok[ok] = ~bad[src[ok]]
+    diff = (g[idx][None] - g[np.clip(src, 0, n - 1)]) * ok[:, :, None]
+    cnt = ok.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sse = np.where(cnt >= max(idx.size // 2, 3), np.sum(diff * diff, axis=(1, 2)) / cnt, np.inf)
+    k = int(np.argmin(sse))
+    if not np.isfinite(sse[k]):
+        return None
+    d = float(ds[k])
+    if 0 < k < ds.size - 1 and np.isfinite(sse[k - 1]) and np.isfinite(sse[k + 1]):
+        curv = sse[k - 1] - 2 * sse[k] + sse[k + 1]
+        if curv > 0:
+            d += float(np.clip(0.5 * (sse[k - 1] - sse[k + 1]) / curv, -0.5, 0.5))
+    return d
 
 
 def _inside_bounds(t_grid: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:

@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from pipeline.params import WALKING, PrepareParams
 from pipeline.prepare import EDGE_TOL_S, MAX_BRIDGE_S, _mask_intervals, prepare_leg, prepare_leg_si, to_si
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, simulate_session
@@ -91,6 +92,56 @@ def test_holes_in_periodic_gait_are_filled_from_the_neighbouring_strides() -> No
     assert p.valid.all() and len(p.filled_s) == 1 and not p.gaps_s
     err = np.rad2deg(p.gyr_thigh_rps[595:645]) - g[595:645]
     assert np.max(np.abs(err)) < 5.0  # of a 300 deg/s swing
+
+
+def _gait(phase: np.ndarray) -> np.ndarray:
+    """A shank-like rate [deg/s] with a swing peak: several harmonics of the stride phase ``phase`` [rad]."""
+    return np.column_stack([300 * np.sin(phase) ** 3 + 80 * np.sin(2 * phase), 40 * np.cos(phase),
+                            20 * np.sin(3 * phase)])
+
+
+def _fill_error(t: np.ndarray, g: np.ndarray, drop: np.ndarray, params: PrepareParams = WALKING.prepare
+                ) -> tuple[np.ndarray, list]:
+    """Gyro error [deg/s] of the thigh's filled samples where ``drop`` removed them, and its masked gaps."""
+    a = np.column_stack([0 * t, 0 * t, 9.81 + 0 * t])
+    p = prepare_leg("left", _stream("thigh", t[~drop], g[~drop], a[~drop], 100), _stream("shank", t, g, a, 100),
+                    params=params)
+    return np.rad2deg(p.gyr_thigh_rps[drop]) - g[drop], p.thigh_gaps_s
+
+
+def test_a_hole_at_a_bouts_end_is_filled_from_the_stride_before_it() -> None:
+    """Gait, then standing still: the context after the hole repeats nothing, the one before it does."""
+    t = np.arange(0, 12, 0.01)
+    walking = t < 7.0
+    g = np.where(walking[:, None], _gait(2 * np.pi * t / 1.1), 0.5)
+    drop = (t > 6.55) & (t < 6.75)  # 0.2 s at the last stride's end, 0.25 s before the still part
+    err, gaps = _fill_error(t, g, drop)
+    assert not gaps
+    assert np.max(np.abs(err)) < 10.0  # of a 300 deg/s swing
+
+
+def test_a_hole_whose_neighbours_lost_the_same_phase_takes_the_stride_two_periods_away() -> None:
+    t = np.arange(0, 14, 0.01)
+    g = _gait(2 * np.pi * t / 1.1)
+    drop = np.zeros(t.size, dtype=bool)
+    for c in (5.2, 6.3, 7.4):  # the same phase in three consecutive strides
+        drop |= (t > c) & (t < c + 0.2)
+    err, gaps = _fill_error(t, g, drop)
+    assert not gaps
+    assert np.max(np.abs(err)) < 10.0
+
+
+def test_the_template_is_warped_to_the_strides_own_timing() -> None:
+    """Strides lengthen by 3 % each: the stride before is shorter and the one after longer than the holed one, so a
+    template at one lag is out of phase at one edge or both; aligned at either edge it follows the stride."""
+    t = np.arange(0, 14, 0.01)
+    period = 1.0 * 1.03 ** (t / 1.05)
+    g = _gait(2 * np.pi * np.cumsum(0.01 / period))
+    drop = (t > 7.0) & (t < 7.35)
+    warped, gaps = _fill_error(t, g, drop)
+    fixed, _ = _fill_error(t, g, drop, dataclasses.replace(WALKING.prepare, periodic_max_warp=0.0))
+    assert not gaps
+    assert np.sqrt(np.mean(warped ** 2)) < 0.5 * np.sqrt(np.mean(fixed ** 2))
 
 
 def test_holes_without_periodic_context_stay_masked() -> None:
