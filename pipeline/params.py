@@ -380,6 +380,13 @@ class QualityParams:
     integrated estimate carries any error of a modelled rise into the peak. Holes cut into every other stride of
     loss-free tune sessions (100 Hz, seeds 0-2, ~235 strides per case): fills of 0.15-0.2 s centred 0.1-0.2 s
     before the peak moved it by up to 9-11 deg (p95 2-7 deg; uncut strides <= 3 deg) and were never flagged."""
+    filled_peak_s: float = 0.17
+    """A hole filled from the neighbouring strides (:func:`pipeline.prepare.periodic_fill`) up to this long [s]
+    leaves the swing peak and the minimum measured: one lost 20-sample packet at 128 Hz (0.164 s) or 16 samples at
+    100 Hz. Holes cut into every third stride of loss-free tune sessions (100 Hz, seeds 0-2, 168 strides per cell),
+    the warped fill: holes of 0.12-0.17 s centred 0-0.2 s before the peak moved it by p95 0.3-1.3 deg, max 3.6;
+    0.2 s holes p95 0.7-1.8, max 5.2; 0.25 s p95 1.1-2.4, max 6.8 (uncut strides scatter ~0.5 deg SD around their
+    leg's level). Longer fills there are ``peak_in_gap``."""
     bridged_peak_s: float = 0.1
     """A hole bridged by the cubic (``pipeline.prepare``, up to ``PrepareParams.max_bridge_s``) longer than this
     [s] at or within ``peak_lead_s`` before the swing peak makes the peak a model as well. Same experiment, holes

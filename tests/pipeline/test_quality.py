@@ -72,3 +72,16 @@ def test_a_cf_fallback_that_disagrees_with_go_is_not_vouched_for(failure: str) -
     assert agree.estimator == disagree.estimator == "cf"
     assert agree.quality >= 0.5 and "go_cf_mismatch" not in agree.reasons
     assert disagree.quality < 0.5 and "go_cf_mismatch" in disagree.reasons
+
+
+def test_a_short_fill_under_the_peak_leaves_it_measured_a_long_one_does_not() -> None:
+    t = np.arange(300) / 100.0
+    angle = 30 - 30 * np.cos(2 * np.pi * t)
+    strides = [(0, 20, 100), (100, 120, 200), (200, 220, 299)]
+    short = WALKING.quality.filled_peak_s
+    # one lost packet's hole on the peak at 1.5 s; a hole twice as long on the peak at 2.5 s
+    holes = [(1.45, 1.45 + short - 0.01), (2.35, 2.35 + 2 * short)]
+    out = gap_reasons(t, holes, angle, strides, peak_lead_s=0.15, short_fill_s=short)
+    assert out[1] == ("bridged_gap",)
+    assert "peak_in_gap" in out[2] and "bridged_gap" in out[2]
+    assert "peak_in_gap" in gap_reasons(t, holes, angle, strides, peak_lead_s=0.15)[1]  # every fill counts without
