@@ -383,7 +383,7 @@ def _context_scores(g: np.ndarray, bad: np.ndarray, pre: np.ndarray, post: np.nd
         return {(side, sign): np.full(lags.size, -np.inf) for side in ("both", "pre", "post") for sign in (-1, 1)}
     mean = g[c].mean(axis=0)
     a = g[c] - mean
-    a2 = a ** 2
+    a2s = np.sum(a ** 2, axis=1)
     fast = shifted_context is not None and bad.dtype == np.bool_ and bad.flags.c_contiguous
     # the rows any shift can reach, centred once: g[k] - mean is the same difference whether taken before or after
     # the gather, and these few hundred rows stay in cache (the (lags, context, 3) products are ten times larger)
@@ -396,26 +396,25 @@ def _context_scores(g: np.ndarray, bad: np.ndarray, pre: np.ndarray, post: np.nd
             ok = np.empty((lags.size, c.size), dtype=bool)
             shifted_context(g, bad, c.astype(np.int64, copy=False), lags.astype(np.int64, copy=False), sign,
                             np.ascontiguousarray(mean, dtype=float), b, ok)
-            w = ok[:, :, None]
         else:
             src = c[None, :] + sign * lags[:, None]  # (lags, context)
             ok = (src >= 0) & (src < n)
             ok[ok] = ~bad[src[ok]]
             b = centred[np.clip(src, lo, hi - 1) - lo]  # (lags, context, 3)
-            # 0.0 or 1.0 as floats: the products are those with the booleans, without a cast per element
-            w = ok[:, :, None].astype(float)
-            # w is 0 or 1, so w * b * b == (w * b) ** 2 and w * a * b == a * (w * b) exactly: the masked terms
-            # in place
-            b *= w
-        # per context sample: the three sums of the correlation, then summed per side
-        num = np.sum(a[None] * b, axis=2)
-        saa = np.sum(w * a2[None], axis=2)
-        sbb = np.sum(np.square(b, out=b), axis=2)
-        for side, sl in (("both", slice(None)), ("pre", slice(0, k)), ("post", slice(k, None))):
-            nu, da, db = num[:, sl].sum(axis=1), saa[:, sl].sum(axis=1), sbb[:, sl].sum(axis=1)
-            share = ok[:, sl].mean(axis=1) if ok[:, sl].shape[1] else np.zeros(lags.size)
+            b *= ok[:, :, None]  # the masked terms are zero, as the compiled loop leaves them
+        # the three sums of the correlation per side, as matrix-vector products over each side's (context, axis)
+        # block (a reduction over numpy's last axis of 3 would run its inner loop once per row); both sides: the sum
+        okf = ok.astype(float)
+        parts = []
+        for sl in (slice(0, k), slice(k, None)):
+            bs = b[:, sl].reshape(lags.size, -1)
+            parts.append((bs @ a[sl].reshape(-1), okf[:, sl] @ a2s[sl], np.einsum("ij,ij->i", bs, bs),
+                          okf[:, sl].sum(axis=1), max(okf[:, sl].shape[1], 1)))
+        (n0, a0, b0, c0, _), (n1, a1, b1, c1, _) = parts
+        for side, (nu, da, db, cnt, m) in (("pre", parts[0]), ("post", parts[1]),
+                                           ("both", (n0 + n1, a0 + a1, b0 + b1, c0 + c1, c.size))):
             with np.errstate(invalid="ignore", divide="ignore"):
-                r = np.where(share >= 0.5, nu / np.sqrt(da * db), -np.inf)
+                r = np.where(cnt >= 0.5 * m, nu / np.sqrt(da * db), -np.inf)
             out[side, sign] = np.nan_to_num(r, nan=-np.inf)
     return out
 
