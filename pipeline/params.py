@@ -35,6 +35,11 @@ class PrepareParams:
     """Search range of the stride period [s] for the periodic fill (running ~0.6, very slow walking ~2.5)."""
     periodic_context_s: float = 0.8
     """Data [s] on either side of the hole compared with the same data one period earlier/later."""
+    periodic_search_hz: float = 50.0
+    """Rate [Hz] of the fill's period search (every k-th lag and context sample; the template's edge shifts then
+    align it to the sample and below): gait rates carry little above 10 Hz, so their correlation changes by ~0.01
+    between neighbouring 20 ms lags, and the search over 0.5-2.5 s of lags at the full rate was most of a lossy
+    session's preparation."""
     periodic_edge_s: float = 0.25
     """Data [s] at each edge of a hole aligned on its own with the template stride: a quarter of a stride holds a
     gait event's shape (a swing peak or a heel strike) to align on, and stays within the stride the hole is in."""

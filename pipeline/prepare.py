@@ -297,6 +297,7 @@ def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, flo
     lags = np.arange(max(int(params.periodic_period_s[0] * fs_hz), 1), int(params.periodic_period_s[1] * fs_hz) + 1)
     ctx = max(int(params.periodic_context_s * fs_hz), 2)
     edge = max(int(round(params.periodic_edge_s * fs_hz)), 3)
+    step = max(int(round(fs_hz / params.periodic_search_hz)), 1)
     out = x
     filled: list[tuple[float, float]] = []
     kept: list[tuple[float, float]] = []
@@ -308,7 +309,7 @@ def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, flo
         if g1 - g0 > params.periodic_bridge_s or i0 < 1 or i1 >= n:
             kept.append((g0, g1))
             continue
-        fill = _periodic_hole(x, bad, i0, i1, lags, ctx, edge, params)
+        fill = _periodic_hole(x, bad, i0, i1, lags, ctx, edge, step, params)
         if fill is None:
             kept.append((g0, g1))
             continue
@@ -322,12 +323,11 @@ def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, flo
 _CANDIDATE_LAGS = 8
 """Best-scoring periods tried in turn until one's template is wholly available (a neighbouring stride may have a
 hole of its own at the same phase)."""
-
-
 def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.ndarray, ctx: int, edge: int,
-                   params: PrepareParams) -> np.ndarray | None:
+                   step: int, params: PrepareParams) -> np.ndarray | None:
     """Samples ``[i0, i1)`` of ``x`` from the best-aligned neighbouring strides (:func:`periodic_fill`), None
-    without them."""
+    without them. The period is searched on every ``step``-th lag and context sample; the template's edge shifts
+    (:func:`_warped_template`) then align it to the sample and below."""
     n = x.shape[0]
     pre = np.arange(max(i0 - ctx, 0), i0)
     pre = pre[~bad[pre]]
@@ -335,32 +335,34 @@ def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.nd
     post = post[~bad[post]]
     g = x[:, :3]
     h = np.arange(i0 - 1, i1 + 1)  # the hole with its measured edge samples
-    scores = _context_scores(g, bad, pre, post, lags)
+    coarse = lags[::step]
+    scores = _context_scores(g, bad, pre[::-step][::-1], post[::step], coarse)
     none = pre[:0]
     min_corr = params.periodic_min_corr
-    # (score per lag, per direction its own score and the context it may align its edges on)
-    tries: list[tuple[np.ndarray, tuple[tuple[int, np.ndarray, np.ndarray, np.ndarray], ...]]] = []
+    # (which context scores, per direction: its sign and the context it may align its edges on)
+    tries: list[tuple[str, tuple[tuple[int, np.ndarray, np.ndarray], ...]]] = []
     if pre.size + post.size >= ctx:
-        tries.append((np.maximum(scores["both", -1], scores["both", 1]),
-                      ((-1, scores["both", -1], pre, post), (1, scores["both", 1], pre, post))))
+        tries.append(("both", ((-1, pre, post), (1, pre, post))))
     if pre.size >= ctx // 2:  # the hole at a bout's end: the stride before it alone
-        tries.append((scores["pre", -1], ((-1, scores["pre", -1], pre, none),)))
+        tries.append(("pre", ((-1, pre, none),)))
     if post.size >= ctx // 2:  # at a bout's start: the stride after it alone
-        tries.append((scores["post", 1], ((1, scores["post", 1], none, post),)))
-    for score, directions in tries:
+        tries.append(("post", ((1, none, post),)))
+    for which, directions in tries:
+        score = np.max([scores[which, sign] for sign, _, _ in directions], axis=0)
         for k in np.argsort(-score, kind="stable")[:_CANDIDATE_LAGS]:
             if not score[k] >= min_corr:
                 break
+            lag = int(coarse[k])
             # a direction whose own context does not repeat (the stride after the bout's last one) is left out
-            sides = [(sign, before, after) for sign, own, before, after in directions if own[k] >= min_corr]
+            sides = [(sign, before, after) for sign, before, after in directions if scores[which, sign][k] >= min_corr]
             if len(directions) == 1:
                 # one side of context is less selective than two (a slow drift matches itself one lag away as
                 # well), so gait must repeat once more: the same context two periods away matches too
                 sign, before, after = sides[0]
                 side = before if sign < 0 else after
-                if not _correlation(g, bad, side, 2 * sign * int(lags[k])) >= min_corr:
+                if not _correlation(g, bad, side, 2 * sign * lag) >= min_corr:
                     continue
-            tmpl = [t for t in (_warped_template(x, g, bad, h, int(lags[k]), sign, before, after, edge,
+            tmpl = [t for t in (_warped_template(x, g, bad, h, lag, sign, before, after, edge,
                                                  params.periodic_max_warp) for sign, before, after in sides)
                     if t is not None]
             if tmpl:
@@ -394,7 +396,7 @@ def _context_scores(g: np.ndarray, bad: np.ndarray, pre: np.ndarray, post: np.nd
         if fast:
             b = np.empty((lags.size, c.size, 3))
             ok = np.empty((lags.size, c.size), dtype=bool)
-            shifted_context(g, bad, c.astype(np.int64, copy=False), lags.astype(np.int64, copy=False), sign,
+            shifted_context(g, bad, c.astype(np.int64, copy=False), np.ascontiguousarray(lags, dtype=np.int64), sign,
                             np.ascontiguousarray(mean, dtype=float), b, ok)
         else:
             src = c[None, :] + sign * lags[:, None]  # (lags, context)
@@ -414,8 +416,9 @@ def _context_scores(g: np.ndarray, bad: np.ndarray, pre: np.ndarray, post: np.nd
         for side, (nu, da, db, cnt, m) in (("pre", parts[0]), ("post", parts[1]),
                                            ("both", (n0 + n1, a0 + a1, b0 + b1, c0 + c1, c.size))):
             with np.errstate(invalid="ignore", divide="ignore"):
-                r = np.where(cnt >= 0.5 * m, nu / np.sqrt(da * db), -np.inf)
-            out[side, sign] = np.nan_to_num(r, nan=-np.inf)
+                r = nu / np.sqrt(da * db)
+            r[~((cnt >= 0.5 * m) & np.isfinite(r))] = -np.inf
+            out[side, sign] = r
     return out
 
 
