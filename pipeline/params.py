@@ -24,7 +24,10 @@ class PrepareParams:
     """Longest gap bridged by the cubic [s]: one or two lost BLE packets, shorter than swing flexion (~250 ms), so
     the cubic still sees both sides of any knee event. Longer gaps are masked."""
     noted_bridge_s: float = 0.05
-    """Bridged gaps longer than this [s] get a quality note on the strides they touch."""
+    """Bridged gaps longer than this [s] get a quality note on the strides they touch, and are filled from the
+    neighbouring strides where the signal around them is periodic (:func:`pipeline.prepare.periodic_fill`): on the
+    swing-flexion rise a cubic through 0.12 s moved the peak by p95 3.6 deg (max 5), the warped neighbouring strides
+    by p95 0.8 (max 1.7; tune seeds 0-2, holes in every third stride). The cubic stays where they do not fit."""
     periodic_bridge_s: float = 0.5
     """Longest gap [s] filled from the neighbouring strides (:func:`pipeline.prepare.periodic_fill`) when the
     sensor's signal around it is periodic. Below half of the shortest walking stride (~1 s): the hole never holds

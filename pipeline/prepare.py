@@ -5,10 +5,10 @@ grid at the faster of the two rates by a cubic Hermite (Catmull-Rom) curve: gait
 a cubic keeps swing peaks that straight lines would cut. A gap is a step between consecutive samples longer than
 ``PrepareParams.gap_factor`` nominal periods. Gaps up to ``PrepareParams.max_bridge_s`` (one or two lost BLE
 packets; shorter than the swing-flexion phase, so the cubic still sees both sides of any knee event) are bridged by
-the cubic and reported (``bridged_s``, strides touching one get a quality note). Longer gaps up to
-``PrepareParams.periodic_bridge_s`` inside periodic gait are filled from the sensor's own neighbouring strides,
-warped to the hole's own timing (:func:`periodic_fill`, reported in ``filled_s``); the rest is masked: no angle, no
-stride across.
+the cubic and reported (``bridged_s``, strides touching one get a quality note); those longer than
+``PrepareParams.noted_bridge_s`` inside periodic gait are filled from the sensor's own neighbouring strides instead,
+warped to the hole's own timing (:func:`periodic_fill`, reported in ``filled_s``), and so are longer gaps up to
+``PrepareParams.periodic_bridge_s``; the rest is masked: no angle, no stride across.
 """
 
 from __future__ import annotations
@@ -274,7 +274,7 @@ def _straight_across_gaps(out: np.ndarray, t_new: np.ndarray, t: np.ndarray, x: 
 
 
 def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, float]], fs_hz: float,
-                  params: PrepareParams = WALKING.prepare
+                  params: PrepareParams = WALKING.prepare, bridged: list[tuple[float, float]] | None = None
                   ) -> tuple[np.ndarray, list[tuple[float, float]], list[tuple[float, float]]]:
     """Fill one sensor's gaps ``(t_last_before, t_first_after)`` on the grid ``t_grid`` from its neighbouring strides.
 
@@ -289,9 +289,15 @@ def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, flo
     differ in timing by a few per cent. A straight line then matches the template to the measured samples at both
     edges. ``x`` (N, C): the sensor's grid channels, gyro in the first three (the only ones scored). A gap longer
     than ``periodic_bridge_s``, without periodic context (correlation below ``periodic_min_corr``) or at the grid's
-    edge stays a gap. Returns the filled channels, the filled gaps and the remaining gaps."""
-    if not gaps:
+    edge stays a gap. ``bridged``: holes already bridged by the cubic (``x`` holds it there), filled the same way
+    where the neighbouring strides allow (a cubic through a 0.1 s hole on the swing-flexion rise misses the rise by
+    degrees, the neighbouring strides do not) and left to the cubic elsewhere. Returns the filled channels, the
+    filled gaps (bridged ones included) and the remaining gaps (of ``gaps`` only)."""
+    bridged = bridged or []
+    if not gaps and not bridged:
         return x, [], []
+    optional = set(bridged)
+    gaps = sorted([*gaps, *bridged])
     n = t_grid.shape[0]
     bad = _mask_intervals(t_grid, gaps)
     lags = np.arange(max(int(params.periodic_period_s[0] * fs_hz), 1), int(params.periodic_period_s[1] * fs_hz) + 1)
@@ -304,14 +310,17 @@ def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, flo
     los, his = _inside_bounds(t_grid, np.array([g[0] for g in gaps]), np.array([g[1] for g in gaps]))
     for (g0, g1), i0, i1 in zip(gaps, los.tolist(), his.tolist(), strict=True):
         if i1 <= i0:
-            filled.append((g0, g1))  # no grid sample inside: nothing to fill
+            if (g0, g1) not in optional:
+                filled.append((g0, g1))  # no grid sample inside: nothing to fill
             continue
         if g1 - g0 > params.periodic_bridge_s or i0 < 1 or i1 >= n:
-            kept.append((g0, g1))
+            if (g0, g1) not in optional:
+                kept.append((g0, g1))
             continue
         fill = _periodic_hole(x, bad, i0, i1, lags, ctx, edge, step, params)
         if fill is None:
-            kept.append((g0, g1))
+            if (g0, g1) not in optional:
+                kept.append((g0, g1))
             continue
         if out is x:
             out = x.copy()
@@ -484,6 +493,12 @@ def _edge_shift(g: np.ndarray, bad: np.ndarray, idx: np.ndarray, offset: int, ma
     return d
 
 
+def _unfilled(bridged: list[tuple[float, float]], filled: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """The cubic-bridged holes that :func:`periodic_fill` left to the cubic."""
+    done = set(filled)
+    return [g for g in bridged if g not in done]
+
+
 def _inside_bounds(t_grid: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
     """(2, K) grid index ranges [lo, hi) of the samples strictly inside each interval, by more than ``EDGE_TOL_S``."""
     return np.stack([np.searchsorted(t_grid, starts + EDGE_TOL_S, side="right"),
@@ -563,15 +578,21 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
         br1, noted1 = reuse.bridged_gaps - reuse.shank_bridged, reuse.thigh_noted_s
     else:
         gaps1, br1, noted1 = find_gaps(t1, fs1, params)
+        masked1 = len(gaps1)
         thigh6, filled1, gaps1 = periodic_fill(
-            t_grid, _interp_columns(t_grid, t1, _channels(g1, a1), params.max_bridge_s), gaps1, fs_hz, params)
-        br1 += len(filled1)
+            t_grid, _interp_columns(t_grid, t1, _channels(g1, a1), params.max_bridge_s), gaps1, fs_hz, params,
+            bridged=noted1)
+        br1 += masked1 - len(gaps1)
+        noted1 = _unfilled(noted1, filled1)
         off1, gb1 = rest_offsets(thigh6[:, 3:], thigh6[:, :3], ~_mask_intervals(t_grid, gaps1), fs_hz, posture)
         thigh6 -= np.concatenate((gb1, off1))  # this pass's own array: corrected in place
         gyr_thigh, acc_thigh = thigh6[:, :3], thigh6[:, 3:]
+    masked2 = len(gaps2)
     shank6, filled2, gaps2 = periodic_fill(
-        t_grid, _interp_columns(t_grid, t2, _channels(g2, a2), params.max_bridge_s), gaps2, fs_hz, params)
-    br2 += len(filled2)
+        t_grid, _interp_columns(t_grid, t2, _channels(g2, a2), params.max_bridge_s), gaps2, fs_hz, params,
+        bridged=noted2)
+    br2 += masked2 - len(gaps2)
+    noted2 = _unfilled(noted2, filled2)
     off2, gb2 = rest_offsets(shank6[:, 3:], shank6[:, :3], ~_mask_intervals(t_grid, gaps2), fs_hz, posture)
     shank6 -= np.concatenate((gb2, off2))
     gaps = sorted(gaps1 + gaps2)

@@ -200,3 +200,16 @@ def test_a_re_stamped_shank_keeps_the_first_grid_cut_to_its_span() -> None:
     # and the shank is the re-stamped one: its samples of g(t), stamped t + 0.0005, now sit at t + 0.0035
     expected = np.deg2rad(100 * np.sin(2 * np.pi * (later.t_s - 0.0035)))
     np.testing.assert_allclose(later.gyr_shank_rps[:, 0], expected, atol=1e-3)
+
+
+def test_a_short_hole_in_gait_takes_the_neighbouring_strides_over_the_cubic() -> None:
+    """0.11 s on the swing rise: the cubic bridge cuts the rate's peak, the neighbouring strides hold it."""
+    t = np.arange(0, 12, 0.01)
+    g = _gait(2 * np.pi * t / 1.1)
+    drop = (t > 6.2) & (t < 6.3)
+    a = np.column_stack([0 * t, 0 * t, 9.81 + 0 * t])
+    p = prepare_leg("left", _stream("thigh", t[~drop], g[~drop], a[~drop], 100), _stream("shank", t, g, a, 100))
+    assert p.valid.all() and p.filled_s and not p.bridged_s
+    filled, _ = _fill_error(t, g, drop)
+    cubic, _ = _fill_error(t, g, drop, dataclasses.replace(WALKING.prepare, periodic_bridge_s=0.0))
+    assert np.max(np.abs(filled)) < 0.3 * np.max(np.abs(cubic))

@@ -69,7 +69,9 @@ def test_simulated_walking_patterns(pattern: str) -> None:
         assert sum(id(t) in found for t in expected) >= 0.95 * len(expected)  # recall
         assert len(pairs) >= 0.97 * len(lr.strides)  # precision: detected strides are real strides
         peak_err = np.array([s.peak_swing_flexion_deg - t.peak_swing_flexion_deg for s, t in pairs])
-        assert abs(np.mean(peak_err)) < 5.0  # one leg of one seed: the sync error alone shifts it by up to ~4
+        # one leg of one seed: the uncorrected sync error shifts it by up to ~4, the assumed standing flexion (the
+        # simulator draws 2-6) by up to 2 more
+        assert abs(np.mean(peak_err)) < 5.5
         assert np.percentile(np.abs(peak_err), 90) < 6.0
         rom_err = np.array([s.rom_deg - t.rom_deg for s, t in pairs])
         assert np.percentile(np.abs(rom_err), 90) < 4.0
@@ -274,10 +276,11 @@ def test_implausible_angles_are_masked_and_counted() -> None:
     assert full.diagnostics.masked_implausible_samples == 0 and full.strides
 
 
-@pytest.mark.parametrize(("hole_s", "modelled"), [(0.06, False), (0.13, True), (0.3, True)])
+@pytest.mark.parametrize(("hole_s", "modelled"), [(0.06, False), (0.13, False), (0.3, True)])
 def test_a_hole_on_the_swing_rise_keeps_the_stride_out_of_trends(hole_s: float, modelled: bool) -> None:
-    """Shank samples cut just before one stride's swing peak: a short cubic bridge keeps the peak (a note only),
-    a longer bridge or a fill from the neighbouring strides makes it a model (quality below the trend threshold)."""
+    """Shank samples cut just before one stride's swing peak: a short hole filled from the neighbouring strides
+    keeps the peak (a note only, the peak within a degree of the uncut one), a longer fill makes it a model
+    (quality below the trend threshold)."""
     sim = _sim("normal", seed=3)
     ref = process_session(sim.streams, activity=sim.activity)
     lr = ref.legs["left"]
@@ -294,5 +297,7 @@ def test_a_hole_on_the_swing_rise_keeps_the_stride_out_of_trends(hole_s: float, 
     assert len(same) == 1
     assert ("peak_in_gap" in same[0].quality_reasons) == modelled
     assert (same[0].quality < 0.5) == modelled
+    if not modelled:
+        assert abs(same[0].peak_swing_flexion_deg - s.peak_swing_flexion_deg) < 1.0
     # the strides without a hole keep their quality
     assert sum(c.quality < 0.5 for c in cut.strides) <= sum(c.quality < 0.5 for c in lr.strides) + 1
