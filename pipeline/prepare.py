@@ -450,7 +450,8 @@ def _warped_template(x: np.ndarray, g: np.ndarray, bad: np.ndarray, h: np.ndarra
     """The stride ``sign * lag`` samples away at the hole's samples ``h`` (with its edge samples), shifted at each
     edge by what best aligns the last ``edge`` context samples before the hole (``pre``) and the first after it
     (``post``) with it (to within ``max_warp`` of the lag) and linearly in between; one side's shift for both
-    where only one is known. Linear interpolation between samples; None where it needs a masked sample."""
+    where only one is known. Linear interpolation between samples; None where it needs a masked sample or the
+    shifts would fold the template back in time (a short hole whose edges disagree by more than its length)."""
     max_d = max(int(round(max_warp * lag)), 1)
     shifts = [_edge_shift(g, bad, side, sign * lag, max_d) for side in (pre[-edge:], post[:edge])]
     da, db = shifts
@@ -460,6 +461,8 @@ def _warped_template(x: np.ndarray, g: np.ndarray, bad: np.ndarray, h: np.ndarra
     db = da if db is None else db
     u = (h - h[0]) / (h[-1] - h[0])
     pos = h + sign * lag + da + (db - da) * u
+    if db - da <= 1 - h.size:  # the two edges' shifts would run the template backwards: no alignment
+        return None
     i = np.floor(pos).astype(np.int64)
     if i[0] < 0 or i[-1] + 1 >= x.shape[0] or bad[i].any() or bad[i + 1].any():
         return None

@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 
 from pipeline.params import WALKING, PrepareParams
-from pipeline.prepare import EDGE_TOL_S, MAX_BRIDGE_S, _mask_intervals, prepare_leg, prepare_leg_si, to_si
+from pipeline.prepare import (
+    EDGE_TOL_S,
+    MAX_BRIDGE_S,
+    _mask_intervals,
+    periodic_fill,
+    prepare_leg,
+    prepare_leg_si,
+    to_si,
+)
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, simulate_session
 from pipeline.types import RawSensorStream
@@ -213,3 +221,17 @@ def test_a_short_hole_in_gait_takes_the_neighbouring_strides_over_the_cubic() ->
     filled, _ = _fill_error(t, g, drop)
     cubic, _ = _fill_error(t, g, drop, dataclasses.replace(WALKING.prepare, periodic_bridge_s=0.0))
     assert np.max(np.abs(filled)) < 0.3 * np.max(np.abs(cubic))
+
+
+def test_a_fill_whose_edges_disagree_by_more_than_its_length_is_not_folded_back() -> None:
+    """A short hole near the grid's end in a stride whose timing wobbles: the edge shifts can differ by more than
+    the hole is long, which would run the template backwards (and past the grid's end)."""
+    fs, n = 100.0, 500
+    t = np.arange(n) / fs
+    sig = np.sin(2 * np.pi * (t / 1.59 + 0.08 * np.sin(2 * np.pi * t / 3.0))) ** 3
+    x = np.tile(sig[:, None], (1, 6))
+    out, filled, kept = periodic_fill(t, x, [], fs, bridged=[(3.34, 3.44)])
+    assert not kept
+    inside = (t > 3.34) & (t < 3.44)
+    assert np.all(np.isfinite(out)) and np.max(np.abs(out[inside])) <= 1.0 + 1e-9
+    np.testing.assert_array_equal(out[~inside], x[~inside])
