@@ -308,30 +308,52 @@ def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, flo
     filled: list[tuple[float, float]] = []
     kept: list[tuple[float, float]] = []
     los, his = _inside_bounds(t_grid, np.array([g[0] for g in gaps]), np.array([g[1] for g in gaps]))
-    for (g0, g1), i0, i1 in zip(gaps, los.tolist(), his.tolist(), strict=True):
-        if i1 <= i0:
-            if (g0, g1) not in optional:
-                filled.append((g0, g1))  # no grid sample inside: nothing to fill
-            continue
-        if g1 - g0 > params.periodic_bridge_s or i0 < 1 or i1 >= n:
-            if (g0, g1) not in optional:
-                kept.append((g0, g1))
-            continue
-        fill = _periodic_hole(x, bad, i0, i1, lags, ctx, edge, step, params)
-        if fill is None:
-            if (g0, g1) not in optional:
-                kept.append((g0, g1))
-            continue
-        if out is x:
-            out = x.copy()
-        out[i0:i1] = fill
-        filled.append((g0, g1))
+    holes = list(zip(gaps, los.tolist(), his.tolist(), strict=True))
+    k = 0
+    while k < len(holes):
+        group = _adjacent_holes(holes, k, t_grid)
+        k += len(group)
+        (g0, _), i0, _ = group[0]
+        (_, g1), _, i1 = group[-1]
+        fill = None
+        if i1 > i0 and g1 - g0 <= params.periodic_bridge_s and i0 >= 1 and i1 < n:
+            fill = _periodic_hole(x, bad, i0, i1, lags, ctx, edge, step, params)
+        if fill is not None:
+            if out is x:
+                out = x.copy()
+            out[i0:i1] = fill
+        for gap, j0, j1 in group:
+            if fill is not None or j1 <= j0:  # filled, or no grid sample inside: nothing to fill
+                if fill is not None or gap not in optional:
+                    filled.append(gap)
+            elif gap not in optional:
+                kept.append(gap)
     return out, filled, kept
+
+
+def _adjacent_holes(holes: list[tuple[tuple[float, float], int, int]], k: int, t_grid: np.ndarray
+                    ) -> list[tuple[tuple[float, float], int, int]]:
+    """Hole ``k`` (``(gap, first grid index inside, end)``) with the holes after it that no measured grid sample
+    separates from it: none between, or one that is not the lone received sample between them (off the grid, it
+    is interpolated across both holes). One hole for the fill, whose edge samples must be measured."""
+    group = [holes[k]]
+    while k + len(group) < len(holes):
+        nxt = holes[k + len(group)]
+        (_, g1), i0, end = group[-1]
+        if nxt[2] <= nxt[1] or end <= i0:
+            break
+        between = nxt[1] - end  # grid samples outside both holes
+        if between > 1 or (between == 1 and abs(float(t_grid[end]) - g1) <= EDGE_TOL_S):
+            break
+        group.append(nxt)
+    return group
 
 
 _CANDIDATE_LAGS = 8
 """Best-scoring periods tried in turn until one's template is wholly available (a neighbouring stride may have a
 hole of its own at the same phase)."""
+
+
 def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.ndarray, ctx: int, edge: int,
                    step: int, params: PrepareParams) -> np.ndarray | None:
     """Samples ``[i0, i1)`` of ``x`` from the best-aligned neighbouring strides (:func:`periodic_fill`), None

@@ -235,3 +235,20 @@ def test_a_fill_whose_edges_disagree_by_more_than_its_length_is_not_folded_back(
     inside = (t > 3.34) & (t < 3.44)
     assert np.all(np.isfinite(out)) and np.max(np.abs(out[inside])) <= 1.0 + 1e-9
     np.testing.assert_array_equal(out[~inside], x[~inside])
+
+
+def test_two_holes_with_one_received_sample_between_are_filled_as_one() -> None:
+    """The lone sample between them is off the grid: the grid samples next to it are interpolated across both holes,
+    so neither hole has a measured edge there; filled as one hole, both follow the signal."""
+    t = np.arange(0, 10, 0.01)
+    g = _gait(2 * np.pi * t / 1.1)
+    stamps = t - 0.003  # the thigh's stamps 3 ms off the shank's grid
+    drop = np.zeros(t.size, dtype=bool)
+    drop[500:511] = True  # 0.12 s
+    drop[512:540] = True  # 0.29 s, sample 511 alone received between
+    a = np.column_stack([0 * t, 0 * t, 9.81 + 0 * t])
+    p = prepare_leg("left", _stream("thigh", stamps[~drop], g[~drop], a[~drop], 100), _stream("shank", t, g, a, 100))
+    assert not p.gaps_s and len(p.thigh_filled_s) == 2
+    truth = _gait(2 * np.pi * (p.t_s + 0.003) / 1.1)
+    err = np.rad2deg(p.gyr_thigh_rps + p.gyr_bias_thigh_rps) - truth
+    assert np.max(np.abs(err[(p.t_s > 4.9) & (p.t_s < 5.5)])) < 3.0  # of a 300 deg/s swing
