@@ -121,15 +121,14 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
         h1, h2 = axes.hinge()
         rates = hinge_rates(g1, g2, h1, h2)  # once for all windows
         hinge: list[float | None] = []
-        measured = prep.measured()  # a filled hole's timing is its neighbouring strides', not the lag's
 
         def hinge_lag(w: slice, centre_s: float) -> float | None:
-            hinge.append(estimate_sync_lag_s(g1, g2, h1, h2, measured, fs, window=w, rates=rates,
+            hinge.append(estimate_sync_lag_s(g1, g2, h1, h2, prep.valid, fs, window=w, rates=rates,
                                              max_lag_s=params.max_lag_s, centre_s=centre_s))
             return hinge[-1]
         # the cue's information on the lag: the squared slope of the compared rate (mostly in turns)
         # (no slope across a hole's edge: the rates are zero-filled inside it)
-        weight = np.gradient(rates[1]) ** 2 * away_from_holes(measured, 1)
+        weight = np.gradient(rates[1]) ** 2 * away_from_holes(prep.valid, 1)
         fit = _line_model(prep, windows, params, hinge_lag, weight=weight)
         # on a hinge knee the centre cue is the less accurate of the two wherever turns make both informative
         # (sweep and accuracy tune seeds: crouch gait, long lever arms)
@@ -198,7 +197,7 @@ def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: Join
     a1, a2 = (np.nan_to_num(a) for a in lowpass_runs_many((prep.acc_thigh_mps2, prep.acc_shank_mps2), prep.valid,
                                                             axes_params.fit_cutoff_hz, fs))
     gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)
-    far = fit_margin_mask(prep.measured(), fs, axes_params)  # filled holes carry their neighbours' timing
+    far = fit_margin_mask(prep.valid, fs, axes_params)
     far &= ~shock_mask(((prep.acc_thigh_mps2, a1), (prep.acc_shank_mps2, a2)), prep.valid, fs, params)
     # the first window that fits centres hands them on: the others start from them (one fit, no restarts, each)
     centres: list[np.ndarray] = []
