@@ -385,9 +385,8 @@ class QualityParams:
     peak_lead_s: float = 0.15
     """A hole that ends up to this long [s] before a stride's swing peak counts as under the peak
     (``peak_in_gap``): the peak closes the swing-flexion rise (~0.15 s from toe-off, at 300-400 deg/s), and the
-    integrated estimate carries any error of a modelled rise into the peak. Holes cut into every other stride of
-    loss-free tune sessions (100 Hz, seeds 0-2, ~235 strides per case): fills of 0.15-0.2 s centred 0.1-0.2 s
-    before the peak moved it by up to 9-11 deg (p95 2-7 deg; uncut strides <= 3 deg) and were never flagged."""
+    integrated estimate carries any error of a modelled rise into the peak. Applies to fills longer than
+    ``filled_peak_s`` (see there for the peak's change by hole length with the warped fill)."""
     filled_peak_s: float = 0.17
     """A hole filled from the neighbouring strides (:func:`pipeline.prepare.periodic_fill`) up to this long [s]
     leaves the swing peak and the minimum measured: one lost 20-sample packet at 128 Hz (0.164 s) or 16 samples at

@@ -323,10 +323,11 @@ def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, flo
                 out = x.copy()
             out[i0:i1] = fill
         for gap, j0, j1 in group:
+            if fill is None and gap in optional:
+                continue  # left to the cubic
             if fill is not None or j1 <= j0:  # filled, or no grid sample inside: nothing to fill
-                if fill is not None or gap not in optional:
-                    filled.append(gap)
-            elif gap not in optional:
+                filled.append(gap)
+            else:
                 kept.append(gap)
     return out, filled, kept
 
@@ -431,8 +432,7 @@ def _context_scores(g: np.ndarray, bad: np.ndarray, pre: np.ndarray, post: np.nd
                             np.ascontiguousarray(mean, dtype=float), b, ok)
         else:
             src = c[None, :] + sign * lags[:, None]  # (lags, context)
-            ok = (src >= 0) & (src < n)
-            ok[ok] = ~bad[src[ok]]
+            ok = _measured_at(bad, src)
             b = centred[np.clip(src, lo, hi - 1) - lo]  # (lags, context, 3)
             b *= ok[:, :, None]  # the masked terms are zero, as the compiled loop leaves them
         # the three sums of the correlation per side, as matrix-vector products over each side's (context, axis)
@@ -453,12 +453,18 @@ def _context_scores(g: np.ndarray, bad: np.ndarray, pre: np.ndarray, post: np.nd
     return out
 
 
+def _measured_at(bad: np.ndarray, src: np.ndarray) -> np.ndarray:
+    """For indices ``src`` (any shape), whether each lies inside the signal and outside its holes ``bad``."""
+    ok = (src >= 0) & (src < bad.shape[0])
+    ok[ok] = ~bad[src[ok]]
+    return ok
+
+
 def _correlation(g: np.ndarray, bad: np.ndarray, idx: np.ndarray, offset: int) -> float:
     """Correlation of ``g[idx]`` with ``g[idx + offset]`` over the pairs with both samples valid, each centred on
     its own mean; -inf with fewer than half of ``idx`` paired."""
     src = idx + offset
-    ok = (src >= 0) & (src < g.shape[0])
-    ok[ok] = ~bad[src[ok]]
+    ok = _measured_at(bad, src)
     if ok.sum() < max(idx.size // 2, 3):
         return -np.inf
     a = g[idx[ok]] - g[idx[ok]].mean(axis=0)
@@ -501,8 +507,7 @@ def _edge_shift(g: np.ndarray, bad: np.ndarray, idx: np.ndarray, offset: int, ma
     n = g.shape[0]
     ds = np.arange(-max_d, max_d + 1)
     src = idx[None, :] + offset + ds[:, None]
-    ok = (src >= 0) & (src < n)
-    ok[ok] = ~bad[src[ok]]
+    ok = _measured_at(bad, src)
     diff = (g[idx][None] - g[np.clip(src, 0, n - 1)]) * ok[:, :, None]
     cnt = ok.sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -516,12 +521,6 @@ def _edge_shift(g: np.ndarray, bad: np.ndarray, idx: np.ndarray, offset: int, ma
         if curv > 0:
             d += float(np.clip(0.5 * (sse[k - 1] - sse[k + 1]) / curv, -0.5, 0.5))
     return d
-
-
-def _unfilled(bridged: list[tuple[float, float]], filled: list[tuple[float, float]]) -> list[tuple[float, float]]:
-    """The cubic-bridged holes that :func:`periodic_fill` left to the cubic."""
-    done = set(filled)
-    return [g for g in bridged if g not in done]
 
 
 def _inside_bounds(t_grid: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
@@ -586,7 +585,6 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
         n = int(np.floor((t_stop - t_start) * fs_hz + 1e-9)) + 1
         t_grid = t_start + np.arange(n) / fs_hz
     keep_grid = kept is not None
-    gaps2, br2, noted2 = find_gaps(t2, fs2, params)
     if keep_grid and reuse.thigh_saturated is not None:
         sat_thigh = _cut(reuse.thigh_saturated, kept)  # same stamps, same grid: the same samples
     else:
@@ -602,24 +600,10 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
         gaps1, filled1 = reuse.thigh_gaps_s, reuse.thigh_filled_s
         br1, noted1 = reuse.bridged_gaps - reuse.shank_bridged, reuse.thigh_noted_s
     else:
-        gaps1, br1, noted1 = find_gaps(t1, fs1, params)
-        masked1 = len(gaps1)
-        thigh6, filled1, gaps1 = periodic_fill(
-            t_grid, _interp_columns(t_grid, t1, _channels(g1, a1), params.max_bridge_s), gaps1, fs_hz, params,
-            bridged=noted1)
-        br1 += masked1 - len(gaps1)
-        noted1 = _unfilled(noted1, filled1)
-        off1, gb1 = rest_offsets(thigh6[:, 3:], thigh6[:, :3], ~_mask_intervals(t_grid, gaps1), fs_hz, posture)
-        thigh6 -= np.concatenate((gb1, off1))  # this pass's own array: corrected in place
+        thigh6, gaps1, filled1, noted1, br1, off1, gb1 = _sensor_on_grid(t_grid, t1, g1, a1, fs1, fs_hz, params,
+                                                                          posture)
         gyr_thigh, acc_thigh = thigh6[:, :3], thigh6[:, 3:]
-    masked2 = len(gaps2)
-    shank6, filled2, gaps2 = periodic_fill(
-        t_grid, _interp_columns(t_grid, t2, _channels(g2, a2), params.max_bridge_s), gaps2, fs_hz, params,
-        bridged=noted2)
-    br2 += masked2 - len(gaps2)
-    noted2 = _unfilled(noted2, filled2)
-    off2, gb2 = rest_offsets(shank6[:, 3:], shank6[:, :3], ~_mask_intervals(t_grid, gaps2), fs_hz, posture)
-    shank6 -= np.concatenate((gb2, off2))
+    shank6, gaps2, filled2, noted2, br2, off2, gb2 = _sensor_on_grid(t_grid, t2, g2, a2, fs2, fs_hz, params, posture)
     gaps = sorted(gaps1 + gaps2)
     valid = ~_mask_intervals(t_grid, gaps)
     return PreparedLeg(
@@ -632,6 +616,25 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
         thigh_saturated=sat_thigh, shank_saturated_raw=sat_shank,
         acc_offset_thigh_mps2=off1, acc_offset_shank_mps2=off2, gyr_bias_thigh_rps=gb1, gyr_bias_shank_rps=gb2,
     )
+
+
+def _sensor_on_grid(t_grid: np.ndarray, t: np.ndarray, gyr: np.ndarray, acc: np.ndarray, fs: float, fs_hz: float,
+                    params: PrepareParams, posture: PostureParams
+                    ) -> tuple[np.ndarray, list[tuple[float, float]], list[tuple[float, float]],
+                               list[tuple[float, float]], int, np.ndarray, np.ndarray]:
+    """One sensor's SI stream ``(t, gyr, acc)`` (nominal rate ``fs``) on the grid: its (N, 6) channels with holes
+    filled (:func:`periodic_fill`) and the rest offsets removed, its masked gaps, filled holes, holes left to the
+    cubic that get a note, number of bridged holes, accelerometer offset and gyro bias."""
+    gaps, n_bridged, noted = find_gaps(t, fs, params)
+    masked = len(gaps)
+    x, filled, gaps = periodic_fill(t_grid, _interp_columns(t_grid, t, _channels(gyr, acc), params.max_bridge_s),
+                                    gaps, fs_hz, params, bridged=noted)
+    n_bridged += masked - len(gaps)
+    done = set(filled)
+    noted = [g for g in noted if g not in done]
+    off, gb = rest_offsets(x[:, 3:], x[:, :3], ~_mask_intervals(t_grid, gaps), fs_hz, posture)
+    x -= np.concatenate((gb, off))  # this pass's own array: corrected in place
+    return x, gaps, filled, noted, n_bridged, off, gb
 
 
 def _kept_grid(reuse: PreparedLeg | None, t2: np.ndarray, fs_hz: float) -> slice | None:
