@@ -70,6 +70,11 @@ class PreparedLeg:
     def n(self) -> int:
         return int(self.t_s.shape[0])
 
+    def measured(self) -> np.ndarray:
+        """``valid`` without the holes filled from the neighbouring strides: where both sensors' samples are
+        their own, for cues that compare the two sensors' timing (a fill's timing is its neighbours')."""
+        return self.valid & ~_mask_intervals(self.t_s, self.filled_s) if self.filled_s else self.valid
+
 
 SI = tuple[np.ndarray, np.ndarray, np.ndarray]
 """``(t_s, gyr_rps, acc_mps2)`` of one stream: what :func:`to_si` returns."""

@@ -40,9 +40,9 @@ from pipeline.axes import (
     hinge_rates,
 )
 from pipeline.constants import G_MPS2
-from pipeline.params import AxesParams, PipelineParams, SyncParams
+from pipeline.params import WALKING, AxesParams, PipelineParams, SyncParams
 from pipeline.prepare import SI, PreparedLeg, nominal_fs, prepare_leg_si, to_si
-from pipeline.signal_utils import away_from_holes, lowpass_runs_many, row_norm
+from pipeline.signal_utils import lowpass_runs_many, row_norm
 from pipeline.types import RawSensorStream
 from pipeline.walking import fit_gyros, reusable_thigh_fit
 
@@ -83,7 +83,8 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
         raise ValueError("less than one second of usable samples")
     g1, g2 = fit_gyros(prep, params.axes.fit_cutoff_hz)
     fit_gyr: tuple[np.ndarray, np.ndarray] | None = (g1, g2)
-    axes = fit_joint_axes(g1, g2, prep.valid, params.axes, up=axis_up(prep, params.axes),
+    # on measured samples: a fill repeats the neighbouring strides, and their timing would enter the fitted lag
+    axes = fit_joint_axes(g1, g2, prep.measured(), params.axes, up=axis_up(prep, params.axes),
                           gd2_rps2=angular_acceleration(g2, prep.fs_hz) if params.axes.fit_lag else None)
     clock = clock_model(prep, g1, g2, axes, params.sync, params.axes)
     offset, drift = clock.offset_s, clock.drift
@@ -121,14 +122,16 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
         h1, h2 = axes.hinge()
         rates = hinge_rates(g1, g2, h1, h2)  # once for all windows
         hinge: list[float | None] = []
+        # a filled hole's timing is its neighbouring strides', not this leg's clocks', and the low-pass rings into
+        # the samples next to any hole: at 10 % packet loss these had scattered the window lags by 10-20 ms
+        measured = fit_margin_mask(prep.measured(), fs, axes_params or WALKING.axes)
 
         def hinge_lag(w: slice, centre_s: float) -> float | None:
-            hinge.append(estimate_sync_lag_s(g1, g2, h1, h2, prep.valid, fs, window=w, rates=rates,
+            hinge.append(estimate_sync_lag_s(g1, g2, h1, h2, measured, fs, window=w, rates=rates,
                                              max_lag_s=params.max_lag_s, centre_s=centre_s))
             return hinge[-1]
         # the cue's information on the lag: the squared slope of the compared rate (mostly in turns)
-        # (no slope across a hole's edge: the rates are zero-filled inside it)
-        weight = np.gradient(rates[1]) ** 2 * away_from_holes(prep.valid, 1)
+        weight = np.gradient(rates[1]) ** 2 * measured
         fit = _line_model(prep, windows, params, hinge_lag, weight=weight)
         # on a hinge knee the centre cue is the less accurate of the two wherever turns make both informative
         # (sweep and accuracy tune seeds: crouch gait, long lever arms)

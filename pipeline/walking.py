@@ -71,7 +71,7 @@ def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: Joi
     cutoff = params.axes.fit_cutoff_hz
     g1, g2 = fit_gyros(prep, cutoff, thigh=thigh_fit) if fit_gyr is None else fit_gyr
     if axes is None:
-        axes = fit_joint_axes(g1, g2, valid, params.axes, up=axis_up(prep, params.axes))
+        axes = fit_joint_axes(g1, g2, prep.measured(), params.axes, up=axis_up(prep, params.axes))
     rate = np.rad2deg(prep.gyr_thigh_rps @ axes.j1 - prep.gyr_shank_rps @ axes.j2)
     rate[~valid] = np.nan
     shank_sag, ev = gait_events(prep, axes, params) if events is None else events

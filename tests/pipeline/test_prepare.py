@@ -252,3 +252,15 @@ def test_two_holes_with_one_received_sample_between_are_filled_as_one() -> None:
     truth = _gait(2 * np.pi * (p.t_s + 0.003) / 1.1)
     err = np.rad2deg(p.gyr_thigh_rps + p.gyr_bias_thigh_rps) - truth
     assert np.max(np.abs(err[(p.t_s > 4.9) & (p.t_s < 5.5)])) < 3.0  # of a 300 deg/s swing
+
+
+def test_measured_samples_leave_out_the_filled_holes() -> None:
+    t = np.arange(0, 12, 0.01)
+    g = _gait(2 * np.pi * t / 1.1)
+    drop = (t > 6.0) & (t < 6.3)
+    a = np.column_stack([0 * t, 0 * t, 9.81 + 0 * t])
+    p = prepare_leg("left", _stream("thigh", t[~drop], g[~drop], a[~drop], 100), _stream("shank", t, g, a, 100))
+    assert p.valid.all() and p.filled_s
+    inside = _mask_intervals(p.t_s, p.filled_s)
+    np.testing.assert_array_equal(p.measured(), p.valid & ~inside)
+    assert inside.sum() == drop.sum()
