@@ -345,20 +345,24 @@ def test_one_scattered_window_is_noise_not_a_runaway_clock() -> None:
 
 
 def test_lost_packets_do_not_set_the_clock() -> None:
-    """10 % of 20-sample packets lost per sensor at 128 Hz (a 156 ms hole each; seeds outside the sweep's): the
-    clock comes from measured samples, so every leg's thigh-shank offset is found within 4 ms (an uncorrected leg
-    counts its whole offset) and within 1.7 ms on average. With the filled holes in the axis fit and the hinge cue,
-    one leg here kept 7 ms and the legs averaged 2.1 ms."""
+    """10 % of 20-sample packets lost per sensor at 128 Hz (a 156 ms hole each; seeds outside the sweep's): every
+    leg's thigh-shank offset at mid-session within 4.5 ms (an uncorrected leg counts its whole offset), 1.1 ms on
+    average. Three causes had set the clock from the holes: the axis fit and the hinge cue read the filled holes
+    (their timing is the neighbouring strides'), and each candidate lag compared its own set of samples, so the
+    cost curve measured which samples were compared (max 10.5 ms, mean 2.2 ms here; without the filled holes
+    7.9 / 1.3 ms)."""
     errors = []
-    for seed in range(10, 18):
+    for seed in range(18, 34):
         sim = simulate_session(SimConfig(pattern="normal", seed=seed, duration_s=90.0, bout_strides=12, fs_hz=128.0,
                                          packet_samples=20, packet_loss=0.10))
         clocks = sim.info["sensors"]
         for leg in ("left", "right"):
-            side = leg[0].upper()
-            true_ms = clocks[f"{side}-shank"]["sync_offset_ms"] - clocks[f"{side}-thigh"]["sync_offset_ms"]
+            shank, thigh = clocks[f"{leg[0].upper()}-shank"], clocks[f"{leg[0].upper()}-thigh"]
+            # shank minus thigh stamp error at mid-session [ms]: offsets plus the rate difference over 45 s
+            drift_ppm = shank["drift_ppm"] - thigh["drift_ppm"]
+            true_ms = shank["sync_offset_ms"] - thigh["sync_offset_ms"] + 45e-3 * drift_ppm
             synced = synchronised_leg(leg, *_leg_streams(sim.streams, leg), WALKING)
             assert synced.prep.filled_s  # the case holds filled holes
             errors.append(abs((synced.shank_lag_ms or 0.0) - true_ms))
-    assert max(errors) < 4.0, errors
-    assert np.mean(errors) < 1.7, errors
+    assert max(errors) < 4.5, errors
+    assert np.mean(errors) < 1.1, errors
