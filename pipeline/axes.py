@@ -355,10 +355,27 @@ def hinge_rates(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray) 
     return row_norm(cross_rows(g1, j1)), row_norm(cross_rows(g2, j2))
 
 
+@dataclass(frozen=True)
+class LagEstimate:
+    """One window's clock lag [s] and its standard error [s] from the cost curve's curvature (None where unknown)."""
+
+    lag_s: float
+    se_s: float | None = None
+
+
 def estimate_sync_lag_s(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray, valid: np.ndarray,
                         fs_hz: float, window: slice | None = None,
                         rates: tuple[np.ndarray, np.ndarray] | None = None, max_lag_s: float = WALKING.sync.max_lag_s,
                         centre_s: float = 0.0) -> float | None:
+    """The lag [s] of :func:`sync_lag_estimate` (same arguments), None without a clear minimum."""
+    est = sync_lag_estimate(g1, g2, j1, j2, valid, fs_hz, window, rates, max_lag_s, centre_s)
+    return None if est is None else est.lag_s
+
+
+def sync_lag_estimate(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray, valid: np.ndarray,
+                      fs_hz: float, window: slice | None = None,
+                      rates: tuple[np.ndarray, np.ndarray] | None = None, max_lag_s: float = WALKING.sync.max_lag_s,
+                      centre_s: float = 0.0, cutoff_hz: float = WALKING.axes.fit_cutoff_hz) -> LagEstimate | None:
     """Timestamp offset of the shank relative to the thigh [s], from Seel's hinge constraint (Eq. 2): for a hinge,
     the angular velocity perpendicular to the axis is the same vector in both segments, so ||g1 x j1|| = ||g2 x j2||
     sample by sample. A clock offset between the sensors shifts one against the other; the lag (within +-max_lag_s)
@@ -367,7 +384,10 @@ def estimate_sync_lag_s(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.n
     leaves its joint plane carries no timing information here). Inputs low-passed gyros [rad/s]; ``window``
     restricts the samples compared (clock drift: one estimate per window). ``rates``: :func:`hinge_rates` of the
     whole ``g1``/``g2`` when already computed (several windows of one session), else computed here. ``centre_s``:
-    the lags searched are ``centre_s +- max_lag_s`` (a drifting lag followed from window to window)."""
+    the lags searched are ``centre_s +- max_lag_s`` (a drifting lag followed from window to window). The standard
+    error is that of a least-squares delay (residual variance C0 at the minimum, curvature C'' of the cost per
+    squared sample): var = 2 C0 / (N_eff C''), with N_eff the compared samples per correlation time of rates
+    low-passed at ``cutoff_hz`` (1 / (2 cutoff_hz))."""
     if window is not None:
         valid = valid[window]
         if rates is None:
@@ -398,7 +418,13 @@ def estimate_sync_lag_s(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.n
     a = m1[sel]
     cost = np.array([np.mean((a - m2[_shifted(sel, k)]) ** 2) for k in range(k0 - k_max, k0 + k_max + 1)])
     lag = _parabolic_minimum_s(cost, k_max, fs_hz)
-    return None if lag is None else lag + k0 / fs_hz
+    if lag is None:
+        return None
+    b = int(np.argmin(cost))
+    curvature = cost[b - 1] - 2 * cost[b] + cost[b + 1]
+    n_eff = a.shape[0] / (fs_hz / (2 * cutoff_hz))
+    se = float(np.sqrt(2 * cost[b] / (n_eff * curvature)) / fs_hz) if curvature > 0 else None
+    return LagEstimate(lag + k0 / fs_hz, se)
 
 
 def _shifted(sel: np.ndarray | slice, k: int) -> np.ndarray | slice:

@@ -1,6 +1,6 @@
 """Thigh/shank clock offset and drift of one leg, and the leg prepared again with the shank's stamps corrected.
 
-Two constraints of Seel et al. 2014 carry the timing: the hinge (Eq. 2; :func:`pipeline.axes.estimate_sync_lag_s`)
+Two constraints of Seel et al. 2014 carry the timing: the hinge (Eq. 2; :func:`pipeline.axes.sync_lag_estimate`)
 and the joint centre (Eq. 5; :func:`pipeline.axes.estimate_centre_lag_s`). Neither holds on every knee. A real knee
 is no hinge: the tibia turns about its long axis as the knee flexes and ab/adducts a few degrees, and the
 gait-locked misfit reads as a lag (5-15 ms on the simulator's ``joint_3d`` axis; -10 / -18 ms on the
@@ -31,13 +31,14 @@ from scipy.stats import theilslopes
 
 from pipeline.axes import (
     JointAxes,
+    LagEstimate,
     angular_acceleration,
     axis_up,
     estimate_centre_lag_s,
-    estimate_sync_lag_s,
     fit_joint_axes,
     fit_margin_mask,
     hinge_rates,
+    sync_lag_estimate,
 )
 from pipeline.constants import G_MPS2
 from pipeline.params import WALKING, AxesParams, PipelineParams, SyncParams
@@ -121,14 +122,15 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
     if not axes.leaning:
         h1, h2 = axes.hinge()
         rates = hinge_rates(g1, g2, h1, h2)  # once for all windows
-        hinge: list[float | None] = []
+        hinge: list[LagEstimate | None] = []
         # a filled hole's timing is its neighbouring strides', not this leg's clocks', and the low-pass rings into
         # the samples next to any hole: at 10 % packet loss these had scattered the window lags by 10-20 ms
         measured = fit_margin_mask(prep.measured(), fs, axes_params or WALKING.axes)
 
-        def hinge_lag(w: slice, centre_s: float) -> float | None:
-            hinge.append(estimate_sync_lag_s(g1, g2, h1, h2, measured, fs, window=w, rates=rates,
-                                             max_lag_s=params.max_lag_s, centre_s=centre_s))
+        def hinge_lag(w: slice, centre_s: float) -> LagEstimate | None:
+            hinge.append(sync_lag_estimate(g1, g2, h1, h2, measured, fs, window=w, rates=rates,
+                                           max_lag_s=params.max_lag_s, centre_s=centre_s,
+                                           cutoff_hz=(axes_params or WALKING.axes).fit_cutoff_hz))
             return hinge[-1]
         # the cue's information on the lag: the squared slope of the compared rate (mostly in turns)
         weight = np.gradient(rates[1]) ** 2 * measured
@@ -192,7 +194,7 @@ def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
 
 
 def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
-                   axes_params: AxesParams) -> tuple[Callable[[slice, float], float | None], np.ndarray]:
+                   axes_params: AxesParams) -> tuple[Callable[[slice, float], LagEstimate | None], np.ndarray]:
     """The joint-centre lag of one window (:func:`pipeline.axes.estimate_centre_lag_s`), its inputs prepared once,
     and where in a window that lag is measured: (N,) the squared slope of the shank's acceleration on the fitted
     samples (the knee-centre acceleration changes most sharply at heel strike)."""
@@ -205,13 +207,13 @@ def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: Join
     # the first window that fits centres hands them on: the others start from them (one fit, no restarts, each)
     centres: list[np.ndarray] = []
 
-    def lag_of(w: slice, centre_s: float) -> float | None:
+    def lag_of(w: slice, centre_s: float) -> LagEstimate | None:
         lag, fitted = estimate_centre_lag_s(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, far, fs, w,
                                             params.max_lag_s, axes_params, centres[0] if centres else None,
                                             centre_s)
         if fitted is not None and not centres:
             centres.append(fitted)
-        return lag
+        return None if lag is None else LagEstimate(lag)
     return lag_of, row_norm(np.gradient(a2, axis=0)) ** 2 * far
 
 
@@ -242,7 +244,7 @@ def _predicted_lag(pts: list[tuple[float, float]], t: float, params: SyncParams)
 
 
 def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
-                lag_of: Callable[[slice, float], float | None], drifting: bool = True,
+                lag_of: Callable[[slice, float], LagEstimate | None], drifting: bool = True,
                 weight: np.ndarray | None = None) -> ClockFit:
     """Offset at mid-session and drift of the window lags ``lag_of(window, centre_s)``, each searched around the
     lag the windows before it predict (``centre_s``: their line, clipped to ``max_drift``, at the window's time, so
@@ -252,28 +254,35 @@ def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
     ``drifting``: the windows are long apart, so two informative ones that differ by more than ``agree_s`` give the
     drift between them (else the halves of a short session: a constant offset). ``weight``: (N,) where in each
     window its lag is measured (the window is placed at the weighted mean time, not at its centre: under a drift a
-    window's lag is that of its turns or heel strikes)."""
+    window's lag is that of its turns or heel strikes). Where every lag carries a standard error the line is a
+    weighted least-squares fit (weights 1 / max(se, ``window_lag_floor_s``)^2): a window that lost most of its
+    turns to packet loss or speaks only faintly no longer sets the drift as much as the others."""
     t_mid = float(prep.t_s[prep.n // 2])
-    pts = []
+    pts: list[tuple[float, float]] = []
+    ses: list[float | None] = []
     for w in windows:
         t_w = float(prep.t_s[(w.start + w.stop) // 2])
         if weight is not None and weight[w].sum() > 0:
             t_w = float(np.average(prep.t_s[w], weights=weight[w]))
-        lag = lag_of(w, _predicted_lag(pts, t_w - t_mid, params) if drifting else 0.0)
-        if lag is not None:
-            pts.append((t_w - t_mid, lag))
+        est = lag_of(w, _predicted_lag(pts, t_w - t_mid, params) if drifting else 0.0)
+        if est is not None:
+            pts.append((t_w - t_mid, est.lag_s))
+            ses.append(est.se_s)
     if len(pts) < 2:
         return ClockFit(None)
     t, lag = np.array(pts).T
+    inv_se = None
+    if all(se is not None for se in ses):
+        inv_se = 1.0 / np.maximum(np.array(ses, dtype=float), params.window_lag_floor_s)
     if len(pts) >= 3:
-        drift = float(np.polyfit(t, lag, 1)[0])
+        drift = float(np.polyfit(t, lag, 1, w=inv_se)[0])
     elif drifting and abs(lag[1] - lag[0]) > params.agree_s:
         # a line through two points cannot disagree with them: their slope is taken only where a constant cannot
         # explain them (a difference beyond the window noise)
         drift = float((lag[1] - lag[0]) / (t[1] - t[0]))
     else:
         drift = 0.0
-    offset = float(np.median(lag - drift * t))
+    offset = float(np.median(lag - drift * t) if inv_se is None else np.average(lag - drift * t, weights=inv_se ** 2))
     if np.max(np.abs(lag - offset - drift * t)) > params.agree_s:
         return ClockFit(None)  # scattered windows (a noisy cue), no clock seen: nothing corrected
     if abs(drift) > params.max_drift:

@@ -9,6 +9,7 @@ import pytest
 
 from bench.real_data import BIOMECHZOO_CSV, load_biomechzoo, real_data_available
 from pipeline.axes import (
+    LagEstimate,
     angular_acceleration,
     estimate_centre_lag_s,
     fit_joint_axes,
@@ -227,11 +228,11 @@ def test_window_lags_are_placed_where_the_cue_is(long_walk, monkeypatch: pytest.
     line_model = sync_module._line_model
 
     def spy(prep, windows, params, lag_of, drifting=True, weight=None):  # noqa: ANN001, ANN202
-        def rec(w: slice, centre_s: float) -> float | None:
-            lag = lag_of(w, centre_s)
-            if lag is not None:
-                seen.append((float(np.average(prep.t_s[w], weights=weight[w])), lag))
-            return lag
+        def rec(w: slice, centre_s: float) -> LagEstimate | None:
+            est = lag_of(w, centre_s)
+            if est is not None:
+                seen.append((float(np.average(prep.t_s[w], weights=weight[w])), est.lag_s))
+            return est
         return line_model(prep, windows, params, rec, drifting, weight)
 
     monkeypatch.setattr(sync_module, "_line_model", spy)
@@ -334,7 +335,7 @@ def test_one_scattered_window_is_noise_not_a_runaway_clock() -> None:
     windows = [slice(0, 3000), slice(3000, 6000), slice(6000, 9000)]
 
     def fit(lags_ms: list[float]):  # noqa: ANN202
-        return _line_model(prep, windows, WALKING.sync, lambda w, c: lags_ms[windows.index(w)] / 1000)
+        return _line_model(prep, windows, WALKING.sync, lambda w, c: LagEstimate(lags_ms[windows.index(w)] / 1000))
 
     scattered = fit([10.0, 11.0, 40.0])
     assert scattered.offset_s is None and not scattered.disagreement
@@ -342,6 +343,29 @@ def test_one_scattered_window_is_noise_not_a_runaway_clock() -> None:
     assert runaway.offset_s is None and runaway.disagreement
     crystal = fit([10.0 - 6.0, 10.0, 10.0 + 6.0])
     assert crystal.offset_s is not None and abs(crystal.drift - 200e-6) < 1e-6 and not crystal.disagreement
+
+
+def test_a_faint_window_weighs_less_in_the_clock_line() -> None:
+    """Three hinge windows over 90 s at 10, 10 and 16 ms, the last with a standard error of 5 ms (most of its turns
+    lost), the others 0.5 ms: the weighted line stays at 10 ms with ~10 ppm of drift, where equal weights would read
+    a 100 ppm drift (the 16 ms window alone) and an offset of 11 ms."""
+    from types import SimpleNamespace
+
+    from pipeline.sync import _line_model
+
+    prep = SimpleNamespace(t_s=np.arange(9000) / 100.0, n=9000)
+    windows = [slice(0, 3000), slice(3000, 6000), slice(6000, 9000)]
+    lags_ms, ses_ms = [10.0, 10.0, 16.0], [0.5, 0.5, 5.0]
+
+    def fit(with_se: bool):  # noqa: ANN202
+        def lag_of(w: slice, centre_s: float) -> LagEstimate:
+            i = windows.index(w)
+            return LagEstimate(lags_ms[i] / 1000, ses_ms[i] / 1000 if with_se else None)
+        return _line_model(prep, windows, WALKING.sync, lag_of)
+
+    weighted, equal = fit(True), fit(False)
+    assert equal.offset_s is not None and abs(equal.drift - 100e-6) < 1e-6
+    assert weighted.offset_s is not None and abs(weighted.drift) < 15e-6 and abs(weighted.offset_s - 0.010) < 3e-4
 
 
 def test_lost_packets_do_not_set_the_clock() -> None:
