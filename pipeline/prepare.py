@@ -327,6 +327,8 @@ def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, flo
             if out is x:
                 out = x.copy()
             out[i0:i1] = fill
+        if fill is not None and len(group) > 1:
+            filled.append((g0, g1))  # the grid samples between the holes were overwritten too
         for gap, j0, j1 in group:
             if fill is None and gap in optional:
                 continue  # left to the cubic

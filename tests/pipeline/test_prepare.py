@@ -248,7 +248,11 @@ def test_two_holes_with_one_received_sample_between_are_filled_as_one() -> None:
     drop[512:540] = True  # 0.29 s, sample 511 alone received between
     a = np.column_stack([0 * t, 0 * t, 9.81 + 0 * t])
     p = prepare_leg("left", _stream("thigh", stamps[~drop], g[~drop], a[~drop], 100), _stream("shank", t, g, a, 100))
-    assert not p.gaps_s and len(p.thigh_filled_s) == 2
+    assert not p.gaps_s
+    # the grid samples next to the lone sample were overwritten with the rest: none of them counts as measured
+    first, last = stamps[499], stamps[540]
+    assert not p.measured()[(p.t_s > first) & (p.t_s < last)].any()
+    assert p.measured()[(p.t_s > first - 0.5) & (p.t_s < first)].all()
     truth = _gait(2 * np.pi * (p.t_s + 0.003) / 1.1)
     err = np.rad2deg(p.gyr_thigh_rps + p.gyr_bias_thigh_rps) - truth
     assert np.max(np.abs(err[(p.t_s > 4.9) & (p.t_s < 5.5)])) < 3.0  # of a 300 deg/s swing
@@ -264,3 +268,20 @@ def test_measured_samples_leave_out_the_filled_holes() -> None:
     inside = _mask_intervals(p.t_s, p.filled_s)
     np.testing.assert_array_equal(p.measured(), p.valid & ~inside)
     assert inside.sum() == drop.sum()
+
+
+def test_a_grid_sample_overwritten_between_two_holes_is_not_measured() -> None:
+    """Two received samples between two holes, off the grid, with one grid sample between them: that sample is
+    interpolated across both holes, so they are filled as one (`_adjacent_holes`) and it is overwritten with them;
+    it must not count as measured (the clock cues and the axis fit read only measured samples)."""
+    t = np.arange(0, 10, 0.01)
+    g = _gait(2 * np.pi * t / 1.1)
+    stamps = t - 0.003
+    drop = np.zeros(t.size, dtype=bool)
+    drop[500:511] = True
+    drop[513:540] = True  # samples 511 and 512 received between, grid sample 5.11 s between them
+    a = np.column_stack([0 * t, 0 * t, 9.81 + 0 * t])
+    p = prepare_leg("left", _stream("thigh", stamps[~drop], g[~drop], a[~drop], 100), _stream("shank", t, g, a, 100))
+    assert not p.gaps_s
+    between = np.flatnonzero(np.isclose(p.t_s, 5.11))
+    assert between.size == 1 and not p.measured()[between[0]]
