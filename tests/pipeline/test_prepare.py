@@ -11,6 +11,7 @@ from pipeline.params import WALKING, PrepareParams
 from pipeline.prepare import (
     EDGE_TOL_S,
     MAX_BRIDGE_S,
+    PreparedLeg,
     _mask_intervals,
     periodic_fill,
     prepare_leg,
@@ -108,12 +109,20 @@ def _gait(phase: np.ndarray) -> np.ndarray:
                             20 * np.sin(3 * phase)])
 
 
+def _thigh_holes(t: np.ndarray, g: np.ndarray, drop: np.ndarray, params: PrepareParams = WALKING.prepare,
+                 thigh_t: np.ndarray | None = None) -> PreparedLeg:
+    """A leg at 100 Hz whose thigh (stamps ``thigh_t``, default ``t``) lost the samples ``drop``; both sensors read
+    the rate ``g`` [deg/s] and gravity."""
+    a = np.column_stack([0 * t, 0 * t, 9.81 + 0 * t])
+    stamps = t if thigh_t is None else thigh_t
+    return prepare_leg("left", _stream("thigh", stamps[~drop], g[~drop], a[~drop], 100),
+                       _stream("shank", t, g, a, 100), params=params)
+
+
 def _fill_error(t: np.ndarray, g: np.ndarray, drop: np.ndarray, params: PrepareParams = WALKING.prepare
                 ) -> tuple[np.ndarray, list]:
     """Gyro error [deg/s] of the thigh's filled samples where ``drop`` removed them, and its masked gaps."""
-    a = np.column_stack([0 * t, 0 * t, 9.81 + 0 * t])
-    p = prepare_leg("left", _stream("thigh", t[~drop], g[~drop], a[~drop], 100), _stream("shank", t, g, a, 100),
-                    params=params)
+    p = _thigh_holes(t, g, drop, params)
     return np.rad2deg(p.gyr_thigh_rps[drop]) - g[drop], p.thigh_gaps_s
 
 
@@ -215,8 +224,7 @@ def test_a_short_hole_in_gait_takes_the_neighbouring_strides_over_the_cubic() ->
     t = np.arange(0, 12, 0.01)
     g = _gait(2 * np.pi * t / 1.1)
     drop = (t > 6.2) & (t < 6.3)
-    a = np.column_stack([0 * t, 0 * t, 9.81 + 0 * t])
-    p = prepare_leg("left", _stream("thigh", t[~drop], g[~drop], a[~drop], 100), _stream("shank", t, g, a, 100))
+    p = _thigh_holes(t, g, drop)
     assert p.valid.all() and p.filled_s and not p.bridged_s
     filled, _ = _fill_error(t, g, drop)
     cubic, _ = _fill_error(t, g, drop, dataclasses.replace(WALKING.prepare, periodic_bridge_s=0.0))
@@ -246,8 +254,7 @@ def test_two_holes_with_one_received_sample_between_are_filled_as_one() -> None:
     drop = np.zeros(t.size, dtype=bool)
     drop[500:511] = True  # 0.12 s
     drop[512:540] = True  # 0.29 s, sample 511 alone received between
-    a = np.column_stack([0 * t, 0 * t, 9.81 + 0 * t])
-    p = prepare_leg("left", _stream("thigh", stamps[~drop], g[~drop], a[~drop], 100), _stream("shank", t, g, a, 100))
+    p = _thigh_holes(t, g, drop, thigh_t=stamps)
     assert not p.gaps_s
     # the grid samples next to the lone sample were overwritten with the rest: none of them counts as measured
     first, last = stamps[499], stamps[540]
@@ -262,8 +269,7 @@ def test_measured_samples_leave_out_the_filled_holes() -> None:
     t = np.arange(0, 12, 0.01)
     g = _gait(2 * np.pi * t / 1.1)
     drop = (t > 6.0) & (t < 6.3)
-    a = np.column_stack([0 * t, 0 * t, 9.81 + 0 * t])
-    p = prepare_leg("left", _stream("thigh", t[~drop], g[~drop], a[~drop], 100), _stream("shank", t, g, a, 100))
+    p = _thigh_holes(t, g, drop)
     assert p.valid.all() and p.filled_s
     inside = _mask_intervals(p.t_s, p.filled_s)
     np.testing.assert_array_equal(p.measured(), p.valid & ~inside)
@@ -280,8 +286,7 @@ def test_a_grid_sample_overwritten_between_two_holes_is_not_measured() -> None:
     drop = np.zeros(t.size, dtype=bool)
     drop[500:511] = True
     drop[513:540] = True  # samples 511 and 512 received between, grid sample 5.11 s between them
-    a = np.column_stack([0 * t, 0 * t, 9.81 + 0 * t])
-    p = prepare_leg("left", _stream("thigh", stamps[~drop], g[~drop], a[~drop], 100), _stream("shank", t, g, a, 100))
+    p = _thigh_holes(t, g, drop, thigh_t=stamps)
     assert not p.gaps_s
     between = np.flatnonzero(np.isclose(p.t_s, 5.11))
     assert between.size == 1 and not p.measured()[between[0]]
