@@ -12,7 +12,8 @@ of the two and is used wherever it speaks (out-of-plane motion: turns, hip ab/ad
 
 A 10-15 ms offset, common between two BLE sensors, would otherwise distort swing flexion by several degrees.
 
-Two clocks also run at their own rates, so the lag drifts: one lag per window, a line through them. A window's lag is
+Two clocks also run at their own rates, so the lag drifts: one lag per window, a line through them (weighted by each
+hinge window's standard error, so a window that lost its turns to packet loss weighs less). A window's lag is
 that of the samples that carry the cue (turns for the hinge, heel strikes for the centre), so it is placed at their
 weighted time, not at the window's middle (with 300 ppm the window lags then fit their line within ~1 ms, instead of
 scattering by several); each window's search follows the line of the windows before it, so a lag that drifts out of
