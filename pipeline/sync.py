@@ -124,14 +124,15 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
         h1, h2 = axes.hinge()
         rates = hinge_rates(g1, g2, h1, h2)  # once for all windows
         hinge: list[LagEstimate | None] = []
+        fit_params = axes_params or WALKING.axes
         # a filled hole's timing is its neighbouring strides', not this leg's clocks', and the low-pass rings into
         # the samples next to any hole: at 10 % packet loss these had scattered the window lags by 10-20 ms
-        measured = fit_margin_mask(prep.measured(), fs, axes_params or WALKING.axes)
+        measured = fit_margin_mask(prep.measured(), fs, fit_params)
 
         def hinge_lag(w: slice, centre_s: float) -> LagEstimate | None:
             hinge.append(sync_lag_estimate(g1, g2, h1, h2, measured, fs, window=w, rates=rates,
                                            max_lag_s=params.max_lag_s, centre_s=centre_s,
-                                           cutoff_hz=(axes_params or WALKING.axes).fit_cutoff_hz))
+                                           cutoff_hz=fit_params.fit_cutoff_hz))
             return hinge[-1]
         # the cue's information on the lag: the squared slope of the compared rate (mostly in turns)
         weight = np.gradient(rates[1]) ** 2 * measured
