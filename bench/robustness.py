@@ -188,6 +188,7 @@ AXES: dict[str, Axis] = {
         _v("rate error 100 ppm", true_time=True, clock_drift_ppm=100.0),
         _v("rate error 300 ppm", true_time=True, clock_drift_ppm=300.0),
         _v("rate error 500 ppm", true_time=True, clock_drift_ppm=500.0),
+        _v("rate error 1000 ppm", true_time=True, clock_drift_ppm=1000.0),
         _v("rate error 100 ppm, 5 min", true_time=True, clock_drift_ppm=100.0, duration_s=300.0),
         _v("rate error 300 ppm, 5 min", true_time=True, clock_drift_ppm=300.0, duration_s=300.0),
         _v("time-stamp offset 20 ms", true_time=True, sync_offset_ms=20.0)),

@@ -126,10 +126,12 @@ class SyncParams:
     """One lag estimate per window [s]: long enough for a stable minimum, short against crystal drift. A leg of two
     to three windows is cut into three shorter ones, so that its drift is seen."""
     max_drift: float = 500e-6
-    """Largest credible rate error [s/s] between a thigh's and a shank's clock: crystals are specified to +-20-50
-    ppm and move by tens more with temperature and age, so two of them differ by up to ~200 ppm; beyond 500 ppm the
-    estimate is wrong or the clock has no crystal (a ~1 % oscillator): window lags that run apart faster leave the
-    leg uncorrected and its strides out of trends (``clock_disagreement``)."""
+    """Largest rate error [s/s] between a thigh's and a shank's clock that the stride timing accepts after the clock
+    model (:func:`pipeline.sync.stride_clock_runaway`): crystals are specified to +-20-50 ppm and move by tens more
+    with temperature and age, so two of them differ by up to ~200 ppm; a leg whose remaining drift lies beyond 500
+    ppm was not brought onto one clock, and its strides stay out of trends (``clock_disagreement``). Clocks without
+    a crystal (the calibrated RC oscillators of BLE chips, +-250-500 ppm each) drift apart faster; the window lags
+    follow them up to :attr:`max_line_drift`."""
     agree_s: float = 0.006
     """The window lags must agree with the fitted line within this [s], or no correction is applied."""
     window_lag_floor_s: float = 0.0007
@@ -149,6 +151,13 @@ class SyncParams:
     """Shortest span [s] of those strides: over less, 500 ppm moves the stride timing by less than its noise."""
     max_lag_s: float = 0.06
     """Search range of the lag [s]: larger offsets are not a clock error between two BLE sensors."""
+
+    @property
+    def max_line_drift(self) -> float:
+        """Steepest line [s/s] of the window lags that is applied: a drift that moves the lag across one window by
+        twice the search range (3000 ppm in 40 s windows) smears that window's cost minimum beyond what the search
+        sees. Steeper lines leave the leg uncorrected and out of trends (``clock_disagreement``)."""
+        return 2 * self.max_lag_s / self.window_s
     min_shift_samples: float = 0.25
     """A correction smaller than this share of a sample period is not applied (re-preparing costs time)."""
     max_centre_windows: int = 8

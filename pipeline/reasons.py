@@ -23,7 +23,7 @@ REASONS: dict[str, str] = {
                    "(out of trends)",
     "bout_edge": "first or last stride of a walking bout",
     "clock_disagreement": "the thigh and shank clocks drift apart in a way no credible clock rate explains "
-                          "(SyncParams.max_drift): the timing between the two segments, and so the angle, is "
-                          "unknown (out of trends)",
+                          "(SyncParams.max_drift, max_line_drift): the timing between the two segments, and so the "
+                          "angle, is unknown (out of trends)",
 }
 """Code -> meaning. ``(out of trends)``: the reason alone keeps the stride below the trend threshold."""

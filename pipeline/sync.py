@@ -17,9 +17,12 @@ hinge window's standard error, so a window that lost its turns to packet loss we
 that of the samples that carry the cue (turns for the hinge, heel strikes for the centre), so it is placed at their
 weighted time, not at the window's middle (with 300 ppm the window lags then fit their line within ~1 ms, instead of
 scattering by several); each window's search follows the line of the windows before it, so a lag that drifts out of
-``SyncParams.max_lag_s`` is still found. A line steeper than ``SyncParams.max_drift`` is no crystal clock: no
-correction, and the leg's strides are kept out of trends (``clock_disagreement``). Faster clocks smear a window's lag
-beyond the search range, so the stride timing checks the result (:func:`stride_clock_runaway`).
+``SyncParams.max_lag_s`` is still found. A line steeper than two crystals drift apart (``SyncParams.max_drift``)
+is applied only where the stride timing, a cue of its own (:func:`stride_timing_drift`), shows such a drift too:
+calibrated RC oscillators (+-250-500 ppm each) drift so, and so does a gyro bias's misfit in the hinge cue. A line
+steeper than ``SyncParams.max_line_drift`` is beyond what the windows can see: no correction, and the leg's strides
+are kept out of trends (``clock_disagreement``). Faster clocks smear a window's lag beyond the search range, so the
+stride timing checks the result (:func:`stride_clock_runaway`).
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ from pipeline.axes import (
     fit_joint_axes,
     fit_margin_mask,
     hinge_rates,
+    orient_thigh_on_gait,
     sync_lag_estimate,
 )
 from pipeline.constants import G_MPS2
@@ -46,7 +50,7 @@ from pipeline.params import WALKING, AxesParams, PipelineParams, SyncParams
 from pipeline.prepare import SI, PreparedLeg, nominal_fs, prepare_leg_si, to_si
 from pipeline.signal_utils import lowpass_runs_many, row_norm
 from pipeline.types import RawSensorStream
-from pipeline.walking import fit_gyros, reusable_thigh_fit
+from pipeline.walking import fit_gyros, gait_events, reusable_thigh_fit
 
 
 @dataclass(frozen=True)
@@ -68,7 +72,7 @@ class ClockFit:
 
     offset_s: float | None  # lag at mid-session [s]; None: no correction applied
     drift: float = 0.0  # [s/s]
-    disagreement: bool = False  # the window lags run apart faster than ``SyncParams.max_drift``: timing unknown
+    disagreement: bool = False  # the window lags run apart faster than ``SyncParams.max_line_drift``: timing unknown
 
 
 def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, params: PipelineParams,
@@ -89,6 +93,9 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     axes = fit_joint_axes(g1, g2, prep.measured(), params.axes, up=axis_up(prep, params.axes),
                           gd2_rps2=angular_acceleration(g2, prep.fs_hz) if params.axes.fit_lag else None)
     clock = clock_model(prep, g1, g2, axes, params.sync, params.axes)
+    if clock.offset_s is not None and abs(clock.drift) > params.sync.max_drift \
+            and not _stride_timing_confirms(prep, g1, g2, axes, clock.drift, params):
+        clock = ClockFit(None)
     offset, drift = clock.offset_s, clock.drift
     if offset is None:
         return SyncedLeg(prep, axes, None, None, fit_gyr, clock_disagreement=clock.disagreement)
@@ -148,33 +155,60 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
     return _line_model(prep, [windows[int(i)] for i in pick], params, lag_of, weight=weight)
 
 
-def stride_clock_runaway(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndarray, fs_hz: float,
-                         params: SyncParams) -> bool:
-    """Whether the stride timing shows the shank's clock running away from the thigh's faster than ``max_drift``
-    after the clock model: a check the window lags cannot make once a drift smears a window's lag beyond the search
-    range (beyond ~1000 ppm in 40 s windows), nor after a wrong correction. Each stride's thigh swing peak (the hip
-    flexes fastest in early swing) leads the shank's mid-swing peak ``ms`` (indices) by a nearly constant time
-    (SD ~8 ms on the simulator's 4-minute walks); a clock drift adds ``drift * t``. True when the 95 % interval of
-    the Theil-Sen slope of that time over the session lies wholly beyond ``max_drift`` (at least
-    ``stride_cue_min_strides`` strides over ``stride_cue_min_span_s``). ``thigh_sag_dps`` (N,) g1.j1 on the grid."""
+def stride_timing_drift(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndarray, fs_hz: float,
+                        params: SyncParams) -> tuple[float, float] | None:
+    """95 % interval [s/s] of the shank's clock drift against the thigh's that the stride timing shows, None with
+    too few strides (fewer than ``stride_cue_min_strides`` over ``stride_cue_min_span_s``). Each stride's thigh
+    swing peak (the hip flexes fastest in early swing) leads the shank's mid-swing peak ``ms`` (indices) by a nearly
+    constant time (SD ~8 ms on the simulator's 4-minute walks); a shank clock running ``drift`` fast delays the
+    shank's peaks by ``drift * t`` more: the Theil-Sen slope of that lead over the session. A cue of its own,
+    independent of the window lags: it needs neither a hinge nor a joint centre. ``thigh_sag_dps`` (N,) g1.j1 on
+    the grid."""
     before, after = (int(round(x * fs_hz)) for x in params.stride_cue_window_s)
     ms = np.asarray(ms, dtype=int)
     ms = ms[(ms >= before) & (ms + after < t_s.shape[0])]
     if ms.size < params.stride_cue_min_strides:
-        return False
+        return None
     seg = thigh_sag_dps[ms[:, None] + np.arange(-before, after + 1)]
     ok = np.isfinite(seg).all(axis=1)
     if ok.sum() < params.stride_cue_min_strides:
-        return False
+        return None
     t = t_s[ms[ok]]
     if t.size < 2 or t[-1] - t[0] < params.stride_cue_min_span_s:
-        return False
-    delta = (np.argmax(seg[ok], axis=1) - before) / fs_hz
+        return None
+    lead = (before - np.argmax(seg[ok], axis=1)) / fs_hz
     if t.size > params.stride_cue_max_strides:  # Theil-Sen takes every pair: bounded work on long recordings
         keep = np.linspace(0, t.size - 1, params.stride_cue_max_strides).round().astype(int)
-        t, delta = t[keep], delta[keep]
-    _, _, low, high = theilslopes(delta, t)
-    return bool(low > params.max_drift or high < -params.max_drift)
+        t, lead = t[keep], lead[keep]
+    _, _, low, high = theilslopes(lead, t)
+    return float(low), float(high)
+
+
+def stride_clock_runaway(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndarray, fs_hz: float,
+                         params: SyncParams) -> bool:
+    """Whether the stride timing (:func:`stride_timing_drift`) shows the shank's clock running away from the
+    thigh's faster than ``max_drift`` after the clock model: a check the window lags cannot make once a drift
+    smears a window's lag beyond the search range (beyond ~1000 ppm in 40 s windows), nor after a wrong
+    correction. True when the 95 % interval lies wholly beyond ``max_drift``."""
+    drift = stride_timing_drift(t_s, thigh_sag_dps, ms, fs_hz, params)
+    return drift is not None and (drift[0] > params.max_drift or drift[1] < -params.max_drift)
+
+
+def _stride_timing_confirms(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, drift: float,
+                            params: PipelineParams) -> bool:
+    """Whether the stride timing of the uncorrected leg shows a drift beyond ``max_drift`` on the side of the
+    window lags' ``drift`` [s/s]: the window lags alone are not enough for a line no pair of crystals explains
+    (a gyro bias that drifts over the session moves the hinge cue's misfit, and its lags follow a line of their
+    own)."""
+    _, ev = gait_events(prep, axes, params)
+    j1 = orient_thigh_on_gait(axes.j1, axes.j2, g1, g2, list(ev.strides))
+    thigh_sag = np.rad2deg(prep.gyr_thigh_rps @ j1)
+    thigh_sag[~prep.valid] = np.nan
+    seen = stride_timing_drift(prep.t_s, thigh_sag, ev.ms[(ev.ms >= 0) & (ev.bout >= 0)], prep.fs_hz, params.sync)
+    if seen is None:
+        return False
+    low, high = seen
+    return low > params.sync.max_drift if drift > 0 else high < -params.sync.max_drift
 
 
 def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
@@ -237,7 +271,8 @@ def shock_mask(acc: tuple[tuple[np.ndarray, np.ndarray], ...], valid: np.ndarray
 
 def _predicted_lag(pts: list[tuple[float, float]], t: float, params: SyncParams) -> float:
     """The lag [s] at time ``t`` that the (time, lag) points so far predict: none 0, one its lag, more their line
-    (rate clipped to ``max_drift``)."""
+    (rate clipped to ``max_drift``: searching along a steeper prediction lets the windows follow the misfit of a
+    gyro bias that drifts over the session; a steeper clock is still found where its lags stay in the search range)."""
     if len(pts) < 2:
         return pts[0][1] if pts else 0.0
     tt, lag = np.array(pts).T
@@ -252,7 +287,7 @@ def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
     lag the windows before it predict (``centre_s``: their line, clipped to ``max_drift``, at the window's time, so
     that a drifting lag is followed beyond ``max_lag_s``); no correction unless at least two
     windows are informative and all agree with the line within ``agree_s``; a disagreement where they agree on a
-    line steeper than ``max_drift``.
+    line steeper than ``max_line_drift``.
     ``drifting``: the windows are long apart, so two informative ones that differ by more than ``agree_s`` give the
     drift between them (else the halves of a short session: a constant offset). ``weight``: (N,) where in each
     window its lag is measured (the window is placed at the weighted mean time, not at its centre: under a drift a
@@ -287,7 +322,7 @@ def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
     offset = float(np.median(lag - drift * t) if inv_se is None else np.average(lag - drift * t, weights=inv_se ** 2))
     if np.max(np.abs(lag - offset - drift * t)) > params.agree_s:
         return ClockFit(None)  # scattered windows (a noisy cue), no clock seen: nothing corrected
-    if abs(drift) > params.max_drift:
-        # the windows agree on a lag that runs away faster than two crystal clocks drift apart: timing unknown
+    if abs(drift) > params.max_line_drift:
+        # the windows agree on a lag that runs away faster than they can see: timing unknown
         return ClockFit(None, disagreement=True)
     return ClockFit(offset, drift)

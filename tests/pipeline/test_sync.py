@@ -20,7 +20,7 @@ from pipeline.prepare import nominal_fs, prepare_leg_si, to_si
 from pipeline.session import process_session
 from pipeline.signal_utils import lowpass_runs_many
 from pipeline.simulate import SimConfig, simulate_session
-from pipeline.sync import clock_model, shock_mask, stride_clock_runaway, synchronised_leg
+from pipeline.sync import ClockFit, clock_model, shock_mask, stride_clock_runaway, synchronised_leg
 from pipeline.walking import fit_gyros
 from tests.conftest import skip_without_real_data
 
@@ -243,16 +243,60 @@ def test_window_lags_are_placed_where_the_cue_is(long_walk, monkeypatch: pytest.
         assert abs(lag - 300e-6 * (t - t_mid)) < 0.0015
 
 
-def test_runaway_clock_keeps_the_leg_out_of_trends(long_walk) -> None:
-    """800 ppm: no pair of crystal clocks drifts so fast (``SyncParams.max_drift`` 500 ppm). Nothing is corrected,
-    the leg says so, and every stride of it carries ``clock_disagreement`` below the trend threshold, while the other
-    leg, whose clocks agree, keeps its strides in trends."""
+def test_an_oscillator_without_crystal_is_followed_and_kept_in_trends(long_walk) -> None:
+    """800 ppm: no pair of crystal clocks drifts so fast, but calibrated RC oscillators (+-250-500 ppm each) do. The
+    window lags follow it (``SyncParams.max_line_drift``): rate within 40 ppm, mid-session offset within 2 ms, and
+    the leg's strides stay in trends like the other leg's."""
     thigh, shank = _leg_streams(long_walk.streams, "left")
     synced = synchronised_leg("left", thigh, _drifting(shank, 0.0, 800e-6), WALKING)
-    assert synced.clock_disagreement and synced.shank_lag_ms is None
+    assert not synced.clock_disagreement
+    assert synced.shank_drift_ppm is not None and abs(synced.shank_drift_ppm - 800.0) < 40.0
+    assert synced.shank_lag_ms is not None and abs(synced.shank_lag_ms) < 2.0
     streams = [(_drifting(s, 0.0, 800e-6) if s.leg == "left" and s.segment == "shank" else s)
                for s in long_walk.streams]
     res = process_session(streams, activity="walking")
+    for leg in ("left", "right"):
+        lr = res.legs[leg]
+        assert not lr.diagnostics.clock_disagreement
+        assert len(lr.strides) > 100 and not any("clock_disagreement" in s.quality_reasons for s in lr.strides)
+        assert sum(s.quality >= 0.5 for s in lr.strides) > 0.9 * len(lr.strides)
+    assert not any("clock_disagreement" in w for w in res.warnings)
+
+
+def test_a_steep_line_the_stride_timing_does_not_show_is_not_applied(long_walk, monkeypatch: pytest.MonkeyPatch
+                                                                    ) -> None:
+    """Window lags on an 800 ppm line over a leg whose clocks agree (what a gyro bias drifting over the session can
+    make of the hinge cue): the stride timing shows no such drift, so nothing is corrected and nothing flagged. The
+    same line over a shank that does run 800 ppm fast is applied."""
+    import pipeline.sync as sync
+
+    monkeypatch.setattr(sync, "clock_model", lambda *a, **k: ClockFit(0.0, 800e-6))
+    thigh, shank = _leg_streams(long_walk.streams, "left")
+    synced = synchronised_leg("left", thigh, shank, WALKING)
+    assert synced.shank_lag_ms is None and synced.shank_drift_ppm is None and not synced.clock_disagreement
+    drifting = synchronised_leg("left", thigh, _drifting(shank, 0.0, 800e-6), WALKING)
+    assert drifting.shank_drift_ppm == 800.0
+
+
+def test_a_line_too_steep_for_the_windows_keeps_the_leg_out_of_trends(long_walk, monkeypatch: pytest.MonkeyPatch
+                                                                      ) -> None:
+    """Window lags that agree on a line steeper than the windows can see (``SyncParams.max_line_drift``) are no
+    clock the pipeline can correct: nothing is corrected, the leg says so, and every stride of it carries
+    ``clock_disagreement`` below the trend threshold, while the other leg keeps its strides in trends."""
+    import pipeline.sync as sync
+
+    real = sync._line_model
+
+    def steep(prep, windows, params, lag_of, drifting=True, weight=None):  # noqa: ANN001, ANN202
+        if prep.leg == "right":
+            return real(prep, windows, params, lag_of, drifting, weight)
+        t_mid = float(prep.t_s[prep.n // 2])
+        line = 1.2 * params.max_line_drift
+        return real(prep, windows, params,
+                    lambda w, c: LagEstimate(line * (float(prep.t_s[(w.start + w.stop) // 2]) - t_mid)), drifting)
+
+    monkeypatch.setattr(sync, "_line_model", steep)
+    res = process_session(long_walk.streams, activity="walking")
     left, right = res.legs["left"], res.legs["right"]
     assert left.diagnostics.clock_disagreement and not right.diagnostics.clock_disagreement
     assert [w for w in res.warnings if "clock_disagreement" in w] == [
@@ -326,7 +370,8 @@ def test_stride_timing_check_is_bounded_on_long_recordings(monkeypatch: pytest.M
 
 def test_one_scattered_window_is_noise_not_a_runaway_clock() -> None:
     """Three windows over 90 s: lags 10, 11, 40 ms do not lie on any line within ``agree_s`` (a noisy cue): no
-    correction, no flag. Lags on a steep line (900 ppm) are a runaway clock; on a credible one (200 ppm) a drift."""
+    correction, no flag. Lags on a line steeper than the windows can see (3600 ppm) are a runaway clock; on a
+    crystal's (200 ppm) or an RC oscillator's (900 ppm) a drift."""
     from types import SimpleNamespace
 
     from pipeline.sync import _line_model
@@ -339,8 +384,10 @@ def test_one_scattered_window_is_noise_not_a_runaway_clock() -> None:
 
     scattered = fit([10.0, 11.0, 40.0])
     assert scattered.offset_s is None and not scattered.disagreement
-    runaway = fit([10.0 - 27.0, 10.0, 10.0 + 27.0])
+    runaway = fit([10.0 - 108.0, 10.0, 10.0 + 108.0])
     assert runaway.offset_s is None and runaway.disagreement
+    oscillator = fit([10.0 - 27.0, 10.0, 10.0 + 27.0])
+    assert oscillator.offset_s is not None and abs(oscillator.drift - 900e-6) < 1e-6 and not oscillator.disagreement
     crystal = fit([10.0 - 6.0, 10.0, 10.0 + 6.0])
     assert crystal.offset_s is not None and abs(crystal.drift - 200e-6) < 1e-6 and not crystal.disagreement
 
