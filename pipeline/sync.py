@@ -18,8 +18,9 @@ that of the samples that carry the cue (turns for the hinge, heel strikes for th
 weighted time, not at the window's middle (with 300 ppm the window lags then fit their line within ~1 ms, instead of
 scattering by several); each window's search follows the line of the windows before it, so a lag that drifts out of
 ``SyncParams.max_lag_s`` is still found. A line steeper than two crystals drift apart (``SyncParams.max_drift``)
-is applied only where the stride timing, a cue of its own (:func:`stride_timing_drift`), shows such a drift too:
-calibrated RC oscillators (+-250-500 ppm each) drift so, and so does a gyro bias's misfit in the hinge cue. A line
+is applied only where the stride timing, a cue of its own (:func:`stride_timing_drift`), shows no drift left after
+it: calibrated RC oscillators (+-250-500 ppm each) drift so, but a gyro bias's misfit in the hinge cue can move the
+window lags so as well; without that second cue the leg's timing is unknown (``clock_disagreement``). A line
 steeper than ``SyncParams.max_line_drift`` is beyond what the windows can see: no correction, and the leg's strides
 are kept out of trends (``clock_disagreement``). Faster clocks smear a window's lag beyond the search range, so the
 stride timing checks the result (:func:`stride_clock_runaway`).
@@ -93,9 +94,6 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     axes = fit_joint_axes(g1, g2, prep.measured(), params.axes, up=axis_up(prep, params.axes),
                           gd2_rps2=angular_acceleration(g2, prep.fs_hz) if params.axes.fit_lag else None)
     clock = clock_model(prep, g1, g2, axes, params.sync, params.axes)
-    if clock.offset_s is not None and abs(clock.drift) > params.sync.max_drift \
-            and not _stride_timing_confirms(prep, g1, g2, axes, clock.drift, params):
-        clock = ClockFit(None)
     offset, drift = clock.offset_s, clock.drift
     if offset is None:
         return SyncedLeg(prep, axes, None, None, fit_gyr, clock_disagreement=clock.disagreement)
@@ -106,6 +104,8 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
         prep = prepare_leg_si(leg, si1, si2, fs1, fs2, shank_shift_s=-(offset - drift * t_mid),
                               shank_drift=-drift, reuse=first, params=params.prepare,
                               posture=params.posture)
+        if abs(drift) > params.sync.max_drift and not _stride_timing_agrees(prep, axes, params):
+            return SyncedLeg(first, axes, None, None, fit_gyr, clock_disagreement=True)
         return SyncedLeg(prep, axes, round(1000 * offset, 1), round(1e6 * drift, 1), None,
                          reusable_thigh_fit(first, prep, g1))
     return SyncedLeg(prep, axes, round(1000 * offset, 1), round(1e6 * drift, 1), fit_gyr)
@@ -176,7 +176,16 @@ def stride_timing_drift(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndarr
     t = t_s[ms[ok]]
     if t.size < 2 or t[-1] - t[0] < params.stride_cue_min_span_s:
         return None
-    lead = (before - np.argmax(seg[ok], axis=1)) / fs_hz
+    peaks = seg[ok]
+    k = np.argmax(peaks, axis=1)
+    rows = np.arange(k.size)
+    # the peak between samples (a parabola through its neighbours): at 100 Hz the lead moves by 10 ms steps, as
+    # much as a 1000 ppm drift in 10 s
+    y0, y1, y2 = (peaks[rows, np.clip(k + d, 0, peaks.shape[1] - 1)] for d in (-1, 0, 1))
+    curv = y0 - 2 * y1 + y2
+    inner = (k > 0) & (k < peaks.shape[1] - 1) & (curv < 0)
+    frac = np.where(inner, 0.5 * (y0 - y2) / np.where(inner, curv, -1.0), 0.0)
+    lead = (before - (k + frac)) / fs_hz
     if t.size > params.stride_cue_max_strides:  # Theil-Sen takes every pair: bounded work on long recordings
         keep = np.linspace(0, t.size - 1, params.stride_cue_max_strides).round().astype(int)
         t, lead = t[keep], lead[keep]
@@ -194,12 +203,16 @@ def stride_clock_runaway(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndar
     return drift is not None and (drift[0] > params.max_drift or drift[1] < -params.max_drift)
 
 
-def _stride_timing_confirms(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, drift: float,
-                            params: PipelineParams) -> bool:
-    """Whether the stride timing of the uncorrected leg shows a drift beyond ``max_drift`` on the side of the
-    window lags' ``drift`` [s/s]: the window lags alone are not enough for a line no pair of crystals explains
-    (a gyro bias that drifts over the session moves the hinge cue's misfit, and its lags follow a line of their
-    own)."""
+def _stride_timing_agrees(prep: PreparedLeg, axes: JointAxes, params: PipelineParams) -> bool:
+    """Whether the stride timing (:func:`stride_timing_drift`) of a leg whose shank was re-stamped by a line no pair
+    of crystals explains (beyond ``max_drift``) shows no drift left: its 95 % interval, widened by a line that moves
+    the lag by ``agree_s`` at the session's ends, holds zero. The window lags alone are not enough for such a line:
+    a gyro bias that drifts over the session moves the hinge cue's misfit, and its lags follow a line of their own;
+    and their search follows at most ``max_drift`` from window to window, so a faster clock's line can come out too
+    flat. Checked on the re-stamped leg, where what is left of the drift stays within the stride cue's window
+    (a whole drift of 1000 ppm moves the stride timing by 0.3 s over 5 minutes). Without that agreement the leg's
+    timing is unknown (``clock_disagreement``), as for any line the windows alone show."""
+    g1, g2 = fit_gyros(prep, params.axes.fit_cutoff_hz)
     _, ev = gait_events(prep, axes, params)
     j1 = orient_thigh_on_gait(axes.j1, axes.j2, g1, g2, list(ev.strides))
     thigh_sag = np.rad2deg(prep.gyr_thigh_rps @ j1)
@@ -207,8 +220,9 @@ def _stride_timing_confirms(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, a
     seen = stride_timing_drift(prep.t_s, thigh_sag, ev.ms[(ev.ms >= 0) & (ev.bout >= 0)], prep.fs_hz, params.sync)
     if seen is None:
         return False
+    tol = 2 * params.sync.agree_s / float(prep.t_s[-1] - prep.t_s[0])
     low, high = seen
-    return low > params.sync.max_drift if drift > 0 else high < -params.sync.max_drift
+    return low - tol <= 0.0 <= high + tol
 
 
 def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
