@@ -80,8 +80,10 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
                      si: tuple[SI, SI] | None = None) -> SyncedLeg:
     """Prepare a leg, fit its axes, and when the hinge constraint shows a thigh/shank clock offset larger than
     ``SyncParams.min_shift_samples`` of a sample, prepare it again with the shank's time stamps corrected (the axes
-    do not move with the lag). ``si``: both streams' :func:`pipeline.prepare.to_si` when the caller has them
-    (never modified). Raises ValueError with less than a second of usable samples."""
+    do not move with the lag). Where the window lags give no line the stride timing bears out, but the stride
+    timing shows a drift no pair of crystals has, the shank is re-stamped by that drift and the windows tried
+    again (:func:`_clock_after_stride_drift`). ``si``: both streams' :func:`pipeline.prepare.to_si` when the caller
+    has them (never modified). Raises ValueError with less than a second of usable samples."""
     si1, si2 = (to_si(thigh), to_si(shank)) if si is None else si
     fs1 = nominal_fs(thigh, si1[0]) if si1[0].size else 0.0
     fs2 = nominal_fs(shank, si2[0]) if si2[0].size else 0.0
@@ -89,26 +91,51 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     if prep.valid.sum() < max(10, int(prep.fs_hz)):
         raise ValueError("less than one second of usable samples")
     g1, g2 = fit_gyros(prep, params.axes.fit_cutoff_hz)
-    fit_gyr: tuple[np.ndarray, np.ndarray] | None = (g1, g2)
-    # on measured samples: a fill repeats the neighbouring strides, and their timing would enter the fitted lag
-    axes = fit_joint_axes(g1, g2, prep.measured(), params.axes, up=axis_up(prep, params.axes),
-                          gd2_rps2=angular_acceleration(g2, prep.fs_hz) if params.axes.fit_lag else None)
+    axes = _fitted_axes(prep, g1, g2, params)
+    streams = _LegStreams(leg, (si1, si2), (fs1, fs2), prep, (g1, g2))
     clock = clock_model(prep, g1, g2, axes, params.sync, params.axes)
-    offset, drift = clock.offset_s, clock.drift
-    if offset is None:
-        return SyncedLeg(prep, axes, None, None, fit_gyr, clock_disagreement=clock.disagreement)
-    # lag(t) = offset + drift * (t - t_mid): shift the shank's stamps back by it
+    synced = None if clock.offset_s is None else _corrected(streams, axes, clock.offset_s, clock.drift, params)
+    if synced is not None:
+        return synced
+    seen = _leg_stride_drift(prep, axes, params, (g1, g2))
+    if seen is not None and seen.beyond(params.sync.max_drift):
+        found = _clock_after_stride_drift(streams, seen.drift, params)
+        synced = None if found is None or found[0].offset_s is None else \
+            _corrected(streams, found[1], found[0].offset_s, found[0].drift, params)
+        if synced is not None:
+            return synced
+    # no line, or one the stride timing does not bear out (then the leg's timing is unknown)
+    return SyncedLeg(prep, axes, None, None, (g1, g2),
+                     clock_disagreement=clock.disagreement or clock.offset_s is not None)
+
+
+@dataclass(frozen=True)
+class _LegStreams:
+    """What re-stamping a leg's shank needs: its streams as :func:`pipeline.prepare.to_si` gave them, their nominal
+    rates, the first preparation (its grid and thigh are kept) and its fit gyros (:func:`fit_gyros`)."""
+
+    leg: str
+    si: tuple[SI, SI]
+    fs: tuple[float, float]
+    prep: PreparedLeg
+    fit_gyr: tuple[np.ndarray, np.ndarray]
+
+
+def _corrected(streams: _LegStreams, axes: JointAxes, offset: float, drift: float, params: PipelineParams
+               ) -> SyncedLeg | None:
+    """The leg with its shank's stamps corrected by lag(t) = ``offset`` + ``drift`` * (t - t_mid) [s]; the first
+    preparation where the correction is below ``min_shift_samples`` of a sample; None for a line steeper than two
+    crystals drift apart that the re-stamped leg's stride timing does not bear out (:func:`_stride_timing_agrees`)."""
+    prep = streams.prep
     t_mid = float(prep.t_s[prep.n // 2])
-    if max(abs(offset), abs(drift) * (prep.t_s[-1] - prep.t_s[0]) / 2) * prep.fs_hz > params.sync.min_shift_samples:
-        first = prep
-        prep = prepare_leg_si(leg, si1, si2, fs1, fs2, shank_shift_s=-(offset - drift * t_mid),
-                              shank_drift=-drift, reuse=first, params=params.prepare,
-                              posture=params.posture)
-        if abs(drift) > params.sync.max_drift and not _stride_timing_agrees(prep, axes, params):
-            return SyncedLeg(first, axes, None, None, fit_gyr, clock_disagreement=True)
-        return SyncedLeg(prep, axes, round(1000 * offset, 1), round(1e6 * drift, 1), None,
-                         reusable_thigh_fit(first, prep, g1))
-    return SyncedLeg(prep, axes, round(1000 * offset, 1), round(1e6 * drift, 1), fit_gyr)
+    if max(abs(offset), abs(drift) * (prep.t_s[-1] - prep.t_s[0]) / 2) * prep.fs_hz <= params.sync.min_shift_samples:
+        return SyncedLeg(prep, axes, round(1000 * offset, 1), round(1e6 * drift, 1), streams.fit_gyr)
+    again = prepare_leg_si(streams.leg, *streams.si, *streams.fs, shank_shift_s=-(offset - drift * t_mid),
+                           shank_drift=-drift, reuse=prep, params=params.prepare, posture=params.posture)
+    if abs(drift) > params.sync.max_drift and not _stride_timing_agrees(again, axes, params):
+        return None
+    return SyncedLeg(again, axes, round(1000 * offset, 1), round(1e6 * drift, 1), None,
+                     reusable_thigh_fit(prep, again, streams.fit_gyr[0]))
 
 
 def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
@@ -155,9 +182,23 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
     return _line_model(prep, [windows[int(i)] for i in pick], params, lag_of, weight=weight)
 
 
+@dataclass(frozen=True)
+class StrideDrift:
+    """The shank's clock drift against the thigh's [s/s] that the stride timing shows: the Theil-Sen slope and its
+    95 % interval."""
+
+    drift: float
+    low: float
+    high: float
+
+    def beyond(self, limit: float) -> bool:
+        """Whether the whole interval lies beyond ``+-limit`` [s/s]."""
+        return self.low > limit or self.high < -limit
+
+
 def stride_timing_drift(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndarray, fs_hz: float,
-                        params: SyncParams) -> tuple[float, float] | None:
-    """95 % interval [s/s] of the shank's clock drift against the thigh's that the stride timing shows, None with
+                        params: SyncParams) -> StrideDrift | None:
+    """The shank's clock drift against the thigh's that the stride timing shows, None with
     too few strides (fewer than ``stride_cue_min_strides`` over ``stride_cue_min_span_s``). Each stride's thigh
     swing peak (the hip flexes fastest in early swing) leads the shank's mid-swing peak ``ms`` (indices) by a nearly
     constant time (SD ~8 ms on the simulator's 4-minute walks); a shank clock running ``drift`` fast delays the
@@ -189,8 +230,8 @@ def stride_timing_drift(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndarr
     if t.size > params.stride_cue_max_strides:  # Theil-Sen takes every pair: bounded work on long recordings
         keep = np.linspace(0, t.size - 1, params.stride_cue_max_strides).round().astype(int)
         t, lead = t[keep], lead[keep]
-    _, _, low, high = theilslopes(lead, t)
-    return float(low), float(high)
+    slope, _, low, high = theilslopes(lead, t)
+    return StrideDrift(float(slope), float(low), float(high))
 
 
 def stride_clock_runaway(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndarray, fs_hz: float,
@@ -199,8 +240,20 @@ def stride_clock_runaway(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndar
     thigh's faster than ``max_drift`` after the clock model: a check the window lags cannot make once a drift
     smears a window's lag beyond the search range (beyond ~1000 ppm in 40 s windows), nor after a wrong
     correction. True when the 95 % interval lies wholly beyond ``max_drift``."""
-    drift = stride_timing_drift(t_s, thigh_sag_dps, ms, fs_hz, params)
-    return drift is not None and (drift[0] > params.max_drift or drift[1] < -params.max_drift)
+    seen = stride_timing_drift(t_s, thigh_sag_dps, ms, fs_hz, params)
+    return seen is not None and seen.beyond(params.max_drift)
+
+
+def _leg_stride_drift(prep: PreparedLeg, axes: JointAxes, params: PipelineParams,
+                      fit_gyr: tuple[np.ndarray, np.ndarray] | None = None) -> StrideDrift | None:
+    """:func:`stride_timing_drift` of a prepared leg: the gait events on its shank (:func:`gait_events`) and its
+    thigh's sagittal rate, the axis's sign taken from gait. ``fit_gyr``: :func:`fit_gyros` of ``prep`` if known."""
+    g1, g2 = fit_gyros(prep, params.axes.fit_cutoff_hz) if fit_gyr is None else fit_gyr
+    _, ev = gait_events(prep, axes, params)
+    j1 = orient_thigh_on_gait(axes.j1, axes.j2, g1, g2, list(ev.strides))
+    thigh_sag = np.rad2deg(prep.gyr_thigh_rps @ j1)
+    thigh_sag[~prep.valid] = np.nan
+    return stride_timing_drift(prep.t_s, thigh_sag, ev.ms[(ev.ms >= 0) & (ev.bout >= 0)], prep.fs_hz, params.sync)
 
 
 def _stride_timing_agrees(prep: PreparedLeg, axes: JointAxes, params: PipelineParams) -> bool:
@@ -212,17 +265,40 @@ def _stride_timing_agrees(prep: PreparedLeg, axes: JointAxes, params: PipelinePa
     flat. Checked on the re-stamped leg, where what is left of the drift stays within the stride cue's window
     (a whole drift of 1000 ppm moves the stride timing by 0.3 s over 5 minutes). Without that agreement the leg's
     timing is unknown (``clock_disagreement``), as for any line the windows alone show."""
-    g1, g2 = fit_gyros(prep, params.axes.fit_cutoff_hz)
-    _, ev = gait_events(prep, axes, params)
-    j1 = orient_thigh_on_gait(axes.j1, axes.j2, g1, g2, list(ev.strides))
-    thigh_sag = np.rad2deg(prep.gyr_thigh_rps @ j1)
-    thigh_sag[~prep.valid] = np.nan
-    seen = stride_timing_drift(prep.t_s, thigh_sag, ev.ms[(ev.ms >= 0) & (ev.bout >= 0)], prep.fs_hz, params.sync)
+    seen = _leg_stride_drift(prep, axes, params)
     if seen is None:
         return False
     tol = 2 * params.sync.agree_s / float(prep.t_s[-1] - prep.t_s[0])
-    low, high = seen
-    return low - tol <= 0.0 <= high + tol
+    return seen.low - tol <= 0.0 <= seen.high + tol
+
+
+def _clock_after_stride_drift(streams: _LegStreams, drift: float, params: PipelineParams
+                              ) -> tuple[ClockFit, JointAxes] | None:
+    """The clock model and joint axes of a leg where the stride timing shows a drift ``drift`` [s/s] beyond
+    ``max_drift`` and the window lags gave no line it bears out: a lag that runs away so fast leaves the windows'
+    search range before they can follow it, and it blurs the axis fit's own lag. The shank is re-stamped by
+    ``drift`` first and the axes fitted again on it, so that the windows see only what is left of the drift (a
+    crystal's worth); the two drifts add. None where the windows see no line there either, or a steeper one than
+    two crystals give."""
+    prep = streams.prep
+    t_mid = float(prep.t_s[prep.n // 2])
+    again = prepare_leg_si(streams.leg, *streams.si, *streams.fs, shank_shift_s=drift * t_mid, shank_drift=-drift,
+                           reuse=prep, params=params.prepare, posture=params.posture)
+    h1, h2 = fit_gyros(again, params.axes.fit_cutoff_hz)
+    axes = _fitted_axes(again, h1, h2, params)
+    rest = clock_model(again, h1, h2, axes, params.sync, params.axes)
+    if rest.offset_s is None or abs(rest.drift) > params.sync.max_drift:
+        return None  # no line, or a steep one where only a crystal's worth of drift is left: the cues disagree
+    # the rest's line is centred on the re-stamped grid's middle, which a cut grid moves
+    t_mid_again = float(again.t_s[again.n // 2])
+    return ClockFit(rest.offset_s + rest.drift * (t_mid - t_mid_again), drift + rest.drift), axes
+
+
+def _fitted_axes(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, params: PipelineParams) -> JointAxes:
+    """The joint axes of a prepared leg (:func:`pipeline.axes.fit_joint_axes`) on its measured samples: a fill
+    repeats the neighbouring strides, and their timing would enter the fitted lag."""
+    return fit_joint_axes(g1, g2, prep.measured(), params.axes, up=axis_up(prep, params.axes),
+                          gd2_rps2=angular_acceleration(g2, prep.fs_hz) if params.axes.fit_lag else None)
 
 
 def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,

@@ -309,11 +309,30 @@ def test_a_line_too_steep_for_the_windows_keeps_the_leg_out_of_trends(long_walk,
 
 
 @pytest.mark.parametrize("drift", [1500e-6, -3000e-6])
-def test_clock_too_fast_for_the_windows_is_seen_in_the_stride_timing(long_walk, drift: float) -> None:
-    """Beyond ~1000 ppm a 40 s window's lag smears past the search range and the window lags fall silent or
-    scatter; the thigh's swing peak, which follows the shank's by a near-constant time, still shows the drift. The
-    leg is flagged; the other leg, and the same leg at a crystal's 300 ppm, are not."""
+def test_clock_too_fast_for_the_windows_is_followed_through_the_stride_timing(long_walk, drift: float) -> None:
+    """Beyond ~1000 ppm a 40 s window's lag smears past the search range and the window lags fall silent; the
+    thigh's swing peak, which follows the shank's by a near-constant time, still shows the drift. The shank is
+    re-stamped by it and the windows find what is left: rate within 20 ppm, offset within 1 ms, and every stride's
+    swing peak within 0.6 deg of the same walk on one clock, all of them in trends."""
+    one_clock = process_session(long_walk.streams, activity="walking").legs["right"]
     streams = [(_drifting(s, 0.0, drift) if s.leg == "right" and s.segment == "shank" else s)
+               for s in long_walk.streams]
+    right = process_session(streams, activity="walking").legs["right"]
+    diag = right.diagnostics
+    assert not diag.clock_disagreement
+    assert abs(diag.shank_drift_ppm - drift * 1e6) < 20 and abs(diag.shank_lag_ms) < 1.0
+    assert len(right.strides) == len(one_clock.strides)
+    for got, ref in zip(right.strides, one_clock.strides, strict=True):
+        assert abs(got.t_start_s - ref.t_start_s) < 0.02
+        assert abs(got.peak_swing_flexion_deg - ref.peak_swing_flexion_deg) < 0.6
+        assert got.quality == ref.quality
+
+
+def test_clock_too_fast_for_the_stride_timing_keeps_the_leg_out_of_trends(long_walk) -> None:
+    """5000 ppm moves the lag by 1.2 s over the 4-minute walk: too fast for the windows and beyond the stride
+    timing's own search around each mid-swing. Nothing is corrected and the leg is flagged; the other leg, and the
+    same leg at a crystal's 300 ppm, are not."""
+    streams = [(_drifting(s, 0.0, 5000e-6) if s.leg == "right" and s.segment == "shank" else s)
                for s in long_walk.streams]
     res = process_session(streams, activity="walking")
     assert res.legs["right"].diagnostics.clock_disagreement
