@@ -22,8 +22,9 @@ is applied only where the stride timing, a cue of its own (:func:`stride_timing_
 it: calibrated RC oscillators (+-250-500 ppm each) drift so, but a gyro bias's misfit in the hinge cue can move the
 window lags so as well; without that second cue the leg's timing is unknown (``clock_disagreement``). A line
 steeper than ``SyncParams.max_line_drift`` is beyond what the windows can see: no correction, and the leg's strides
-are kept out of trends (``clock_disagreement``). Faster clocks smear a window's lag beyond the search range, so the
-stride timing checks the result (:func:`stride_clock_runaway`).
+are kept out of trends (``clock_disagreement``). A faster clock takes the lag out of the windows' search range before
+they can follow it: where the stride timing shows such a drift, the shank is re-stamped by it first and the windows
+read what is left. After all of this the stride timing checks the result (:func:`stride_clock_runaway`).
 """
 
 from __future__ import annotations
@@ -198,13 +199,12 @@ class StrideDrift:
 
 def stride_timing_drift(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndarray, fs_hz: float,
                         params: SyncParams) -> StrideDrift | None:
-    """The shank's clock drift against the thigh's that the stride timing shows, None with
-    too few strides (fewer than ``stride_cue_min_strides`` over ``stride_cue_min_span_s``). Each stride's thigh
-    swing peak (the hip flexes fastest in early swing) leads the shank's mid-swing peak ``ms`` (indices) by a nearly
-    constant time (SD ~8 ms on the simulator's 4-minute walks); a shank clock running ``drift`` fast delays the
-    shank's peaks by ``drift * t`` more: the Theil-Sen slope of that lead over the session. A cue of its own,
-    independent of the window lags: it needs neither a hinge nor a joint centre. ``thigh_sag_dps`` (N,) g1.j1 on
-    the grid."""
+    """The shank's clock drift against the thigh's that the stride timing shows, None with too few strides (fewer
+    than ``stride_cue_min_strides`` over ``stride_cue_min_span_s``). Each stride's thigh swing peak (the hip flexes
+    fastest in early swing) leads the shank's mid-swing peak ``ms`` (indices) by a nearly constant time (SD ~8 ms on
+    the simulator's 4-minute walks); a shank clock running ``drift`` fast delays the shank's peaks by ``drift * t``
+    more: the Theil-Sen slope of that lead over the session. A cue of its own, independent of the window lags: it
+    needs neither a hinge nor a joint centre. ``thigh_sag_dps`` (N,) g1.j1 on the grid."""
     before, after = (int(round(x * fs_hz)) for x in params.stride_cue_window_s)
     ms = np.asarray(ms, dtype=int)
     ms = ms[(ms >= before) & (ms + after < t_s.shape[0])]
