@@ -346,13 +346,11 @@ def _strides(leg: str, data: LegInput, result: PolicyResult, leg_reasons: tuple[
 
 
 def _clock_runaway(data: LegInput) -> bool:
-    """:func:`pipeline.sync.stride_clock_runaway` on the leg's mid-swing peaks in walking bouts, strides with a
-    filled hole near them left out (a fill's timing is its neighbouring strides')."""
+    """:func:`pipeline.sync.stride_clock_runaway` on the leg's mid-swing peaks in walking bouts."""
     ev = data.events
     ms = ev.ms[(ev.ms >= 0) & (ev.bout >= 0)]
-    thigh_sag = data.rate_dps + data.shank_sag_dps
-    thigh_sag[~data.prep.measured()] = np.nan
-    return stride_clock_runaway(data.prep.t_s, thigh_sag, ms, data.fs_hz, data.params.sync)
+    return stride_clock_runaway(data.prep.t_s, data.rate_dps + data.shank_sag_dps, ms, data.fs_hz,
+                                data.params.sync)
 
 
 def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, strides: list[StrideMetrics],
