@@ -151,6 +151,10 @@ class SyncParams:
     """Shortest span [s] of those strides: over less, 500 ppm moves the stride timing by less than its noise."""
     max_lag_s: float = 0.06
     """Search range of the lag [s]: larger offsets are not a clock error between two BLE sensors."""
+    restamp_max_lag_s: float = 0.25
+    """Widest lag [s] searched on a whole leg re-stamped by the stride timing's drift (a clock without a crystal,
+    :func:`pipeline.sync.synchronised_leg`): a quarter of a slow stride, so that the hinge cue's cost of a periodic
+    gait signal has no second minimum a stride away in the range."""
 
     @property
     def max_line_drift(self) -> float:

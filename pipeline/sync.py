@@ -277,21 +277,38 @@ def _clock_after_stride_drift(streams: _LegStreams, drift: float, params: Pipeli
     """The clock model and joint axes of a leg where the stride timing shows a drift ``drift`` [s/s] beyond
     ``max_drift`` and the window lags gave no line it bears out: a lag that runs away so fast leaves the windows'
     search range before they can follow it, and it blurs the axis fit's own lag. The shank is re-stamped by
-    ``drift`` first and the axes fitted again on it, so that the windows see only what is left of the drift (a
-    crystal's worth); the two drifts add. None where the windows see no line there either, or a steeper one than
+    ``drift`` first and the axes fitted again on it. The stride timing tells a drift, not an offset, and what is
+    left is a lag as large as the drift made it somewhere (two clocks started together are 0.1 s apart at the middle
+    of a 5-minute session at 600 ppm): the hinge cue finds it on the whole re-stamped leg at once, over as wide a
+    range (up to ``SyncParams.restamp_max_lag_s``), and the shank is re-stamped by it too. The windows then see only
+    what is left (a crystal's worth); the lines add. None where the windows see no line there, or a steeper one than
     two crystals give."""
     prep = streams.prep
     t_mid = float(prep.t_s[prep.n // 2])
-    again = prepare_leg_si(streams.leg, *streams.si, *streams.fs, shank_shift_s=drift * t_mid, shank_drift=-drift,
-                           reuse=prep, params=params.prepare, posture=params.posture)
-    h1, h2 = fit_gyros(again, params.axes.fit_cutoff_hz)
-    axes = _fitted_axes(again, h1, h2, params)
+    cutoff = params.axes.fit_cutoff_hz
+
+    def restamped(offset: float) -> tuple[PreparedLeg, np.ndarray, np.ndarray, JointAxes]:
+        again = prepare_leg_si(streams.leg, *streams.si, *streams.fs, shank_shift_s=drift * t_mid - offset,
+                               shank_drift=-drift, reuse=prep, params=params.prepare, posture=params.posture)
+        h1, h2 = fit_gyros(again, cutoff)
+        return again, h1, h2, _fitted_axes(again, h1, h2, params)
+
+    again, h1, h2, axes = restamped(0.0)
+    offset = 0.0
+    if not axes.leaning:
+        wide = min(abs(drift) * float(prep.t_s[-1] - prep.t_s[0]) / 2 + params.sync.max_lag_s,
+                   params.sync.restamp_max_lag_s)
+        whole = sync_lag_estimate(h1, h2, *axes.hinge(), fit_margin_mask(again.measured(), again.fs_hz, params.axes),
+                                  again.fs_hz, max_lag_s=wide, cutoff_hz=cutoff)
+        if whole is not None and abs(whole.lag_s) > params.sync.max_lag_s / 2:
+            offset = whole.lag_s  # beyond half the windows' range: their first search would miss it
+            again, h1, h2, axes = restamped(offset)
     rest = clock_model(again, h1, h2, axes, params.sync, params.axes)
     if rest.offset_s is None or abs(rest.drift) > params.sync.max_drift:
         return None  # no line, or a steep one where only a crystal's worth of drift is left: the cues disagree
-    # the rest's line is centred on the re-stamped grid's middle, which a cut grid moves
+    # the rest's line at the first grid's middle (the re-stamped grid may be cut, which moves its own)
     t_mid_again = float(again.t_s[again.n // 2])
-    return ClockFit(rest.offset_s + rest.drift * (t_mid - t_mid_again), drift + rest.drift), axes
+    return ClockFit(offset + rest.offset_s + rest.drift * (t_mid - t_mid_again), drift + rest.drift), axes
 
 
 def _fitted_axes(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, params: PipelineParams) -> JointAxes:

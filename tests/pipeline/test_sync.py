@@ -328,6 +328,27 @@ def test_clock_too_fast_for_the_windows_is_followed_through_the_stride_timing(lo
         assert got.quality == ref.quality
 
 
+@pytest.mark.parametrize("drift", [900e-6, -1200e-6])
+def test_clocks_started_together_are_followed_through_the_stride_timing(long_walk, drift: float) -> None:
+    """Two clocks started together and drifting 900 / -1200 ppm apart are 108 / 144 ms apart at the middle of the
+    4-minute walk: after the re-stamp by the stride timing's drift that whole lag is left, beyond the windows'
+    +-60 ms. The whole re-stamped leg finds it: lag at mid-session within 2 ms, rate within 20 ppm, every swing
+    peak within 0.6 deg of the same walk on one clock."""
+    one_clock = process_session(long_walk.streams, activity="walking").legs["right"]
+    _, shank = _leg_streams(long_walk.streams, "right")
+    t = np.asarray(shank.t_s, dtype=float)
+    mid_lag_s = drift * 0.5 * (t[-1] - t[0])
+    streams = [(_drifting(s, mid_lag_s, drift) if s.leg == "right" and s.segment == "shank" else s)
+               for s in long_walk.streams]
+    right = process_session(streams, activity="walking").legs["right"]
+    diag = right.diagnostics
+    assert not diag.clock_disagreement
+    assert abs(diag.shank_drift_ppm - drift * 1e6) < 20 and abs(diag.shank_lag_ms - 1000 * mid_lag_s) < 2.0
+    assert len(right.strides) == len(one_clock.strides)
+    for got, ref in zip(right.strides, one_clock.strides, strict=True):
+        assert abs(got.peak_swing_flexion_deg - ref.peak_swing_flexion_deg) < 0.6
+
+
 def test_clock_too_fast_for_the_stride_timing_keeps_the_leg_out_of_trends(long_walk) -> None:
     """5000 ppm moves the lag by 1.2 s over the 4-minute walk: too fast for the windows and beyond the stride
     timing's own search around each mid-swing. Nothing is corrected and the leg is flagged; the other leg, and the
