@@ -132,6 +132,10 @@ class SyncParams:
     ppm was not brought onto one clock, and its strides stay out of trends (``clock_disagreement``). Clocks without
     a crystal (the calibrated RC oscillators of BLE chips, +-250-500 ppm each) drift apart faster; the window lags
     follow them up to :attr:`max_line_drift`."""
+    crystal_drift: float = 200e-6
+    """Largest rate error [s/s] between two crystal clocks (+-20-50 ppm each, tens more with temperature and age).
+    A leg whose clocks nothing corrected (no window line) and whose stride timing shows a drift wholly beyond it
+    has a timing that no correction covers (300 ppm: +-14 ms at the ends of 90 s): ``clock_disagreement``."""
     agree_s: float = 0.006
     """The window lags must agree with the fitted line within this [s], or no correction is applied."""
     window_lag_floor_s: float = 0.0007

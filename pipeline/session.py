@@ -304,7 +304,7 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
         _warnings.simplefilter("ignore", RuntimeWarning)
         data, running = _leg_input(synced, activity, params, calibration, other, events)
         result = auto(data) if estimator == "auto" else single_estimator(data, estimator)
-    clock_unknown = synced.clock_disagreement or _clock_runaway(data)
+    clock_unknown = synced.clock_disagreement or _clock_runaway(data, corrected=synced.shank_drift_ppm is not None)
     strides = _strides(leg, data, result, ("clock_disagreement",) if clock_unknown else ())
     diagnostics = _diagnostics(data, synced, result, strides, running, calibration, clock_unknown)
     return LegResult(leg=leg, fs_hz=data.fs_hz, t_s=data.prep.t_s, angle_deg=result.angle_deg,
@@ -345,12 +345,14 @@ def _strides(leg: str, data: LegInput, result: PolicyResult, leg_reasons: tuple[
     return out
 
 
-def _clock_runaway(data: LegInput) -> bool:
-    """:func:`pipeline.sync.stride_clock_runaway` on the leg's mid-swing peaks in walking bouts."""
+def _clock_runaway(data: LegInput, corrected: bool) -> bool:
+    """:func:`pipeline.sync.stride_clock_runaway` on the leg's mid-swing peaks in walking bouts; for a leg whose
+    clocks nothing corrected, beyond what two crystals drift apart (``SyncParams.crystal_drift``)."""
     ev = data.events
     ms = ev.ms[(ev.ms >= 0) & (ev.bout >= 0)]
-    return stride_clock_runaway(data.prep.t_s, data.rate_dps + data.shank_sag_dps, ms, data.fs_hz,
-                                data.params.sync)
+    sync = data.params.sync
+    return stride_clock_runaway(data.prep.t_s, data.rate_dps + data.shank_sag_dps, ms, data.fs_hz, sync,
+                                limit=sync.max_drift if corrected else sync.crystal_drift)
 
 
 def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, strides: list[StrideMetrics],

@@ -235,13 +235,13 @@ def stride_timing_drift(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndarr
 
 
 def stride_clock_runaway(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndarray, fs_hz: float,
-                         params: SyncParams) -> bool:
+                         params: SyncParams, limit: float | None = None) -> bool:
     """Whether the stride timing (:func:`stride_timing_drift`) shows the shank's clock running away from the
-    thigh's faster than ``max_drift`` after the clock model: a check the window lags cannot make once a drift
-    smears a window's lag beyond the search range (beyond ~1000 ppm in 40 s windows), nor after a wrong
-    correction. True when the 95 % interval lies wholly beyond ``max_drift``."""
+    thigh's faster than ``limit`` [s/s] (default ``max_drift``) after the clock model: a check the window lags
+    cannot make once a drift smears a window's lag beyond the search range (beyond ~1000 ppm in 40 s windows), nor
+    after a wrong correction. True when the 95 % interval lies wholly beyond ``limit``."""
     seen = stride_timing_drift(t_s, thigh_sag_dps, ms, fs_hz, params)
-    return seen is not None and seen.beyond(params.max_drift)
+    return seen is not None and seen.beyond(params.max_drift if limit is None else limit)
 
 
 def _leg_stride_drift(prep: PreparedLeg, axes: JointAxes, params: PipelineParams,

@@ -366,6 +366,26 @@ def test_clock_too_fast_for_the_stride_timing_keeps_the_leg_out_of_trends(long_w
     assert not process_session(crystal, activity="walking").legs["right"].diagnostics.clock_disagreement
 
 
+def test_an_uncorrected_leg_beyond_two_crystals_is_kept_out_of_trends(long_walk, monkeypatch: pytest.MonkeyPatch
+                                                                     ) -> None:
+    """Window lags that see no line (a drifting gyro bias with a 3-D knee and packet loss can silence them) leave
+    the leg uncorrected. With a 350 ppm shank that is +-42 ms at the ends of the 4-minute walk: beyond what two
+    crystals drift apart (``SyncParams.crystal_drift``), the stride timing shows it and the leg's strides leave the
+    trends; at a crystal's 100 ppm they stay."""
+    import pipeline.sync as sync
+
+    monkeypatch.setattr(sync, "clock_model", lambda *a, **k: ClockFit(None))
+    for drift, flagged in ((350e-6, True), (100e-6, False)):
+        streams = [(_drifting(s, 0.0, drift) if s.leg == "right" and s.segment == "shank" else s)
+                   for s in long_walk.streams]
+        res = process_session(streams, activity="walking")
+        right = res.legs["right"]
+        assert right.diagnostics.shank_drift_ppm is None
+        assert right.diagnostics.clock_disagreement is flagged
+        assert all(("clock_disagreement" in st.quality_reasons) is flagged for st in right.strides)
+        assert not res.legs["left"].diagnostics.clock_disagreement
+
+
 def test_stride_timing_check_needs_enough_strides() -> None:
     """A thigh peak that drifts 3000 ppm against the shank's mid-swing is flagged over 60 strides in 66 s, but
     not from 10 strides, nor from 25 strides within 24 s (no verdict: False)."""
