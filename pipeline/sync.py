@@ -101,8 +101,7 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     seen = _leg_stride_drift(prep, axes, params, (g1, g2))
     if seen is not None and seen.beyond(params.sync.max_drift):
         found = _clock_after_stride_drift(streams, seen.drift, params)
-        synced = None if found is None or found[0].offset_s is None else \
-            _corrected(streams, found[1], found[0].offset_s, found[0].drift, params)
+        synced = None if found is None else _corrected(streams, found[2], found[0], found[1], params)
         if synced is not None:
             return synced
     # no line, or one the stride timing does not bear out (then the leg's timing is unknown)
@@ -121,6 +120,17 @@ class _LegStreams:
     prep: PreparedLeg
     fit_gyr: tuple[np.ndarray, np.ndarray]
 
+    @property
+    def t_mid(self) -> float:
+        """The first preparation's middle [s], where a lag line's offset is given."""
+        return float(self.prep.t_s[self.prep.n // 2])
+
+    def restamped(self, offset: float, drift: float, params: PipelineParams) -> PreparedLeg:
+        """The leg prepared again with the shank's stamps moved back by lag(t) = ``offset`` + ``drift`` *
+        (t - :attr:`t_mid`) [s]: on the first grid, whose thigh is kept (:func:`pipeline.prepare.prepare_leg_si`)."""
+        return prepare_leg_si(self.leg, *self.si, *self.fs, shank_shift_s=-(offset - drift * self.t_mid),
+                              shank_drift=-drift, reuse=self.prep, params=params.prepare, posture=params.posture)
+
 
 def _corrected(streams: _LegStreams, axes: JointAxes, offset: float, drift: float, params: PipelineParams
                ) -> SyncedLeg | None:
@@ -128,11 +138,9 @@ def _corrected(streams: _LegStreams, axes: JointAxes, offset: float, drift: floa
     preparation where the correction is below ``min_shift_samples`` of a sample; None for a line steeper than two
     crystals drift apart that the re-stamped leg's stride timing does not bear out (:func:`_stride_timing_agrees`)."""
     prep = streams.prep
-    t_mid = float(prep.t_s[prep.n // 2])
     if max(abs(offset), abs(drift) * (prep.t_s[-1] - prep.t_s[0]) / 2) * prep.fs_hz <= params.sync.min_shift_samples:
         return SyncedLeg(prep, axes, round(1000 * offset, 1), round(1e6 * drift, 1), streams.fit_gyr)
-    again = prepare_leg_si(streams.leg, *streams.si, *streams.fs, shank_shift_s=-(offset - drift * t_mid),
-                           shank_drift=-drift, reuse=prep, params=params.prepare, posture=params.posture)
+    again = streams.restamped(offset, drift, params)
     if abs(drift) > params.sync.max_drift and not _stride_timing_agrees(again, axes, params):
         return None
     return SyncedLeg(again, axes, round(1000 * offset, 1), round(1e6 * drift, 1), None,
@@ -273,23 +281,21 @@ def _stride_timing_agrees(prep: PreparedLeg, axes: JointAxes, params: PipelinePa
 
 
 def _clock_after_stride_drift(streams: _LegStreams, drift: float, params: PipelineParams
-                              ) -> tuple[ClockFit, JointAxes] | None:
-    """The clock model and joint axes of a leg where the stride timing shows a drift ``drift`` [s/s] beyond
-    ``max_drift`` and the window lags gave no line it bears out: a lag that runs away so fast leaves the windows'
-    search range before they can follow it, and it blurs the axis fit's own lag. The shank is re-stamped by
-    ``drift`` first and the axes fitted again on it. The stride timing tells a drift, not an offset, and what is
-    left is a lag as large as the drift made it somewhere (two clocks started together are 0.1 s apart at the middle
-    of a 5-minute session at 600 ppm): the hinge cue finds it on the whole re-stamped leg at once, over as wide a
-    range (up to ``SyncParams.restamp_max_lag_s``), and the shank is re-stamped by it too. The windows then see only
-    what is left (a crystal's worth); the lines add. None where the windows see no line there, or a steeper one than
-    two crystals give."""
+                              ) -> tuple[float, float, JointAxes] | None:
+    """The clock line (offset at :attr:`_LegStreams.t_mid` [s], drift [s/s]) and joint axes of a leg where the
+    stride timing shows a drift ``drift`` [s/s] beyond ``max_drift`` and the window lags gave no line it bears out:
+    a lag that runs away so fast leaves the windows' search range before they can follow it, and it blurs the axis
+    fit's own lag. The shank is re-stamped by ``drift`` first and the axes fitted again on it. The stride timing
+    tells a drift, not an offset, and what is left is a lag as large as the drift made it somewhere (two clocks
+    started together are 0.1 s apart at the middle of a 5-minute session at 600 ppm): the hinge cue finds it on the
+    whole re-stamped leg at once, over as wide a range (up to ``SyncParams.restamp_max_lag_s``), and the shank is
+    re-stamped by it too. The windows then see only what is left (a crystal's worth); the lines add. None where the
+    windows see no line there, or a steeper one than two crystals give."""
     prep = streams.prep
-    t_mid = float(prep.t_s[prep.n // 2])
     cutoff = params.axes.fit_cutoff_hz
 
     def restamped(offset: float) -> tuple[PreparedLeg, np.ndarray, np.ndarray, JointAxes]:
-        again = prepare_leg_si(streams.leg, *streams.si, *streams.fs, shank_shift_s=drift * t_mid - offset,
-                               shank_drift=-drift, reuse=prep, params=params.prepare, posture=params.posture)
+        again = streams.restamped(offset, drift, params)
         h1, h2 = fit_gyros(again, cutoff)
         return again, h1, h2, _fitted_axes(again, h1, h2, params)
 
@@ -308,7 +314,7 @@ def _clock_after_stride_drift(streams: _LegStreams, drift: float, params: Pipeli
         return None  # no line, or a steep one where only a crystal's worth of drift is left: the cues disagree
     # the rest's line at the first grid's middle (the re-stamped grid may be cut, which moves its own)
     t_mid_again = float(again.t_s[again.n // 2])
-    return ClockFit(offset + rest.offset_s + rest.drift * (t_mid - t_mid_again), drift + rest.drift), axes
+    return offset + rest.offset_s + rest.drift * (streams.t_mid - t_mid_again), drift + rest.drift, axes
 
 
 def _fitted_axes(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, params: PipelineParams) -> JointAxes:
