@@ -42,6 +42,7 @@ from bench.matching import (  # noqa: E402
     MAX_BRIDGE_S,
     PLAUSIBLE_DEG,
     QUALITY_BINS,
+    TREND_QUALITY,
     LegScore,
     data_gaps,
     quality_bins,
@@ -170,7 +171,9 @@ AXES: dict[str, Axis] = {
         _v("8 rhythmic jumps in a row", activities=("jump",), move_reps=8, jump_rest_s=0.0),
         _v("8 step-ups in a row", activities=("stairs",), move_reps=8))),
     "labels": Axis("Wrongly labelled sensors (scored against the labelled leg; see 'pipeline did')", (
-        _v("legs swapped (all four)", label_swap="legs"), _v("thighs swapped between legs", label_swap="thighs"),
+        _v("legs swapped (all four)", label_swap="legs"),
+        _v("legs swapped (all four), pelvis and hip 3-D x1", label_swap="legs", hip_3d=1.0),
+        _v("thighs swapped between legs", label_swap="thighs"),
         _v("thigh/shank swapped, both legs", label_swap="segments"),
         _v("thigh/shank swapped, left leg", label_swap="left_segments")),
         note="Desired behaviour: detect and refuse, or correct; the last column says what the pipeline did."),
@@ -276,6 +279,7 @@ def _swap_report(sim: SimSession, legs: dict, warnings: list[str]) -> dict:
             corr.append(float(np.corrcoef(lr.angle_deg[ok], ref)[0, 1]))
             rmse.append(float(np.sqrt(np.mean((lr.angle_deg[ok] - ref) ** 2))))
     return {"legs_in": len(sim.truth), "legs_out": len(legs), "strides": sum(len(v.strides) for v in legs.values()),
+            "trend_strides": sum(s.quality >= TREND_QUALITY for v in legs.values() for s in v.strides),
             "warnings": len(warnings), "corr": corr, "rmse": rmse}
 
 
@@ -344,6 +348,8 @@ def _swap_cell(reports: list[dict]) -> str:
     rmse = [e for r in reports for e in r["rmse"]]
     if legs_out == 0 or strides == 0:
         verdict = "refused"
+    elif reports[0].get("legs_only") and warns and sum(r["trend_strides"] for r in reports) == 0:
+        verdict = "detected (warned), every stride out of trends; angles right but belong to the other label"
     elif corr and min(corr) > 0.9 and max(rmse) < 5:
         verdict = "accepted; angles are right but belong to the other label" if reports[0].get("legs_only") \
             else "corrected (warned), angles right" if warns else "accepted, angles right"

@@ -13,9 +13,16 @@ rigid-body constraint of Seel et al. 2014 Eq. 5 (same knee-centre acceleration s
 the other leg does not (its centre residual is 3-6x larger). When a leg's residual is suspicious, the swapped pairing
 is fitted too and taken when clearly better (:func:`swapped_pairing_better`).
 
-Legs swapped (all four sensors): one leg's two IMUs are the same whichever side they are on (the mounting is
-arbitrary and the knee bends the same way), so nothing in the signals tells left from right: the app must confirm the
-side when the sensors are put on.
+Legs swapped (all four sensors): one leg's two IMUs are the same whichever side they are on in the sagittal plane
+(the mounting is arbitrary and the knee bends the same way). The frontal plane tells the sides apart: in loading
+response and early mid-stance the body's weight moves over the stance foot (the centre of mass shifts towards the
+stance limb, peaking at mid-stance; the hip adducts, Kadaba et al. 1990; Winter 2009, Ch. 5), so the stance
+thigh's top moves laterally over its knee: a rotation about the walking direction whose sense is mirrored between
+the legs. Seen in the leg's own frame (the knee axis ``j1``, which points the same way on both legs, and the
+vertical), the left thigh turns one way and the right the other (:func:`weight_shift_dps`). When both legs turn the
+other leg's way, the labels of all four sensors are in doubt (:func:`side_verdict`). A planar walker (no frontal
+motion) and a leg whose thigh barely shifts leave it undecided; nothing is ever corrected on this cue alone: the
+strides are kept out of trends and the session says why (``side_in_doubt``).
 """
 
 from __future__ import annotations
@@ -24,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.axes import level_directions
 from pipeline.params import WALKING, AssignmentParams
 from pipeline.prepare import SI, to_si
 from pipeline.signal_utils import row_norm
@@ -85,3 +93,52 @@ def swapped_pairing_better(labelled_mps2: tuple[float, float], swapped_mps2: tup
     on the biomechZoo Xsens trial, 2.1-2.7 with the thighs exchanged), so no absolute level marks a good fit."""
     return sum(swapped_mps2) < params.pairing_gain * sum(labelled_mps2) \
         and all(s < lab for s, lab in zip(swapped_mps2, labelled_mps2, strict=True))
+
+
+def weight_shift_dps(gyr_thigh_rps: np.ndarray, acc_thigh_mps2: np.ndarray, acc_shank_mps2: np.ndarray,
+                     valid: np.ndarray, j1: np.ndarray, strides: list[tuple[int, int, int]],
+                     params: AssignmentParams = WALKING.assignment) -> float | None:
+    """The median over strides of the thigh's mean rotation rate [deg/s] about the walking direction over the first
+    ``shift_window`` of each stride (heel strike on; the weight shift of the module docstring), positive for a left
+    leg. ``gyr_thigh_rps``, ``acc_*_mps2``: (N, 3) on the leg's grid, ``valid`` (N,); ``j1``: the oriented knee axis
+    in the thigh frame (flexion rate ``g1.j1 - g2.j2``); ``strides``: ``(hs, to, hs_next)``. The walking direction is
+    ``j1`` x the thigh's mean specific force. A small error of ``j1`` leaks the large sagittal rate into that
+    direction with a random sign per leg; it is removed by regressing the rate on ``g1.j1`` over the strides. None
+    with fewer than ``shift_min_strides`` whole strides or no vertical."""
+    up = level_directions(acc_thigh_mps2, acc_shank_mps2, valid)
+    if up is None or len(strides) < params.shift_min_strides:
+        return None
+    forward = np.cross(j1, up[0])
+    forward /= np.linalg.norm(forward)
+    w = np.rad2deg(gyr_thigh_rps @ forward)
+    sagittal = np.rad2deg(gyr_thigh_rps @ j1)
+    arr = np.asarray(strides)
+    delta = np.zeros(w.shape[0] + 1, dtype=int)
+    np.add.at(delta, arr[:, 0], 1)
+    np.add.at(delta, arr[:, 2] + 1, -1)
+    gait = (np.cumsum(delta)[:-1] > 0) & valid & np.isfinite(w) & np.isfinite(sagittal)
+    ss = float(np.dot(sagittal[gait], sagittal[gait]))
+    if ss > 0:
+        w = w - float(np.dot(w[gait], sagittal[gait])) / ss * sagittal
+    ok = np.concatenate(([0], np.cumsum(valid & np.isfinite(w))))
+    w0 = np.concatenate(([0.0], np.cumsum(np.where(valid & np.isfinite(w), w, 0.0))))
+    lo = arr[:, 0]
+    hi = lo + np.round(params.shift_window * (arr[:, 2] - lo)).astype(int) + 1
+    whole = ok[hi] - ok[lo] == hi - lo
+    if int(whole.sum()) < params.shift_min_strides:
+        return None
+    return float(np.median((w0[hi] - w0[lo])[whole] / (hi - lo)[whole]))
+
+
+def side_verdict(left_dps: float | None, right_dps: float | None,
+                 params: AssignmentParams = WALKING.assignment) -> str:
+    """``"as_labelled"``, ``"swapped"`` (both legs' weight shifts, :func:`weight_shift_dps`, in the other leg's sense
+    by at least ``shift_min_dps``) or ``"undecided"``."""
+    if left_dps is None or right_dps is None:
+        return "undecided"
+    m = params.shift_min_dps
+    if left_dps >= m and right_dps <= -m:
+        return "as_labelled"
+    if left_dps <= -m and right_dps >= m:
+        return "swapped"
+    return "undecided"

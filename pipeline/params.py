@@ -250,6 +250,16 @@ class AssignmentParams:
     session is tested (the decision itself is relative: :func:`pipeline.assignment.swapped_pairing_better`)."""
     pairing_gain: float = 0.5
     """The swapped thigh pairing is taken when its summed residual is below this share of the labelled one."""
+    shift_window: float = 0.3
+    """Share of each stride from heel strike over which the thigh's weight-shift rotation is averaged
+    (:func:`pipeline.assignment.weight_shift_dps`): loading response and early mid-stance, while the weight moves
+    over the stance foot (the lateral excursion of the centre of mass peaks at mid-stance, ~30 % of the cycle)."""
+    shift_min_dps: float = 2.0
+    """Weight-shift rate [deg/s] each leg must show, in the other leg's sense, before the sides are in doubt. The
+    real biomechZoo trial: left +14, right -8; the simulator with typical pelvis and hip motion (``joint_3d`` x1,
+    tune seeds): 4-10 in the right sense; a planar walker (no frontal motion) and every other sweep axis, 0.0-0.8."""
+    shift_min_strides: int = 5
+    """Whole strides a leg needs for its weight shift to be read (a median over strides)."""
 
 
 @dataclass(frozen=True)
@@ -399,7 +409,7 @@ class QualityParams:
     those strides were within 3 deg of the truth (p95 5 deg), and far fewer with long lever arms or around jumps."""
     default_penalty: float = 0.1
     """Quality lost for a reason not listed."""
-    untrusted: tuple[str, ...] = ("peak_in_gap", "clock_disagreement")
+    untrusted: tuple[str, ...] = ("peak_in_gap", "clock_disagreement", "side_in_doubt")
     """Reasons that leave the stride's metrics unobserved or unmeasurable: quality is capped below the trend
     threshold."""
     untrusted_cap: float = 0.3

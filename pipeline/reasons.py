@@ -22,6 +22,9 @@ REASONS: dict[str, str] = {
     "peak_in_gap": "the swing peak, the stance minimum or the rise to the peak fell inside a modelled gap "
                    "(out of trends)",
     "bout_edge": "first or last stride of a walking bout",
+    "side_in_doubt": "both thighs shift their weight in early stance the way the other leg's would: the left and "
+                     "right labels of the four sensors look swapped, so the stride may belong to the other knee "
+                     "(out of trends)",
     "clock_disagreement": "the thigh and shank clocks drift apart in a way no credible clock rate explains "
                           "(SyncParams.max_drift, max_line_drift): the timing between the two segments, and so the "
                           "angle, is unknown (out of trends)",

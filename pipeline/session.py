@@ -15,13 +15,19 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from pipeline import ALGORITHM_VERSION
-from pipeline.assignment import check_segments, pairing_suspicious, swapped_pairing_better
+from pipeline.assignment import (
+    check_segments,
+    pairing_suspicious,
+    side_verdict,
+    swapped_pairing_better,
+    weight_shift_dps,
+)
 from pipeline.bilateral import OtherLeg, mid_swings_s, non_alternating
 from pipeline.constants import G_MPS2
 from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
 from pipeline.metrics import stride_values_many
-from pipeline.params import RUNNING, AssignmentParams, PipelineParams, PostureParams, preset
+from pipeline.params import RUNNING, AssignmentParams, PipelineParams, PostureParams, QualityParams, preset
 from pipeline.phases import GaitEvents
 from pipeline.policy import PolicyResult, auto, single_estimator
 from pipeline.prepare import SI, to_si
@@ -96,6 +102,7 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
     legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
                                         warnings, others)
     legs = _alternating_strides(legs, swings, warnings)
+    legs = _check_sides(legs, ap, (params if params is not None else preset(activity)).quality, warnings)
     warnings += [f"{leg} leg: its thigh and shank clocks run apart faster than crystal clocks can; the knee angle's "
                  "timing is unknown and its strides are kept out of trends (clock_disagreement)"
                  for leg in sorted(legs) if _clock_unknown(legs[leg])]
@@ -207,6 +214,26 @@ def _alternating_strides(legs: dict[str, LegResult], swings: dict[str, np.ndarra
         warnings.append(f"{leg} leg: {len(drop)} stride(s) dropped: the other leg did not swing in anti-phase "
                         "(not gait)")
     return out
+
+
+def _check_sides(legs: dict[str, LegResult], ap: AssignmentParams, qp: QualityParams, warnings: list[str]
+                 ) -> dict[str, LegResult]:
+    """Both legs with every stride ``side_in_doubt`` (out of trends) when their thighs' weight shifts say the left
+    and right labels are swapped (:func:`pipeline.assignment.side_verdict`); unchanged otherwise. Never corrected on
+    this cue alone: a wrong exchange would put each knee's strides into the other's trend."""
+    if set(legs) != {"left", "right"}:
+        return legs
+    shift = {leg: None if lr.diagnostics is None else lr.diagnostics.weight_shift_dps for leg, lr in legs.items()}
+    if side_verdict(shift["left"], shift["right"], ap) != "swapped":
+        return legs
+    warnings.append(f"left and right labels look swapped: each thigh shifts its weight in early stance the way "
+                    f"the other leg's would (left {shift['left']:+.1f}, right {shift['right']:+.1f} deg/s); every "
+                    "stride is kept out of trends (side_in_doubt): confirm the sides in the app")
+    reason = "side_in_doubt"
+    return {leg: dataclasses.replace(lr, strides=[
+        dataclasses.replace(st, quality_reasons=(*st.quality_reasons, reason),
+                            quality=min(st.quality, stride_quality((*st.quality_reasons, reason), qp)))
+        for st in lr.strides]) for leg, lr in legs.items()}
 
 
 def _clock_unknown(lr: LegResult) -> bool:
@@ -379,4 +406,15 @@ def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, stride
         gyr_bias_thigh_dps=tuple(np.round(np.degrees(synced.prep.gyr_bias_thigh_rps), 2).tolist()),
         gyr_bias_shank_dps=tuple(np.round(np.degrees(synced.prep.gyr_bias_shank_rps), 2).tolist()),
         hinge_lean_deg=None if axes.lean_deg is None else tuple(round(x, 1) for x in axes.lean_deg),
-        knee_axes_levelled=axes.leaning, clock_disagreement=clock_unknown)
+        knee_axes_levelled=axes.leaning, clock_disagreement=clock_unknown,
+        weight_shift_dps=_weight_shift(data))
+
+
+def _weight_shift(data: LegInput) -> float | None:
+    """:func:`pipeline.assignment.weight_shift_dps` of a walking leg (rounded), None for running."""
+    if data.activity != "walking":
+        return None
+    prep = data.prep
+    shift = weight_shift_dps(prep.gyr_thigh_rps, prep.acc_thigh_mps2, prep.acc_shank_mps2, prep.valid,
+                             data.axes.j1, data.events.strides, data.params.assignment)
+    return None if shift is None else round(shift, 2)

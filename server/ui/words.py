@@ -34,6 +34,7 @@ REASONS = {
     "go_cf_mismatch": "the two estimators disagree",
     "cf_fallback": "complementary filter used instead of the gyroscope-only estimator",
     "clock_disagreement": "the thigh and shank sensors' clocks ran apart: the angle's timing cannot be trusted",
+    "side_in_doubt": "the left and right sensor labels look swapped: this stride may belong to the other knee",
 }
 
 ESTIMATORS = {

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.assignment import check_segments, swapped_pairing_better
+from pipeline.assignment import check_segments, side_verdict, swapped_pairing_better
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, simulate_session
 
@@ -44,3 +44,39 @@ def test_swapped_labels_are_corrected_and_warned(swap: str, how: str) -> None:
 def test_pairing_rule_needs_a_clear_gain() -> None:
     assert swapped_pairing_better((0.5, 0.6), (0.05, 0.1))
     assert not swapped_pairing_better((0.55, 0.12), (0.5, 0.4))  # a long lever arm, not a swap
+
+
+def _sim_3d(swap: str, hip_3d: float = 1.0):
+    """A walker with typical pelvis and hip motion (the frontal plane the side check reads)."""
+    return simulate_session(SimConfig(pattern="normal", seed=3, n_strides=20, bout_strides=10,
+                                      activities=("standing",), hip_3d=hip_3d, label_swap=swap))
+
+
+def test_weight_shift_is_mirrored_between_the_legs() -> None:
+    res = process_session(_sim_3d("none").streams)
+    shift = {leg: lr.diagnostics.weight_shift_dps for leg, lr in res.legs.items()}
+    assert shift["left"] >= 2.0 and shift["right"] <= -2.0
+    assert side_verdict(shift["left"], shift["right"]) == "as_labelled"
+    assert not any("swapped" in w for w in res.warnings)
+    assert not any("side_in_doubt" in s.quality_reasons for lr in res.legs.values() for s in lr.strides)
+
+
+def test_left_right_labels_swapped_keep_every_stride_out_of_trends() -> None:
+    res = process_session(_sim_3d("legs").streams)
+    assert any("left and right labels look swapped" in w for w in res.warnings)
+    strides = [s for lr in res.legs.values() for s in lr.strides]
+    assert len(strides) > 20
+    assert all("side_in_doubt" in s.quality_reasons and s.quality < 0.5 for s in strides)
+
+
+def test_a_walker_without_frontal_motion_leaves_the_sides_undecided() -> None:
+    res = process_session(_sim_3d("legs", hip_3d=0.0).streams)
+    assert all(abs(lr.diagnostics.weight_shift_dps) < 2.0 for lr in res.legs.values())
+    assert not any("side_in_doubt" in s.quality_reasons for lr in res.legs.values() for s in lr.strides)
+
+
+def test_side_verdict_needs_both_legs_in_the_other_sense() -> None:
+    assert side_verdict(-5.0, 6.0) == "swapped"
+    assert side_verdict(-5.0, -6.0) == "undecided"  # one leg's sense only: no verdict
+    assert side_verdict(-1.0, 6.0) == "undecided"  # below the floor
+    assert side_verdict(None, 6.0) == "undecided"

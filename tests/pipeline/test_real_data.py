@@ -76,3 +76,21 @@ def test_tan_heel_strike_and_toe_off_timing() -> None:
     # achieved: HS within 20 ms in all 20 windows (impact onset), TO within 20 ms (shank minimum + 40 ms)
     assert np.mean(hs_err <= 0.02) >= 0.9
     assert np.median(to_err) <= 0.02
+
+
+def test_real_trial_sides_are_read_and_a_swap_is_caught(zoo) -> None:
+    """The frontal-plane weight shift of the real Xsens thighs: mirrored between the legs as labelled, and every
+    stride out of trends when the left and right labels of all four sensors are exchanged."""
+    import dataclasses
+
+    from pipeline.assignment import side_verdict
+
+    res, _ = zoo
+    shift = {leg: lr.diagnostics.weight_shift_dps for leg, lr in res.legs.items()}
+    assert side_verdict(shift["left"], shift["right"]) == "as_labelled"
+    streams, _ = load_biomechzoo()
+    other = {"left": "right", "right": "left"}
+    swapped = process_session([dataclasses.replace(s, leg=other[s.leg]) for s in streams])
+    assert any("left and right labels look swapped" in w for w in swapped.warnings)
+    assert all("side_in_doubt" in s.quality_reasons and s.quality < 0.5
+               for lr in swapped.legs.values() for s in lr.strides)
