@@ -67,7 +67,8 @@ def check_segments(thigh: RawSensorStream, shank: RawSensorStream,
     r1, i1 = _swing_and_impact(thigh, params, None if si is None else si[0])
     r2, i2 = _swing_and_impact(shank, params, None if si is None else si[1])
     with np.errstate(invalid="ignore", divide="ignore"):
-        rate, impact = r2 / r1, i2 / i1
+        # numpy division: a sensor that never moves (r1 = 0) gives inf/nan and no verdict, not an exception
+        rate, impact = np.float64(r2) / r1, np.float64(i2) / i1
     if not np.isfinite(rate):
         return SegmentCheck(float(rate), float(impact), "undecided")
     if rate < params.swap_ratio:

@@ -31,6 +31,10 @@ log = logging.getLogger("gaitmon.api")
 
 BODY_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
 JSON_ONLY_PREFIX = "/v1/"
+SMALL_JSON_MAX_BYTES = 64 * 1024
+"""Largest body of a ``/v1`` request other than a batch upload (a patient, a session, a calibration: well under a
+kB). ``max_body_bytes`` is sized for batches; a body of ~700k unknown keys under it cost seconds and a gigabyte of
+validation errors."""
 # Concatenated gzip members accepted in one body: an app sends one; thousands of empty ones are an attack.
 MAX_GZIP_MEMBERS = 64
 # Inflated on the event loop up to this many bytes (~0.5 ms of zlib at worst); past it, in a worker thread.
@@ -105,6 +109,11 @@ class BodyLimitMiddleware:
                 if not is_json_media_type(content_type):
                     raise _Reject(415, f"Content-Type must be application/json (got {content_type[:100]!r})")
             body = await self._read_body(headers, encoding, receive)
+            path = scope.get("path", "")
+            if path.startswith(JSON_ONLY_PREFIX) and not path.endswith("/batches") \
+                    and len(body) > SMALL_JSON_MAX_BYTES:
+                raise _Reject(413, f"Request body exceeds the limit of {SMALL_JSON_MAX_BYTES} bytes for this "
+                                   "endpoint (only batch uploads may be larger)")
         except _Reject as rej:
             log.info("%s %s -> %d %s", scope["method"], scope.get("path"), rej.status, rej.detail)
             await _send_problem(scope, send, rej.status, rej.detail)

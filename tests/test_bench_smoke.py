@@ -178,8 +178,9 @@ def test_robustness_quick_cli_prints_axis_tables() -> None:
         assert float(r[10]) >= 0.0  # RMSE outside gait
         assert r[12].rstrip(" ✗").endswith("%")
     labels = _table(out.stdout, "labels")
-    assert [r[0] for r in labels] == ["legs swapped (all four)", "thighs swapped between legs"]
+    assert [r[0] for r in labels] == ["legs swapped (all four)", "legs swapped (all four), pelvis and hip 3-D x1"]
     assert all("legs out" in r[-1] for r in labels)
+    assert labels[1][-1].startswith("detected")  # the thighs' weight shift gives the sides away
     assert float(labels[0][2].split()[0]) < 0.5  # scored against the labelled leg, the other leg's strides miss
 
 

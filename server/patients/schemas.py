@@ -15,7 +15,7 @@ def known_timezone(value: str) -> str:
     """The IANA time zone name, or a validation error."""
     try:
         ZoneInfo(value)
-    except (ZoneInfoNotFoundError, ValueError) as exc:
+    except (ZoneInfoNotFoundError, ValueError, OSError) as exc:  # OSError: a folder of the database ("Europe")
         raise ValueError(f"unknown IANA time zone {value!r}") from exc
     return value
 

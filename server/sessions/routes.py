@@ -79,11 +79,22 @@ def parse_batch(raw: bytes, max_samples: int) -> BatchIn:
     if brackets > bracket_limit(max_samples):
         raise invalid("gyro", f"the body holds more than {max_samples} samples, the limit per batch ({brackets} "
                               f"arrays)")
+    # and every JSON value but the last of each container is followed by a comma: an array of a million empty
+    # objects or bare numbers (a few kB gzip'd) would otherwise cost one validation error object per element
+    commas = raw.count(b",")
+    if commas > comma_limit(max_samples):
+        raise invalid("gyro", f"the body holds more values than {max_samples} samples can ({commas} separators)")
     try:
         return BatchIn.model_validate_json(raw)
     except ValidationError as exc:
         errors = exc.errors(include_url=False, include_context=False, include_input=False)
         raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in errors]) from None
+
+
+def comma_limit(max_samples: int) -> int:
+    """Most ``,`` a valid batch body can hold: per sample three gyro and three acc values and a timestamp, the
+    top-level fields, and commas inside the sensor id (at most its length)."""
+    return 7 * max_samples + 16 + 64
 
 
 def bracket_limit(max_samples: int) -> int:

@@ -74,6 +74,13 @@ def _num(x: float | None, nd: int = 4) -> str:
     return "" if v is None else f"{v:.{nd}f}".rstrip("0").rstrip(".")
 
 
+def _text_cell(value: str | None) -> str:
+    """A client-chosen text for a CSV cell: one starting with ``= + - @``, a tab or a carriage return is prefixed
+    with ``'`` so that a spreadsheet shows it instead of running it as a formula (OWASP "CSV injection")."""
+    text = value or ""
+    return "'" + text if text[:1] in ("=", "+", "-", "@", "\t", "\r") else text
+
+
 def strides_csv(db: DbSession, patient: Patient, start: datetime | None, end: datetime | None,
                 chunk: int = 2000, *, activity: str = StrideActivity.walking) -> Iterator[str]:
     """Stream the patient's strides of one activity as RFC 4180 CSV (header first; times ISO 8601 in the
@@ -100,7 +107,7 @@ def strides_csv(db: DbSession, patient: Patient, start: datetime | None, end: da
             cadence = 120.0 / s["duration_s"] if s["duration_s"] else None
             values = {**s, "cadence_steps_per_min": cadence}
             w.writerow([
-                s["session_id"], s["client_session_id"], s["leg"], s["index"], local.isoformat(),
+                s["session_id"], _text_cell(s["client_session_id"]), s["leg"], s["index"], local.isoformat(),
                 local.date().isoformat(), *(_num(values[c], _DECIMALS[_UNITS[c]]) for c in VALUE_COLUMNS),
                 s["estimator"], _num(s["quality"], 3),
                 ";".join(s["quality_reasons"] or []), "0" if excl else "1", ";".join(excl), s["activity"],

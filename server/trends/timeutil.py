@@ -15,7 +15,7 @@ def zone(name: str | None) -> ZoneInfo:
     """The patient's time zone (UTC when unknown)."""
     try:
         return ZoneInfo(name or "UTC")
-    except (ZoneInfoNotFoundError, ValueError):
+    except (ZoneInfoNotFoundError, ValueError, OSError):
         return ZoneInfo("UTC")
 
 
@@ -44,11 +44,14 @@ def parse_bound(value: str, tz: ZoneInfo, *, end: bool) -> datetime:
     """A ``from``/``to`` query value: a date (a local day of the patient; ``to`` includes that whole day) or an ISO
     8601 date-time (without offset it is local time of the patient). Returns UTC. Raises ValueError."""
     value = value.strip()
-    if len(value) == 10:
-        day = date.fromisoformat(value)
-        return local_midnight(day + timedelta(days=1) if end else day, tz).astimezone(UTC)
-    dt = datetime.fromisoformat(value.replace("Z", "+00:00"))
-    if dt.tzinfo is None:
-        dt = dt.replace(tzinfo=tz)
-    return dt.astimezone(UTC)
+    try:
+        if len(value) == 10:
+            day = date.fromisoformat(value)
+            return local_midnight(day + timedelta(days=1) if end else day, tz).astimezone(UTC)
+        dt = datetime.fromisoformat(value.replace("Z", "+00:00"))
+        if dt.tzinfo is None:
+            dt = dt.replace(tzinfo=tz)
+        return dt.astimezone(UTC)
+    except OverflowError as exc:  # the year 1 or 9999 moved past the calendar by the patient's offset
+        raise ValueError(f"{value!r} is out of the supported date range") from exc
 

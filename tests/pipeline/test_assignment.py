@@ -80,3 +80,16 @@ def test_side_verdict_needs_both_legs_in_the_other_sense() -> None:
     assert side_verdict(-5.0, -6.0) == "undecided"  # one leg's sense only: no verdict
     assert side_verdict(-1.0, 6.0) == "undecided"  # below the floor
     assert side_verdict(None, 6.0) == "undecided"
+
+
+def test_sensors_that_never_move_give_no_verdict_and_no_crash() -> None:
+    """All-zero gyro and accelerometer (a sensor left on a table, or a driver fault): no label verdict, no strides,
+    no exception (a division by the thigh's zero swing rate used to raise)."""
+    from pipeline.types import RawSensorStream
+
+    t = np.arange(3000) / 100.0
+    streams = [RawSensorStream(sensor_id=f"L-{seg}", leg="left", segment=seg, fs_hz=100.0, t_s=t,
+                               gyr=np.zeros((3000, 3)), acc=np.zeros((3000, 3))) for seg in ("thigh", "shank")]
+    assert check_segments(streams[0], streams[1]).verdict == "undecided"
+    res = process_session(streams)
+    assert all(not lr.strides for lr in res.legs.values())

@@ -236,3 +236,57 @@ def test_strides_csv_filenames_follow_rfc_6266_and_5987(api: Api, external_id: s
     cd.encode("latin-1")
     assert f"filename*=UTF-8''{quote(f'strides-{external_id}.csv', safe='')}" in cd
     assert cd.startswith('attachment; filename="strides-')
+
+
+@pytest.mark.parametrize("element", [b"{}", b"1"])
+def test_a_flood_of_tiny_values_is_refused_from_its_bytes(api: Api, element: bytes) -> None:
+    """Two million empty objects or bare numbers gzip to a few kB; validating them built one error object each
+    (seconds and gigabytes). The separators are counted on the bytes first."""
+    import time
+
+    _, dev, sess = api.setup_device_session()
+    before = _state(api, dev, sess["id"])
+    data = b'{"sensor_id":"L-shank","seq":1,"t0_ms":0,"gyro":[' + b",".join([element] * 2_000_000) + b'],"acc":[]}'
+    assert len(data) < api.settings.max_body_bytes
+    t0 = time.perf_counter()
+    r = _post_raw(api, dev, sess["id"], gzip.compress(data), **{"Content-Encoding": "gzip"})
+    elapsed = time.perf_counter() - t0
+    _assert_4xx_problem(r, 422)
+    assert "values" in r.json()["detail"]
+    assert elapsed < 3.0, elapsed
+    assert _state(api, dev, sess["id"]) == before
+
+
+def test_a_large_body_to_a_small_endpoint_is_413_before_validation(api: Api) -> None:
+    import time
+
+    _, clin = api.clinician()
+    data = ("{" + ",".join(f'"k{i}":1' for i in range(700_000)) + "}").encode()
+    t0 = time.perf_counter()
+    r = api.client.post("/v1/patients", content=data, headers=bearer(clin) | {"Content-Type": "application/json"})
+    _assert_4xx_problem(r, 413)
+    assert time.perf_counter() - t0 < 3.0
+
+
+@pytest.mark.parametrize("tz", ["Europe", "America", "Etc"])
+def test_a_time_zone_folder_is_no_time_zone(api: Api, tz: str) -> None:
+    _, clin = api.clinician()
+    r = api.client.post("/v1/patients", json={"timezone": tz}, headers=bearer(clin))
+    _assert_4xx_problem(r, 422)
+
+
+@pytest.mark.parametrize("query", ["to=9999-12-31", "from=0001-01-01", "to=9999-12-31T23:00:00-05:00"])
+@pytest.mark.parametrize("path", ["trends", "symmetry", "fhir", "strides.csv"])
+def test_dates_at_the_calendar_ends_are_422_not_500(api: Api, query: str, path: str) -> None:
+    _, clin = api.clinician()
+    pid = api.patient(clin, timezone="Asia/Tokyo")["id"]
+    r = api.client.get(f"/v1/patients/{pid}/{path}?{query}", headers=bearer(clin))
+    assert r.status_code == 422, (path, query, r.status_code, r.text[:300])
+
+
+def test_client_text_cannot_become_a_spreadsheet_formula() -> None:
+    from server.trends.exports import _text_cell
+
+    assert _text_cell('=HYPERLINK("http://evil.example/","open")').startswith("'=")
+    assert _text_cell("@SUM(A1)") == "'@SUM(A1)" and _text_cell("-1+2") == "'-1+2"
+    assert _text_cell("visit-3") == "visit-3" and _text_cell(None) == ""
