@@ -183,7 +183,7 @@ def test_gzip_body_past_the_inline_inflate_budget_is_inflated_in_full() -> None:
     gz = gzip.compress(body)
     assert len(gz) < INLINE_INFLATE_MAX_BYTES < len(body) < 1_000_000
     middleware = BodyLimitMiddleware(app, max_body_bytes=1_000_000)
-    scope = {"type": "http", "method": "POST", "path": "/v1/x", "headers": [
+    scope = {"type": "http", "method": "POST", "path": "/v1/sessions/s1/batches", "headers": [
         (b"content-type", b"application/json"), (b"content-encoding", b"gzip"),
         (b"content-length", str(len(gz)).encode())]}
 
