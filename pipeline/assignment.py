@@ -34,7 +34,7 @@ import numpy as np
 from pipeline.axes import level_directions
 from pipeline.params import WALKING, AssignmentParams
 from pipeline.prepare import SI, to_si
-from pipeline.signal_utils import row_norm
+from pipeline.signal_utils import ranges_mask, row_norm, segment_sums
 from pipeline.types import RawSensorStream
 
 
@@ -114,21 +114,17 @@ def weight_shift_dps(gyr_thigh_rps: np.ndarray, acc_thigh_mps2: np.ndarray, acc_
     w = np.rad2deg(gyr_thigh_rps @ forward)
     sagittal = np.rad2deg(gyr_thigh_rps @ j1)
     arr = np.asarray(strides)
-    delta = np.zeros(w.shape[0] + 1, dtype=int)
-    np.add.at(delta, arr[:, 0], 1)
-    np.add.at(delta, arr[:, 2] + 1, -1)
-    gait = (np.cumsum(delta)[:-1] > 0) & valid & np.isfinite(w) & np.isfinite(sagittal)
+    gait = ranges_mask(w.shape[0], arr[:, 0], arr[:, 2] + 1) & valid & np.isfinite(w) & np.isfinite(sagittal)
     ss = float(np.dot(sagittal[gait], sagittal[gait]))
     if ss > 0:
         w = w - float(np.dot(w[gait], sagittal[gait])) / ss * sagittal
-    ok = np.concatenate(([0], np.cumsum(valid & np.isfinite(w))))
-    w0 = np.concatenate(([0.0], np.cumsum(np.where(valid & np.isfinite(w), w, 0.0))))
+    ok = valid & np.isfinite(w)
     lo = arr[:, 0]
     hi = lo + np.round(params.shift_window * (arr[:, 2] - lo)).astype(int) + 1
-    whole = ok[hi] - ok[lo] == hi - lo
+    whole = segment_sums(ok, lo, hi) == hi - lo
     if int(whole.sum()) < params.shift_min_strides:
         return None
-    return float(np.median((w0[hi] - w0[lo])[whole] / (hi - lo)[whole]))
+    return float(np.median(segment_sums(np.where(ok, w, 0.0), lo, hi)[whole] / (hi - lo)[whole]))
 
 
 def side_verdict(left_dps: float | None, right_dps: float | None,

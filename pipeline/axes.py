@@ -23,7 +23,7 @@ from scipy.stats import chi2
 
 from pipeline.params import WALKING, AxesParams
 from pipeline.prepare import PreparedLeg
-from pipeline.signal_utils import away_from_holes, cross_rows, row_norm
+from pipeline.signal_utils import away_from_holes, cross_rows, ranges_mask, row_norm
 
 _EPS = 1e-9  # guards divisions by a norm; far below any physical value
 
@@ -338,10 +338,7 @@ def orient_thigh_on_gait(j1: np.ndarray, j2: np.ndarray, g1: np.ndarray, g2: np.
     if not strides:
         return j1
     arr = np.asarray(strides)
-    delta = np.zeros(g1.shape[0] + 1, dtype=int)
-    np.add.at(delta, arr[:, 0], 1)
-    np.add.at(delta, arr[:, 2] + 1, -1)
-    mask = np.cumsum(delta)[:-1] > 0
+    mask = ranges_mask(g1.shape[0], arr[:, 0], arr[:, 2] + 1)
     w1, w2 = g1[mask] @ j1, g2[mask] @ j2
     ok = np.isfinite(w1) & np.isfinite(w2)
     w1, w2 = w1[ok], w2[ok]

@@ -41,7 +41,7 @@ from pipeline.leg_input import EstimatorDiagnostics, LegInput
 from pipeline.params import FusionParams, QualityParams
 from pipeline.posture import in_bouts, standing_reference
 from pipeline.quality import stride_quality
-from pipeline.signal_utils import row_norm
+from pipeline.signal_utils import ranges_mask, row_norm, segment_sums
 from pipeline.tuning import TuningDiagnostics
 from pipeline.types import AbsoluteReference
 
@@ -168,9 +168,9 @@ def go_levelled(leg: LegInput, angle: np.ndarray) -> np.ndarray | None:
     lo, hi = arr[:, 0], arr[:, 2] + 1
     d = go_rel - angle
     ok = np.isfinite(d)
-    n_ok = _segment_sums(ok, lo, hi)
+    n_ok = segment_sums(ok, lo, hi)
     with np.errstate(invalid="ignore", divide="ignore"):
-        offs = _segment_sums(np.where(ok, d, 0.0), lo, hi) / n_ok
+        offs = segment_sums(np.where(ok, d, 0.0), lo, hi) / n_ok
     finite = n_ok > 0
     if not finite.any():
         return None
@@ -194,12 +194,6 @@ def _running_median(x: np.ndarray, width: int) -> np.ndarray:
     return np.median(np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1), axis=1)
 
 
-def _segment_sums(x: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
-    """Sum of ``x[a:b]`` for each (non-overlapping or not) half-open range, via a prefix sum."""
-    c = np.concatenate(([0.0], np.cumsum(x, dtype=float)))
-    return c[stops] - c[starts]
-
-
 def stance_offsets(leg: LegInput, go_rel: np.ndarray, strides: list[tuple[int, int, int]]
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Mean of (accelerometer angle - GO) [deg] over the calm mid-stance samples of each stride, and the calm-sample
@@ -221,10 +215,10 @@ def stance_offsets(leg: LegInput, go_rel: np.ndarray, strides: list[tuple[int, i
     w0, w1 = p.midstance_window
     lo = arr[:, 0] + np.round(w0 * length).astype(int)
     hi = np.maximum(np.minimum(arr[:, 0] + np.round(w1 * length).astype(int), arr[:, 1]) + 1, lo + 1)
-    n_quiet = _segment_sums(quiet, lo, hi)
-    n_ok = _segment_sums(ok, lo, hi)
-    s_quiet = _segment_sums(np.where(quiet, d0, 0.0), lo, hi)
-    s_ok = _segment_sums(d0, lo, hi)
+    n_quiet = segment_sums(quiet, lo, hi)
+    n_ok = segment_sums(ok, lo, hi)
+    s_quiet = segment_sums(np.where(quiet, d0, 0.0), lo, hi)
+    s_ok = segment_sums(d0, lo, hi)
     with np.errstate(invalid="ignore", divide="ignore"):
         offs = np.where(n_quiet >= p.min_quiet_samples, s_quiet / np.maximum(n_quiet, 1), s_ok / n_ok)
     offs[n_ok == 0] = np.nan
@@ -249,8 +243,8 @@ def _stride_flags(leg: LegInput, go_diag: GoDiagnostics, go_abs: np.ndarray, cf_
     p = leg.params.fusion
     prep = leg.prep
     n_len = hi - lo
-    go_complete = _segment_sums(np.isfinite(go_abs), lo, hi) == n_len
-    saturated = _segment_sums(prep.saturated, lo, hi) > 0
+    go_complete = segment_sums(np.isfinite(go_abs), lo, hi) == n_len
+    saturated = segment_sums(prep.saturated, lo, hi) > 0
     bridged = np.zeros(n_len.size, dtype=bool)
     for g0, g1 in prep.bridged_s:
         i0, i1 = np.searchsorted(prep.t_s, [g0, g1])
@@ -266,9 +260,9 @@ def _stride_flags(leg: LegInput, go_diag: GoDiagnostics, go_abs: np.ndarray, cf_
     e = go_abs - cf_used
     e_ok = np.isfinite(e)
     e0 = np.where(e_ok, e, 0.0)
-    ne = np.maximum(_segment_sums(e_ok, lo, hi), 1)
-    mean_e = _segment_sums(e0, lo, hi) / ne
-    var_e = np.maximum(_segment_sums(e0 * e0, lo, hi) / ne - mean_e ** 2, 0.0)
+    ne = np.maximum(segment_sums(e_ok, lo, hi), 1)
+    mean_e = segment_sums(e0, lo, hi) / ne
+    var_e = np.maximum(segment_sums(e0 * e0, lo, hi) / ne - mean_e ** 2, 0.0)
     return _StrideFlags(go_complete=go_complete, no_crossing=no_crossing, drifted=drifted, saturated=saturated,
                         bridged=bridged, mismatch=np.sqrt(var_e) > p.mismatch_deg)
 
@@ -342,12 +336,9 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
             made[key] = _choose(flags, k, absolute_ok, int(quiet_counts[k]), p, leg.params.quality, level)
     choices = tuple(made[key] for key in map(tuple, keys))
     use = np.array([c.estimator == "go" for c in choices])
-    cover = np.zeros(n + 1, dtype=int)
-    np.add.at(cover, lo[use], 1)
-    np.add.at(cover, hi[use], -1)
     # GO inside the strides that kept it; extending it to the bout edges (gait initiation and termination, where
     # its drift line is extrapolated) is worse on the simulator (crouch) and mixed on the real trial
-    go_mask = np.cumsum(cover)[:-1] > 0
+    go_mask = ranges_mask(n, lo[use], hi[use])
     angle[go_mask] = go_abs[go_mask]
     labels = np.where(go_mask, "go", labels)
     labels = np.where(np.isfinite(angle), labels, "")

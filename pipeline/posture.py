@@ -28,7 +28,7 @@ from pipeline.constants import G_MPS2
 from pipeline.leg_input import LegInput
 from pipeline.params import WALKING, PostureParams
 from pipeline.prepare import PreparedLeg
-from pipeline.signal_utils import long_runs, slower_than
+from pipeline.signal_utils import long_runs, ranges_mask, slower_than
 
 
 def _norm(x: np.ndarray) -> np.ndarray:
@@ -111,11 +111,8 @@ def _gait_up_directions(leg: LegInput) -> list[np.ndarray] | None:
     strides = leg.filter_strides
     if not strides:
         return None
-    delta = np.zeros(leg.prep.n + 1, dtype=int)
     arr = np.asarray(strides)
-    np.add.at(delta, arr[:, 0], 1)
-    np.add.at(delta, arr[:, 1], -1)
-    sel = (np.cumsum(delta)[:-1] > 0) & leg.prep.valid
+    sel = ranges_mask(leg.prep.n, arr[:, 0], arr[:, 1]) & leg.prep.valid
     out = []
     for acc, j in ((leg.prep.acc_thigh_mps2, leg.axes.j1), (leg.prep.acc_shank_mps2, leg.axes.j2)):
         m = acc[sel].mean(axis=0) if sel.any() else np.zeros(3)

@@ -42,7 +42,7 @@ from pipeline.params import WALKING, PipelineParams, RunningParams
 from pipeline.phases import detect_gait_events
 from pipeline.posture import quiet_mask
 from pipeline.prepare import PreparedLeg
-from pipeline.signal_utils import row_norm, true_runs
+from pipeline.signal_utils import ranges_mask, row_norm, true_runs
 from pipeline.types import RunningDiagnostics
 
 _RP = WALKING.running  # defaults of the public helpers; the leg flow passes its own preset's stage
@@ -156,14 +156,12 @@ def looks_like_running(cycles: RunningCycles, params: RunningParams = _RP) -> bo
 def cycle_window_mask(cycles: tuple[tuple[int, int], ...] | list[tuple[int, int]], n: int,
                       lo: float = _RP.fit_window[0], hi: float = _RP.fit_window[1]) -> np.ndarray:
     """True on ``[lo, hi)`` of every gait cycle (Rhudy et al.: 40-80 % for the axis and centre optimisation)."""
-    delta = np.zeros(n + 1, dtype=int)
-    for a, b in cycles:
-        i0 = min(n, a + int(round(lo * (b - a))))
-        i1 = min(n, a + int(round(hi * (b - a))))
-        if i1 > i0:
-            delta[i0] += 1
-            delta[i1] -= 1
-    return np.cumsum(delta)[:-1] > 0
+    arr = np.asarray(cycles, dtype=int).reshape(-1, 2)
+    span = arr[:, 1] - arr[:, 0]
+    i0 = np.minimum(n, arr[:, 0] + np.round(lo * span).astype(int))
+    i1 = np.minimum(n, arr[:, 0] + np.round(hi * span).astype(int))
+    keep = i1 > i0
+    return ranges_mask(n, i0[keep], i1[keep])
 
 
 def impact_mask(strikes: np.ndarray, n: int, fs_hz: float, half_width: float = _RP.impact_half_width,

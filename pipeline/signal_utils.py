@@ -154,6 +154,21 @@ def lowpass_runs_zeroed(xs: Sequence[np.ndarray], valid: np.ndarray, cutoff_hz: 
     return [np.nan_to_num(x) for x in lowpass_runs_many(xs, valid, cutoff_hz, fs_hz, order)]
 
 
+def ranges_mask(n: int, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
+    """(n,) bool: True inside any of the half-open ranges ``[starts[k], stops[k])`` (they may overlap; ``stops`` at
+    most ``n``), by one difference array instead of a loop over ranges."""
+    delta = np.zeros(n + 1, dtype=int)
+    np.add.at(delta, starts, 1)
+    np.add.at(delta, stops, -1)
+    return np.cumsum(delta)[:-1] > 0
+
+
+def segment_sums(x: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
+    """Sum of ``x[a:b]`` for each (non-overlapping or not) half-open range, via a prefix sum."""
+    c = np.concatenate(([0.0], np.cumsum(x, dtype=float)))
+    return c[stops] - c[starts]
+
+
 def slower_than(gyr_rps: np.ndarray, limit_dps: float) -> np.ndarray:
     """(N,) bool: the angular rate (N, 3) [rad/s] below ``limit_dps`` [deg/s] in magnitude (the stillness test of
     :mod:`pipeline.posture` and :mod:`pipeline.rest_offset`)."""

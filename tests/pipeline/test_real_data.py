@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from bench.real_data import BIOMECHZOO_CSV, TAN_DIR, load_biomechzoo, load_tan_steps, real_data_available
+from pipeline.assignment import side_verdict
 from pipeline.phases import detect_gait_events, shank_sagittal_dps
 from pipeline.session import process_session
 from tests.conftest import skip_without_real_data
@@ -81,10 +84,6 @@ def test_tan_heel_strike_and_toe_off_timing() -> None:
 def test_real_trial_sides_are_read_and_a_swap_is_caught(zoo) -> None:
     """The frontal-plane weight shift of the real Xsens thighs: mirrored between the legs as labelled, and every
     stride out of trends when the left and right labels of all four sensors are exchanged."""
-    import dataclasses
-
-    from pipeline.assignment import side_verdict
-
     res, _ = zoo
     shift = {leg: lr.diagnostics.weight_shift_dps for leg, lr in res.legs.items()}
     assert side_verdict(shift["left"], shift["right"]) == "as_labelled"
