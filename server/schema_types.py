@@ -99,8 +99,11 @@ def _plausible_start(value: datetime) -> datetime:
     return utc
 
 
-# When a recording started: timezone-aware, 2000-01-01T00:00Z .. server clock + 1 day, returned in UTC.
-StartedAt = Annotated[AwareDatetime, BeforeValidator(_rfc3339_string), AfterValidator(_plausible_start)]
+# An instant a client reports (a recording's start, a calibration's measurement): an RFC 3339 string with an offset,
+# 2000-01-01T00:00Z .. server clock + 1 day, returned in UTC. Year 1 or 9999 would make every later date sum
+# (a patient's local day, a trend bucket) overflow.
+PlausibleInstant = Annotated[AwareDatetime, BeforeValidator(_rfc3339_string), AfterValidator(_plausible_start)]
+StartedAt = PlausibleInstant
 
 
 class OrmOut(BaseModel):

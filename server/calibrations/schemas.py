@@ -8,7 +8,7 @@ from typing import Annotated
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, field_validator
 
 from server.enums import CalibrationMethod, Leg
-from server.schema_types import OrmOut, StrictIn, UtcDatetime
+from server.schema_types import FiniteFloat, OrmOut, PlausibleInstant, StrictIn, UtcDatetime
 from server.utc import utcnow
 
 # Standing knee flexion a calibration may state, degrees (positive = flexion). Below 0 is hyperextension: genu
@@ -23,19 +23,6 @@ MAX_NOTE_CHARS = 2000
 MAX_AFFECTED_IDS = 100
 
 
-def storable_text(value: str | None) -> str | None:
-    """The text, or a validation error for characters no database column can hold (NUL, lone surrogates)."""
-    if value is None:
-        return None
-    if "\x00" in value:
-        raise ValueError("must not contain NUL characters")
-    try:
-        value.encode("utf-8")
-    except UnicodeEncodeError as exc:
-        raise ValueError("must be valid Unicode text (no lone surrogates)") from exc
-    return value
-
-
 class CalibrationIn(StrictIn):
     """A measured standing knee flexion of one leg."""
 
@@ -44,12 +31,11 @@ class CalibrationIn(StrictIn):
          "note": "after physiotherapy"}]})
 
     leg: Leg
-    standing_knee_deg: Annotated[float, Field(ge=MIN_STANDING_KNEE_DEG, le=MAX_STANDING_KNEE_DEG,
-                                              allow_inf_nan=False,
-                                              description="Knee flexion in quiet upright standing, degrees "
-                                                          "(positive = flexion, negative = hyperextension)")]
-    measured_at: AwareDatetime = Field(description="When it was measured (ISO 8601 with offset); it applies to "
-                                                   "sessions that start at or after this instant")
+    standing_knee_deg: Annotated[FiniteFloat, Field(ge=MIN_STANDING_KNEE_DEG, le=MAX_STANDING_KNEE_DEG,
+                                                    description="Knee flexion in quiet upright standing, degrees "
+                                                                "(positive = flexion, negative = hyperextension)")]
+    measured_at: PlausibleInstant = Field(description="When it was measured (ISO 8601 with offset, from 2000 on); "
+                                                      "it applies to sessions that start at or after this instant")
     method: CalibrationMethod
     note: Annotated[str, Field(max_length=MAX_NOTE_CHARS)] | None = None
 
@@ -59,11 +45,6 @@ class CalibrationIn(StrictIn):
         if value > utcnow() + MAX_FUTURE_SKEW:
             raise ValueError("a calibration cannot be measured in the future")
         return value
-
-    @field_validator("note")
-    @classmethod
-    def _storable(cls, value: str | None) -> str | None:
-        return storable_text(value)
 
 
 class CalibrationOut(OrmOut):

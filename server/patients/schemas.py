@@ -8,7 +8,7 @@ from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from server.enums import Leg
-from server.schema_types import OrmOut, StrictIn, UtcDatetime
+from server.schema_types import FiniteFloat, OrmOut, StrictIn, UtcDatetime
 
 
 def known_timezone(value: str) -> str:
@@ -31,7 +31,7 @@ class PatientIn(StrictIn):
     display_name: Annotated[str, Field(max_length=200)] | None = None
     affected_leg: Leg | None = None
     timezone: Annotated[str, Field(max_length=64)] = "UTC"
-    prescribed_sessions_per_week: Annotated[float, Field(gt=0, le=28)] | None = None
+    prescribed_sessions_per_week: Annotated[FiniteFloat, Field(gt=0, le=28)] | None = None
     clinician_id: str | None = Field(None, description="Admin only: the clinician who owns the patient.")
 
     @field_validator("timezone")
@@ -49,7 +49,7 @@ class PatientPatch(StrictIn):
     display_name: Annotated[str, Field(max_length=200)] | None = None
     affected_leg: Leg | None = None
     timezone: Annotated[str, Field(max_length=64)] | None = None
-    prescribed_sessions_per_week: Annotated[float, Field(gt=0, le=28)] | None = None
+    prescribed_sessions_per_week: Annotated[FiniteFloat, Field(gt=0, le=28)] | None = None
 
     @field_validator("timezone")
     @classmethod

@@ -283,3 +283,14 @@ def test_client_text_cannot_become_a_spreadsheet_formula() -> None:
     assert _text_cell('=HYPERLINK("http://evil.example/","open")').startswith("'=")
     assert _text_cell("@SUM(A1)") == "'@SUM(A1)" and _text_cell("-1+2") == "'-1+2"
     assert _text_cell("visit-3") == "visit-3" and _text_cell(None) == ""
+
+
+@pytest.mark.parametrize("value", [True, "3", float("nan")])
+def test_prescribed_sessions_per_week_is_a_strict_number(api: Api, value: Any) -> None:
+    _, clin = api.clinician()
+    pid = api.patient(clin)["id"]
+    body = json.dumps({"prescribed_sessions_per_week": value}).encode()  # NaN as the literal Python's json writes
+    for method, url in (("POST", "/v1/patients"), ("PATCH", f"/v1/patients/{pid}")):
+        r = api.client.request(method, url, content=body, headers=bearer(clin) | {"Content-Type": "application/json"})
+        _assert_4xx_problem(r, 422)
+    assert api.client.get(f"/v1/patients/{pid}", headers=bearer(clin)).json()["prescribed_sessions_per_week"] is None

@@ -145,6 +145,11 @@ def test_access_rules(api: Api) -> None:
     ({"measured_at": "2026-11-01T10:00:00"}, "measured_at"),  # no offset: which instant is it?
     ({"measured_at": "yesterday"}, "measured_at"),
     ({"measured_at": (NOW + timedelta(days=2)).isoformat()}, "measured_at"),
+    ({"measured_at": "0001-01-01T00:00:00+14:00"}, "measured_at"),  # before the calendar's first UTC instant
+    ({"measured_at": "0001-01-01T00:00:00+00:00"}, "measured_at"),  # a patient's local day of it would overflow
+    ({"measured_at": 0}, "measured_at"),  # seconds since 1970 is a client bug, not a measurement date
+    ({"standing_knee_deg": True}, "standing_knee_deg"),  # a boolean is not a number
+    ({"standing_knee_deg": "5"}, "standing_knee_deg"),
     ({"method": "eyeballed"}, "method"),
     ({"leg": "both"}, "leg"),
     ({"note": "bad\u0000note"}, "note"),
