@@ -114,7 +114,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.group_committer = GroupCommitter(upload_engine, grouped=settings.upload_group_commit)
     app.state.sessionmaker = make_sessionmaker(engine)
     install_error_handlers(app)
-    app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes)
+    app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
+                       body_timeout_s=settings.body_timeout_s)
     # Responses too: a full-resolution knee-angle trace or an export is mostly digits and shrinks ~4x.
     app.add_middleware(ResponseGZipMiddleware, minimum_size=1024)
     install_ops(app, settings)

@@ -93,9 +93,10 @@ class _GzipInflater:
 class BodyLimitMiddleware:
     """Rejects request bodies over the limit (also after gzip inflation) with a 413 problem."""
 
-    def __init__(self, app: ASGIApp, max_body_bytes: int) -> None:
+    def __init__(self, app: ASGIApp, max_body_bytes: int, body_timeout_s: float = 15.0) -> None:
         self.app = app
         self.max_body_bytes = max_body_bytes
+        self.body_timeout_s = body_timeout_s
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope["method"] not in BODY_METHODS:
@@ -147,17 +148,21 @@ class BodyLimitMiddleware:
         gzipped = encoding in ("gzip", "x-gzip")
         raw = bytearray()
         received = 0
-        while True:
-            message = await receive()
-            if message["type"] == "http.disconnect":
-                raise _Reject(400, "Client disconnected before the body was complete")
-            chunk = message.get("body", b"")
-            received += len(chunk)
-            if received > self.max_body_bytes:
-                raise _Reject(413, f"Request body exceeds the limit of {self.max_body_bytes} bytes")
-            raw += chunk
-            if not message.get("more_body", False):
-                break
+        # the request already holds one of the in-flight slots: a body that trickles in or never ends must not keep it
+        with anyio.move_on_after(self.body_timeout_s) as scope:
+            while True:
+                message = await receive()
+                if message["type"] == "http.disconnect":
+                    raise _Reject(400, "Client disconnected before the body was complete")
+                chunk = message.get("body", b"")
+                received += len(chunk)
+                if received > self.max_body_bytes:
+                    raise _Reject(413, f"Request body exceeds the limit of {self.max_body_bytes} bytes")
+                raw += chunk
+                if not message.get("more_body", False):
+                    break
+        if scope.cancelled_caught:
+            raise _Reject(408, f"The request body did not arrive within {self.body_timeout_s:g} s")
         if not gzipped:
             return bytes(raw)
         return await self._inflated(raw)
@@ -194,7 +199,7 @@ def _inflate(data: bytes | bytearray, limit: int) -> bytes:
 async def _send_problem(scope: Scope, send: Send, status: int, detail: str) -> None:
     payload = json.dumps(problem_body(status, detail, instance=scope.get("path"))).encode()
     headers = [(b"content-type", PROBLEM_JSON.encode()), (b"content-length", str(len(payload)).encode())]
-    if status in (413, 415):
+    if status in (408, 413, 415):
         # The rest of the body was not read: the client must not reuse the connection.
         headers.append((b"connection", b"close"))
     await send({"type": "http.response.start", "status": status, "headers": headers})

@@ -19,6 +19,9 @@ class Settings(BaseSettings):
     database_url: str = ""
     # Request bodies larger than this (after gzip decompression) get 413.
     max_body_bytes: int = 8 * 1024 * 1024
+    # A request body must arrive whole within this many seconds of its headers (408 otherwise): a body that never
+    # finishes would hold a request slot (GAITMON_MAX_IN_FLIGHT) for as long as the client keeps the socket open.
+    body_timeout_s: float = 15.0
     max_samples_per_batch: int = 20_000
     # embedded: the API process runs queued jobs in a thread (SQLite default);
     # procrastinate: jobs go to the PostgreSQL queue and `gaitmon worker` runs them.

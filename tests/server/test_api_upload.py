@@ -529,3 +529,35 @@ def test_an_upload_on_a_dead_pooled_connection_is_stored_once_on_a_new_one(postg
         assert "pooled connection was dead" in caplog.text
         assert api.upload(dev, sess["id"], batch_body("L-shank", 1, n=40)).status_code == 200
         assert _batches(api) == 2
+
+
+def test_a_body_that_never_finishes_is_408_within_the_body_timeout() -> None:
+    """Headers promise 100 bytes, 4 arrive, then nothing: the request's slot is given back after the timeout."""
+    called: list[bool] = []
+    sent: list[dict] = []
+
+    async def app(scope, receive, send) -> None:  # noqa: ANN001
+        called.append(True)
+
+    middleware = BodyLimitMiddleware(app, max_body_bytes=1_000_000, body_timeout_s=0.3)
+    scope = {"type": "http", "method": "POST", "path": "/v1/sessions/s1/batches", "headers": [
+        (b"content-type", b"application/json"), (b"content-length", b"100")]}
+    chunks = iter([{"type": "http.request", "body": b'{"se', "more_body": True}])
+
+    async def receive() -> dict:
+        try:
+            return next(chunks)
+        except StopIteration:
+            await asyncio.sleep(3600)  # the client keeps the socket open and sends nothing
+            raise AssertionError("unreachable") from None
+
+    async def send(message: dict) -> None:
+        sent.append(message)
+
+    t0 = time.perf_counter()
+    asyncio.run(middleware(scope, receive, send))
+    assert time.perf_counter() - t0 < 2.0
+    assert not called
+    assert sent[0]["status"] == 408
+    assert (b"connection", b"close") in sent[0]["headers"]
+    assert json.loads(sent[1]["body"])["status"] == 408
