@@ -348,8 +348,10 @@ def _swap_cell(reports: list[dict]) -> str:
     rmse = [e for r in reports for e in r["rmse"]]
     if legs_out == 0 or strides == 0:
         verdict = "refused"
-    elif reports[0].get("legs_only") and warns and sum(r["trend_strides"] for r in reports) == 0:
-        verdict = "detected (warned), every stride out of trends; angles right but belong to the other label"
+    elif reports[0].get("legs_only") and any(r["warnings"] and not r["trend_strides"] for r in reports):
+        caught = sum(1 for r in reports if r["warnings"] and not r["trend_strides"])
+        verdict = (f"detected in {caught}/{len(reports)} sessions (warned, every stride out of trends), the others "
+                   "accepted; angles right but belong to the other label")
     elif corr and min(corr) > 0.9 and max(rmse) < 5:
         verdict = "accepted; angles are right but belong to the other label" if reports[0].get("legs_only") \
             else "corrected (warned), angles right" if warns else "accepted, angles right"

@@ -20,9 +20,10 @@ stance limb, peaking at mid-stance; the hip adducts, Kadaba et al. 1990; Winter 
 thigh's top moves laterally over its knee: a rotation about the walking direction whose sense is mirrored between
 the legs. Seen in the leg's own frame (the knee axis ``j1``, which points the same way on both legs, and the
 vertical), the left thigh turns one way and the right the other (:func:`weight_shift_dps`). When both legs turn the
-other leg's way, the labels of all four sensors are in doubt (:func:`side_verdict`). A planar walker (no frontal
-motion) and a leg whose thigh barely shifts leave it undecided; nothing is ever corrected on this cue alone: the
-strides are kept out of trends and the session says why (``side_in_doubt``).
+other leg's way, the thighs are on the other sides: the labels of all four sensors, or of the two thighs, are in
+doubt (:func:`side_verdict`). A planar walker (no frontal motion) and a leg whose thigh barely shifts leave it
+undecided; nothing is ever corrected on this cue alone: the strides are kept out of trends and the session says
+why (``side_in_doubt``).
 """
 
 from __future__ import annotations
@@ -98,14 +99,19 @@ def swapped_pairing_better(labelled_mps2: tuple[float, float], swapped_mps2: tup
 
 def weight_shift_dps(gyr_thigh_rps: np.ndarray, acc_thigh_mps2: np.ndarray, acc_shank_mps2: np.ndarray,
                      valid: np.ndarray, j1: np.ndarray, strides: list[tuple[int, int, int]],
-                     params: AssignmentParams = WALKING.assignment) -> float | None:
-    """The median over strides of the thigh's mean rotation rate [deg/s] about the walking direction over the first
-    ``shift_window`` of each stride (heel strike on; the weight shift of the module docstring), positive for a left
-    leg. ``gyr_thigh_rps``, ``acc_*_mps2``: (N, 3) on the leg's grid, ``valid`` (N,); ``j1``: the oriented knee axis
-    in the thigh frame (flexion rate ``g1.j1 - g2.j2``); ``strides``: ``(hs, to, hs_next)``. The walking direction is
-    ``j1`` x the thigh's mean specific force. A small error of ``j1`` leaks the large sagittal rate into that
-    direction with a random sign per leg; it is removed by regressing the rate on ``g1.j1`` over the strides. None
-    with fewer than ``shift_min_strides`` whole strides or no vertical."""
+                     params: AssignmentParams = WALKING.assignment) -> tuple[float, float] | None:
+    """Two medians over whole strides [deg/s], positive for a left leg: the thigh's mean rotation rate about the
+    walking direction over the first ``shift_window`` of each stride (heel strike on), and the same less the
+    stride's own mean rate (module docstring). ``gyr_thigh_rps``, ``acc_*_mps2``: (N, 3) on the leg's grid,
+    ``valid`` (N,); ``j1``: the oriented knee axis in the thigh frame (flexion rate ``g1.j1 - g2.j2``);
+    ``strides``: ``(hs, to, hs_next)``. The walking direction is ``j1`` x the thigh's mean specific force.
+
+    A small error of ``j1`` leaks the large sagittal rate into that direction with a random sign per leg: removed
+    by regressing the rate on ``g1.j1`` over the strides. The stride's mean rate is no rotation of the thigh (its
+    orientation is periodic) but what body-frame rates rectify: an uncorrected gyro bias, and the coning of a
+    flexing thigh that also turns about its long axis (hip rotation, a skin or strap turning with the knee; its
+    sense follows how the skin moves, which no one measured). Only the second figure is free of it. None with
+    fewer than ``shift_min_strides`` whole strides or no vertical."""
     up = level_directions(acc_thigh_mps2, acc_shank_mps2, valid)
     if up is None or len(strides) < params.shift_min_strides:
         return None
@@ -119,23 +125,26 @@ def weight_shift_dps(gyr_thigh_rps: np.ndarray, acc_thigh_mps2: np.ndarray, acc_
     if ss > 0:
         w = w - float(np.dot(w[gait], sagittal[gait])) / ss * sagittal
     ok = valid & np.isfinite(w)
-    lo = arr[:, 0]
+    x = np.where(ok, w, 0.0)
+    lo, end = arr[:, 0], arr[:, 2] + 1
     hi = lo + np.round(params.shift_window * (arr[:, 2] - lo)).astype(int) + 1
-    whole = segment_sums(ok, lo, hi) == hi - lo
+    whole = segment_sums(ok, lo, end) == end - lo
     if int(whole.sum()) < params.shift_min_strides:
         return None
-    return float(np.median(segment_sums(np.where(ok, w, 0.0), lo, hi)[whole] / (hi - lo)[whole]))
+    early = segment_sums(x, lo, hi)[whole] / (hi - lo)[whole]
+    cycle = segment_sums(x, lo, end)[whole] / (end - lo)[whole]
+    return float(np.median(early)), float(np.median(early - cycle))
 
 
-def side_verdict(left_dps: float | None, right_dps: float | None,
+def side_verdict(left: tuple[float, float] | None, right: tuple[float, float] | None,
                  params: AssignmentParams = WALKING.assignment) -> str:
-    """``"as_labelled"``, ``"swapped"`` (both legs' weight shifts, :func:`weight_shift_dps`, in the other leg's sense
-    by at least ``shift_min_dps``) or ``"undecided"``."""
-    if left_dps is None or right_dps is None:
+    """``"as_labelled"``, ``"swapped"`` (both figures of both legs' weight shifts, :func:`weight_shift_dps`, in the
+    other leg's sense by at least ``shift_min_dps``) or ``"undecided"``."""
+    if left is None or right is None:
         return "undecided"
     m = params.shift_min_dps
-    if left_dps >= m and right_dps <= -m:
+    if min(left) >= m and max(right) <= -m:
         return "as_labelled"
-    if left_dps <= -m and right_dps >= m:
+    if max(left) <= -m and min(right) >= m:
         return "swapped"
     return "undecided"

@@ -23,8 +23,8 @@ REASONS: dict[str, str] = {
                    "(out of trends)",
     "bout_edge": "first or last stride of a walking bout",
     "side_in_doubt": "both thighs shift their weight in early stance the way the other leg's would: the left and "
-                     "right labels of the four sensors look swapped, so the stride may belong to the other knee "
-                     "(out of trends)",
+                     "right labels of the four sensors (or of the two thighs) look swapped, so the stride may "
+                     "belong to the other knee (out of trends)",
     "clock_disagreement": "the thigh and shank clocks drift apart in a way no credible clock rate explains "
                           "(SyncParams.max_drift, max_line_drift): the timing between the two segments, and so the "
                           "angle, is unknown (out of trends)",

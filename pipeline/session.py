@@ -227,8 +227,9 @@ def _check_sides(legs: dict[str, LegResult], ap: AssignmentParams, qp: QualityPa
     if side_verdict(shift["left"], shift["right"], ap) != "swapped":
         return legs
     warnings.append(f"left and right labels look swapped: each thigh shifts its weight in early stance the way "
-                    f"the other leg's would (left {shift['left']:+.1f}, right {shift['right']:+.1f} deg/s); every "
-                    "stride is kept out of trends (side_in_doubt): confirm the sides in the app")
+                    f"the other leg's would (left {shift['left'][0]:+.1f}, right {shift['right'][0]:+.1f} deg/s), so "
+                    "the thigh sensors, and perhaps the shank sensors too, sit on the other legs; every stride is kept "
+                    "out of trends (side_in_doubt): confirm the sides in the app")
     reason = "side_in_doubt"
     return {leg: dataclasses.replace(lr, strides=[
         dataclasses.replace(st, quality_reasons=(*st.quality_reasons, reason),
@@ -410,11 +411,11 @@ def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, stride
         weight_shift_dps=_weight_shift(data))
 
 
-def _weight_shift(data: LegInput) -> float | None:
+def _weight_shift(data: LegInput) -> tuple[float, float] | None:
     """:func:`pipeline.assignment.weight_shift_dps` of a walking leg (rounded), None for running."""
     if data.activity != "walking":
         return None
     prep = data.prep
     shift = weight_shift_dps(prep.gyr_thigh_rps, prep.acc_thigh_mps2, prep.acc_shank_mps2, prep.valid,
                              data.axes.j1, data.events.strides, data.params.assignment)
-    return None if shift is None else round(shift, 2)
+    return None if shift is None else (round(shift[0], 2), round(shift[1], 2))

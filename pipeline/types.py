@@ -149,9 +149,9 @@ class LegDiagnostics:
     # (pipeline.sync.ClockFit; then no correction was applied) or the stride timing (pipeline.sync.
     # stride_clock_runaway; after any correction) show: every stride flagged ``clock_disagreement``
     clock_disagreement: bool = False
-    # the thigh's weight-shift rotation in early stance [deg/s], positive on a left leg (pipeline.assignment.
-    # weight_shift_dps); None for running legs or too few strides
-    weight_shift_dps: float | None = None
+    # the thigh's weight-shift rotation in early stance [deg/s], as measured and less the stride's mean rate,
+    # positive on a left leg (pipeline.assignment.weight_shift_dps); None for running legs or too few strides
+    weight_shift_dps: tuple[float, float] | None = None
 
 
 @dataclass
