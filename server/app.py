@@ -113,13 +113,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if upload_engine is not None:
         app.state.group_committer = GroupCommitter(upload_engine, grouped=settings.upload_group_commit)
     app.state.sessionmaker = make_sessionmaker(engine)
-    install_error_handlers(app)
+    install_error_handlers(app, page_errors=ui_routes.page_error)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
                        body_timeout_s=settings.body_timeout_s)
     # Responses too: a full-resolution knee-angle trace or an export is mostly digits and shrinks ~4x.
     app.add_middleware(ResponseGZipMiddleware, minimum_size=1024)
     install_ops(app, settings)
-    app.add_middleware(RequestHygieneMiddleware)
+    app.add_middleware(RequestHygieneMiddleware, page_errors=ui_routes.page_error)
     # Outermost: an overloaded process refuses before reading a body or taking a thread.
     app.add_middleware(InFlightLimitMiddleware, max_in_flight=settings.max_in_flight,
                        retry_after_s=settings.retry_after_s)

@@ -102,6 +102,7 @@ def cmd_serve(args: argparse.Namespace, settings: Settings) -> int:
     import uvicorn
 
     from server.app import create_app
+    from server.http_protocol import ProblemHttpProtocol
 
     host = args.host or settings.host
     port = args.port if args.port is not None else settings.port
@@ -114,7 +115,7 @@ def cmd_serve(args: argparse.Namespace, settings: Settings) -> int:
              safe_url(settings.resolved_database_url), settings.resolved_job_runner)
     # log_config=None: uvicorn's loggers propagate to ours (request id, JSON format) instead of printing their own.
     uvicorn.run(app, host=host, port=port, log_level=settings.log_level.lower(), proxy_headers=True,
-                log_config=None)
+                log_config=None, http=ProblemHttpProtocol)
     return 0
 
 

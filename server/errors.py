@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
+from functools import partial
 from http import HTTPStatus
 from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeoutError
@@ -177,10 +179,19 @@ async def _validation_handler(request: Request, exc: Exception) -> JSONResponse:
                             instance=request.url.path, errors=errors)
 
 
-async def _http_exception_handler(request: Request, exc: Exception) -> JSONResponse:
+# The HTML error page for a request to a web page (status, problem detail), or None for an API request.
+PageErrors = Callable[[Request, int, str], Response | None]
+
+
+async def _http_exception_handler(request: Request, exc: Exception, page_errors: PageErrors | None = None
+                                  ) -> Response:
     assert isinstance(exc, StarletteHTTPException)
     status = exc.status_code
     detail = exc.detail if isinstance(exc.detail, str) else HTTPStatus(status).phrase
+    page = page_errors(request, status, detail) if page_errors is not None else None
+    if page is not None:
+        page.headers.update(exc.headers or {})  # Allow on a 405
+        return page
     if status == 404 and detail == "Not Found":
         detail = f"No resource at {request.url.path}"
     elif status == 405:
@@ -211,11 +222,12 @@ async def _unhandled_handler(request: Request, exc: Exception) -> JSONResponse:
                             instance=request.url.path)
 
 
-def install_error_handlers(app: FastAPI) -> None:
-    """Turn every error, including unexpected ones, into a problem details response."""
+def install_error_handlers(app: FastAPI, page_errors: PageErrors | None = None) -> None:
+    """Turn every error, including unexpected ones, into a problem details response; ``page_errors`` renders an
+    unknown address or a wrong method under the web pages as a page instead."""
     app.add_exception_handler(ProblemError, _problem_error_handler)
     app.add_exception_handler(RequestValidationError, _validation_handler)
-    app.add_exception_handler(StarletteHTTPException, _http_exception_handler)
+    app.add_exception_handler(StarletteHTTPException, partial(_http_exception_handler, page_errors=page_errors))
     app.add_exception_handler(PoolTimeoutError, _pool_timeout_handler)
     app.add_exception_handler(OperationalError, _operational_handler)
     app.add_exception_handler(Exception, _unhandled_handler)

@@ -10,8 +10,10 @@ from __future__ import annotations
 import json
 from urllib.parse import unquote_plus
 
+from starlette.requests import Request
+
 from server.body_limit import ASGIApp, Receive, Scope, Send
-from server.errors import PROBLEM_JSON, problem_body
+from server.errors import PROBLEM_JSON, PageErrors, problem_body
 from server.schema_types import text_problem
 
 
@@ -30,10 +32,12 @@ def request_text_problem(scope: Scope) -> str | None:
 
 
 class RequestHygieneMiddleware:
-    """422 problem for a NUL or a lone surrogate in the path or query string, before any route runs."""
+    """422 problem for a NUL or a lone surrogate in the path or query string, before any route runs; a page's
+    address gets the page from ``page_errors`` instead."""
 
-    def __init__(self, app: ASGIApp) -> None:
+    def __init__(self, app: ASGIApp, page_errors: PageErrors | None = None) -> None:
         self.app = app
+        self.page_errors = page_errors
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -42,6 +46,10 @@ class RequestHygieneMiddleware:
         problem = request_text_problem(scope)
         if problem is None:
             await self.app(scope, receive, send)
+            return
+        page = self.page_errors(Request(scope), 422, problem) if self.page_errors is not None else None
+        if page is not None:
+            await page(scope, receive, send)
             return
         field, _, message = problem.partition(": ")
         body = problem_body(422, problem, title="Validation failed", slug="validation-error",

@@ -11,6 +11,7 @@ import json
 import logging
 from collections.abc import Callable, Coroutine
 from datetime import date, datetime, time
+from http import HTTPStatus
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -47,9 +48,26 @@ SECURITY_HEADERS = {
 }
 
 
+NOT_FOUND_DETAIL = "There is no such page, or it belongs to another clinician's patient."
+
+
 def _error_page(request: Request, status: int, title: str, detail: str) -> HTMLResponse:
     return templates.TemplateResponse(request, "error.html", {"title": title, "detail": detail, "user": None},
                                       status_code=status, headers=SECURITY_HEADERS)
+
+
+def page_error(request: Request, status: int, detail: str) -> HTMLResponse | None:
+    """The HTML page for an error on a page address that no page route handled (an unknown address, a wrong
+    method, an address holding text no database can store); None for the API's addresses (problem details)."""
+    path = request.scope.get("path", "")
+    if path != "/ui" and not path.startswith("/ui/"):
+        return None
+    if status == 404:
+        return _error_page(request, 404, "Not found", NOT_FOUND_DETAIL)
+    if status == 422:
+        return _error_page(request, 422, "Invalid address",
+                           "The address holds a character no page address can have (a NUL or a lone surrogate).")
+    return _error_page(request, status, HTTPStatus(status).phrase, detail)
 
 
 class PageRoute(APIRoute):
@@ -73,8 +91,7 @@ class PageRoute(APIRoute):
                                    "try again.")
             except ProblemError as exc:
                 title = "Not found" if exc.status == 404 else (exc.title or "Not possible")
-                detail = ("There is no such page, or it belongs to another clinician's patient."
-                          if exc.status == 404 else exc.detail)
+                detail = NOT_FOUND_DETAIL if exc.status == 404 else exc.detail
                 return _error_page(request, exc.status, title, detail)
             except RequestValidationError as exc:
                 bad = ", ".join(str(e.get("loc", ["?"])[-1]) for e in exc.errors())

@@ -10,6 +10,7 @@ import copy
 import gzip
 import json
 import re
+import socket
 import subprocess
 import time
 from collections.abc import Iterator
@@ -102,6 +103,24 @@ def assert_problem(resp: httpx.Response, status: int | tuple[int, ...]) -> dict[
     return body
 
 
+def assert_malformed_http_is_a_problem(base_url: str) -> None:
+    """A request the HTTP parser refuses (a header line without a colon) gets a 400 problem document, then EOF."""
+    host, port = base_url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=10) as sock:
+        sock.sendall(b"GET /v1/me HTTP/1.1\r\nHost: x\r\nno colon here\r\n\r\n")
+        raw = b""
+        while chunk := sock.recv(65536):  # the server closes the connection after answering
+            raw += chunk
+    head, _, body = raw.partition(b"\r\n\r\n")
+    lines = head.decode("latin-1").split("\r\n")
+    assert lines[0] == "HTTP/1.1 400 Bad Request", raw
+    headers = {k.strip().lower(): v.strip() for k, _, v in (line.partition(":") for line in lines[1:])}
+    assert headers["content-type"] == "application/problem+json" and headers["connection"] == "close"
+    assert int(headers["content-length"]) == len(body)
+    problem = json.loads(body)
+    assert problem["status"] == 400 and problem["type"].endswith("malformed-request") and problem["detail"]
+
+
 def streams_from_requests(create: dict[str, Any], batches: list[dict[str, Any]]) -> list[RawSensorStream]:
     """What the server must have assembled from these bodies (float32 samples), to predict its results exactly."""
     out = []
@@ -175,6 +194,7 @@ def walk(base_url: str, env: dict[str, str], cwd: Path, db_url: str, procs: list
     assert_problem(c.get("/v1/patients"), 401)
     assert_problem(c.get("/v1/patients", headers=auth(spare_token)), 401)  # revoked on the command line
     assert_problem(c.get("/v1/no-such-route", headers=auth(admin)), 404)
+    assert_malformed_http_is_a_problem(base_url)
 
     r = c.post("/v1/clinicians", json={"name": "Dr A", "email": "a@example.org"}, headers=auth(admin))
     assert r.status_code == 201, r.text

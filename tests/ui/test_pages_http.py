@@ -194,3 +194,26 @@ def test_calibration_entry_records_through_the_api_rule(api: Api) -> None:
     items = c.get(f"/v1/patients/{pa['id']}/calibrations", headers={"Authorization": f"Bearer {clin_a}"}
                   ).json()["items"]
     assert len(items) == 1
+
+
+def test_addresses_no_page_route_answers_get_pages_and_the_api_keeps_problems(api: Api) -> None:
+    c = api.client
+    c.cookies.clear()
+
+    def is_page(r, status: int, title: str) -> None:  # noqa: ANN001
+        assert r.status_code == status and r.headers["content-type"].startswith("text/html"), r.text[:200]
+        assert f"<h1>{title}</h1>" in r.text and "Traceback" not in r.text
+        assert r.headers["content-security-policy"].startswith("default-src 'none'")
+
+    is_page(c.get("/ui/no-such-page"), 404, "Not found")
+    is_page(c.get("/ui/static/no-such.css"), 404, "Not found")
+    # text no database can store, in the path or the query, refused before any route (and any query) runs
+    is_page(c.get("/ui/patients/abc%00"), 422, "Invalid address")
+    is_page(c.get("/ui/patients?cursor=%00"), 422, "Invalid address")
+    r = c.delete("/ui/patients")
+    is_page(r, 405, "Method Not Allowed")
+    assert "GET" in r.headers["allow"]
+    # the API's addresses answer as before: problem details
+    for r, status in ((c.get("/v1/no-such-route"), 404), (c.get("/v1/sessions/a%00b"), 422),
+                      (c.get("/uix%00"), 422)):
+        assert r.status_code == status and r.headers["content-type"] == "application/problem+json", r.text[:200]
