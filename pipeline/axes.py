@@ -659,6 +659,14 @@ def fit_joint_centres(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.nd
     return JointCentres(o1=o1, o2=o2, rms_residual_mps2=rms, absolute=bool(in_plane > 0.03), b1=b1, b2=b2)
 
 
+def centre_residuals(centres: JointCentres, a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray,
+                     g2: np.ndarray, gd2: np.ndarray) -> np.ndarray:
+    """Seel's Eq. 5 residual per sample (N,) [m/s^2] with fitted ``centres`` (their biases taken off):
+    ``||a1 - b1 - Gamma1(o1)|| - ||a2 - b2 - Gamma2(o2)||``. Inputs as :func:`fit_joint_centres`'."""
+    x = np.concatenate([centres.o1, centres.o2, centres.b1, centres.b2])
+    return _centre_resid(x, a1, gamma_matrices(g1, gd1), a2, gamma_matrices(g2, gd2))
+
+
 def fit_margin_mask(valid: np.ndarray, fs_hz: float, params: AxesParams = WALKING.axes) -> np.ndarray:
     """Samples at least ``fit_margin_s`` from any masked gap: the filters and Eq. 1 differences are unreliable
     within a few samples of one."""

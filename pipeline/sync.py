@@ -33,18 +33,21 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import theilslopes
+from scipy.stats import median_abs_deviation, theilslopes
 
 from pipeline.axes import (
     JointAxes,
     LagEstimate,
     angular_acceleration,
     axis_up,
+    centre_residuals,
     estimate_centre_lag_s,
     fit_joint_axes,
+    fit_joint_centres,
     fit_margin_mask,
     hinge_rates,
     orient_thigh_on_gait,
+    select_fit_samples,
     sync_lag_estimate,
 )
 from pipeline.constants import G_MPS2
@@ -75,6 +78,9 @@ class ClockFit:
     offset_s: float | None  # lag at mid-session [s]; None: no correction applied
     drift: float = 0.0  # [s/s]
     disagreement: bool = False  # the window lags run apart faster than ``SyncParams.max_line_drift``: timing unknown
+    # the joint-centre cue's line where it differs from this one (the hinge cue's) by more than ``agree_s`` at
+    # mid-session: :func:`synchronised_leg` keeps the one under which Seel's Eq. 5 holds better
+    alternative: ClockFit | None = None
 
 
 def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, params: PipelineParams,
@@ -96,6 +102,13 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     streams = _LegStreams(leg, (si1, si2), (fs1, fs2), prep, (g1, g2))
     clock = clock_model(prep, g1, g2, axes, params.sync, params.axes)
     synced = None if clock.offset_s is None else _corrected(streams, axes, clock.offset_s, clock.drift, params)
+    alt = clock.alternative
+    if synced is not None and alt is not None and alt.offset_s is not None:
+        other = _corrected(streams, axes, alt.offset_s, alt.drift, params)
+        # both fits must stand: a centre fit that found no body-worn position gives no verdict
+        mine = centre_misfit(synced, params)
+        if other is not None and np.isfinite(mine) and centre_misfit(other, params) < mine:
+            return other
     if synced is not None:
         return synced
     seen = _leg_stride_drift(prep, axes, params, (g1, g2))
@@ -107,6 +120,30 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     # no line, or one the stride timing does not bear out (then the leg's timing is unknown)
     return SyncedLeg(prep, axes, None, None, (g1, g2),
                      clock_disagreement=clock.disagreement or clock.offset_s is not None)
+
+
+def centre_misfit(leg: SyncedLeg, params: PipelineParams) -> float:
+    """How well Seel's Eq. 5 holds on a leg as stamped [m/s^2]: the joint centres fitted on its fit samples
+    (:func:`pipeline.axes.fit_joint_centres`, shocks left out as for the centre cue), then the robust SD (scaled
+    median absolute deviation) of the residual on all of them. Eq. 5 holds on any knee that turns about a centre,
+    a hinge or not, so at the right thigh-shank timing the two accelerometers agree best; the robust scale keeps a
+    trimmed misfit from favouring a wrong fit."""
+    prep, cutoff = leg.prep, params.axes.fit_cutoff_hz
+    g1, g2 = leg.fit_gyr if leg.fit_gyr is not None else fit_gyros(prep, cutoff, thigh=leg.thigh_fit)
+    a1, a2 = (np.nan_to_num(a) for a in lowpass_runs_many((prep.acc_thigh_mps2, prep.acc_shank_mps2), prep.valid,
+                                                            cutoff, prep.fs_hz))
+    gd1, gd2 = angular_acceleration(g1, prep.fs_hz), angular_acceleration(g2, prep.fs_hz)
+    far = fit_margin_mask(prep.valid, prep.fs_hz, params.axes)
+    far &= ~shock_mask(((prep.acc_thigh_mps2, a1), (prep.acc_shank_mps2, a2)), prep.valid, prep.fs_hz, params.sync)
+    idx = select_fit_samples(g1, g2, far, params.axes)
+    if idx.size < 50:
+        return float("inf")
+    fit = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], leg.axes.j1, leg.axes.j2,
+                            params.axes)
+    if not (fit.o1.any() or fit.o2.any()):
+        return float("inf")  # no body-worn sensor position fits (beyond ``max_lever_m``): no verdict
+    resid = centre_residuals(fit, a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx])
+    return float(median_abs_deviation(resid, scale="normal"))
 
 
 @dataclass(frozen=True)
@@ -181,14 +218,45 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
         weight = np.gradient(rates[1]) ** 2 * measured
         fit = _line_model(prep, windows, params, hinge_lag, weight=weight)
         # on a hinge knee the centre cue is the less accurate of the two wherever turns make both informative
-        # (sweep and accuracy tune seeds: crouch gait, long lever arms)
+        # (sweep and accuracy tune seeds: crouch gait, long lever arms); but a knee whose tibia turns as it flexes
+        # without leaning the hinge fit reads a lag of its own into the hinge cue (10-25 ms on an independent
+        # simulator), so the centre cue is asked too, around the hinge's line, and a disagreement is settled later
+        if fit.offset_s is not None and axes_params is not None:
+            alt = _centre_line(prep, g1, g2, axes, params, axes_params, windows, around=fit,
+                               max_windows=params.check_centre_windows)
+            if alt.offset_s is not None and abs(alt.offset_s - fit.offset_s) > params.agree_s:
+                return ClockFit(fit.offset_s, fit.drift, alternative=alt)
+            return fit
         if fit.offset_s is not None or axes_params is None or sum(lag is not None for lag in hinge) >= 2:
             return fit
     elif axes_params is None:
         return ClockFit(None)
-    pick = np.unique(np.linspace(0, len(windows) - 1, min(len(windows), params.max_centre_windows)).round())
+    return _centre_line(prep, g1, g2, axes, params, axes_params, windows)
+
+
+def _centre_line(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
+                 axes_params: AxesParams, windows: list[slice], around: ClockFit | None = None,
+                 max_windows: int | None = None) -> ClockFit:
+    """The joint-centre cue's line (:func:`_line_model`) on at most ``max_windows`` (default ``max_centre_windows``)
+    of ``windows``, spread evenly; with ``around``, each window searched around that line's lag at its time instead
+    of the windows before it."""
+    count = params.max_centre_windows if max_windows is None else max_windows
+    pick = np.unique(np.linspace(0, len(windows) - 1, min(len(windows), count)).round())
     lag_of, weight = _centre_lag_of(prep, g1, g2, axes, params, axes_params)
+    if around is not None and around.offset_s is not None:
+        offset, drift, t_mid = around.offset_s, around.drift, float(prep.t_s[prep.n // 2])
+
+        def lag_around(w: slice, _predicted: float) -> LagEstimate | None:
+            return lag_of(w, offset + drift * (_cue_time(prep, w, weight) - t_mid))
+        return _line_model(prep, [windows[int(i)] for i in pick], params, lag_around, weight=weight)
     return _line_model(prep, [windows[int(i)] for i in pick], params, lag_of, weight=weight)
+
+
+def _cue_time(prep: PreparedLeg, w: slice, weight: np.ndarray | None) -> float:
+    """Where in window ``w`` its lag is measured [s]: the ``weight``-ed mean time, else the window's middle."""
+    if weight is not None and weight[w].sum() > 0:
+        return float(np.average(prep.t_s[w], weights=weight[w]))
+    return float(prep.t_s[(w.start + w.stop) // 2])
 
 
 @dataclass(frozen=True)
@@ -411,9 +479,7 @@ def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
     pts: list[tuple[float, float]] = []
     ses: list[float | None] = []
     for w in windows:
-        t_w = float(prep.t_s[(w.start + w.stop) // 2])
-        if weight is not None and weight[w].sum() > 0:
-            t_w = float(np.average(prep.t_s[w], weights=weight[w]))
+        t_w = _cue_time(prep, w, weight)
         est = lag_of(w, _predicted_lag(pts, t_w - t_mid, params) if drifting else 0.0)
         if est is not None:
             pts.append((t_w - t_mid, est.lag_s))

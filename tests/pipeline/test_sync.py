@@ -20,7 +20,15 @@ from pipeline.prepare import nominal_fs, prepare_leg_si, to_si
 from pipeline.session import process_session
 from pipeline.signal_utils import lowpass_runs_many
 from pipeline.simulate import SimConfig, simulate_session
-from pipeline.sync import ClockFit, clock_model, shock_mask, stride_clock_runaway, synchronised_leg
+from pipeline.sync import (
+    ClockFit,
+    _fitted_axes,
+    centre_misfit,
+    clock_model,
+    shock_mask,
+    stride_clock_runaway,
+    synchronised_leg,
+)
 from pipeline.walking import fit_gyros
 from tests.conftest import skip_without_real_data
 
@@ -498,3 +506,34 @@ def test_lost_packets_do_not_set_the_clock() -> None:
             errors.append(abs((synced.shank_lag_ms or 0.0) - true_ms))
     assert max(errors) < 4.5, errors
     assert np.mean(errors) < 1.1, errors
+
+
+@pytest.mark.parametrize(("seed", "leg"), [(1, "right"), (3, "left")])
+def test_a_knee_that_turns_as_it_flexes_takes_the_joint_centres_timing(seed: int, leg: str) -> None:
+    # A tibia that turns about its long axis as the knee flexes reads a lag of its own into the hinge cue (Seel Eq. 2);
+    # with the hinge-lean test switched off nothing else tells such a knee from a hinge. The joint-centre cue (Eq. 5)
+    # holds on any knee that turns about a centre, so where the two disagree the timing under which Eq. 5 fits
+    # better is kept. Exact clocks: any lag is the cue's error.
+    params = dataclasses.replace(WALKING, axes=dataclasses.replace(WALKING.axes, level_lean_deg=90.0))
+    sim = simulate_session(SimConfig(seed=seed, duration_s=90.0, bout_strides=12, knee_3d=2.0, sync_offset_ms=0.0,
+                                     clock_drift_ppm=0.0))
+    thigh, shank = _leg_streams(sim.streams, leg)
+    si = (to_si(thigh), to_si(shank))
+    prep = prepare_leg_si(leg, *si, nominal_fs(thigh, si[0][0]), nominal_fs(shank, si[1][0]))
+    g1, g2 = fit_gyros(prep, params.axes.fit_cutoff_hz)
+    axes = _fitted_axes(prep, g1, g2, params)
+    assert not axes.leaning
+    clock = clock_model(prep, g1, g2, axes, params.sync, params.axes)
+    assert clock.offset_s is not None and abs(clock.offset_s) > 0.01  # the hinge cue alone: over 10 ms off
+    assert clock.alternative is not None and abs(clock.alternative.offset_s) < 0.004
+    synced = synchronised_leg(leg, thigh, shank, params)
+    assert synced.shank_lag_ms is not None and abs(synced.shank_lag_ms) < 4.0
+
+
+def test_a_centre_fit_without_a_body_worn_position_gives_no_timing_verdict(straight) -> None:
+    # sensors beyond WALKING.axes.max_lever_m: the fitted centres are dropped, and so is their misfit
+    params = dataclasses.replace(WALKING, axes=dataclasses.replace(WALKING.axes, max_lever_m=0.01))
+    thigh, shank = _leg_streams(straight.streams, "left")
+    leg = synchronised_leg("left", thigh, shank, WALKING)
+    assert np.isfinite(centre_misfit(leg, WALKING)) and centre_misfit(leg, WALKING) < 0.5
+    assert centre_misfit(leg, params) == np.inf
