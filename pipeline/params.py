@@ -71,6 +71,9 @@ class AxesParams:
     """Sample budget of one fit: bounds the cost whatever the session length."""
     fit_chunks: int = 20
     """Equal time chunks the budget is spread over, so the fit set spans the whole session."""
+    centre_fit_hz: float = 100.0
+    """Candidate rate [Hz] of the joint-centre fit's samples (:func:`pipeline.axes.centre_fit_step`): every sample up
+    to 100 Hz, every other at 200 Hz, so the budget covers the same stretch of gait at any rate."""
     n_restarts: int = 2
     """Seeded restarts of the axis fit besides the principal-axis start (Eq. 2 has local minima)."""
     fit_lag: bool = True

@@ -31,6 +31,7 @@ from pipeline.axes import (
     accelerometer_angle_deg,
     angular_acceleration,
     axis_up,
+    centre_fit_step,
     fit_joint_axes,
     fit_joint_centres,
     orient_axes,
@@ -288,7 +289,7 @@ def build_running_leg_input(prep: PreparedLeg, params: PipelineParams, cycles: R
     events = detect_gait_events(shank_sag, fs, valid, shank_acc_mps2=prep.acc_shank_mps2, params=params.phases)
     a1, a2 = filt.acc_thigh_mps2, filt.acc_shank_mps2
     gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)
-    idx = select_fit_samples(g1, g2, fit_mask, params.axes)
+    idx = select_fit_samples(g1, g2, fit_mask, params.axes, step=centre_fit_step(fs, params.axes))
     centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], axes.j1, axes.j2,
                                 params.axes)
     acc_angle = accelerometer_angle_deg(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, centres)

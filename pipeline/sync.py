@@ -40,6 +40,7 @@ from pipeline.axes import (
     LagEstimate,
     angular_acceleration,
     axis_up,
+    centre_fit_step,
     centre_residuals,
     estimate_centre_lag_s,
     fit_joint_axes,
@@ -135,7 +136,7 @@ def centre_misfit(leg: SyncedLeg, params: PipelineParams) -> float:
     gd1, gd2 = angular_acceleration(g1, prep.fs_hz), angular_acceleration(g2, prep.fs_hz)
     far = fit_margin_mask(prep.valid, prep.fs_hz, params.axes)
     far &= ~shock_mask(((prep.acc_thigh_mps2, a1), (prep.acc_shank_mps2, a2)), prep.valid, prep.fs_hz, params.sync)
-    idx = select_fit_samples(g1, g2, far, params.axes)
+    idx = select_fit_samples(g1, g2, far, params.axes, step=centre_fit_step(prep.fs_hz, params.axes))
     if idx.size < 50:
         return float("inf")
     fit = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], leg.axes.j1, leg.axes.j2,

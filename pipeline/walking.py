@@ -12,6 +12,7 @@ from pipeline.axes import (
     accelerometer_angle_deg,
     angular_acceleration,
     axis_up,
+    centre_fit_step,
     fit_joint_axes,
     fit_joint_centres,
     fit_margin_mask,
@@ -91,7 +92,7 @@ def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: Joi
     # their in-plane directions are too uncertain for the absolute zero itself.
     # Fit samples stay away from masked gaps: the filters and Eq. 1 differences are unreliable within a few samples.
     far = fit_margin_mask(valid, fs, params.axes)
-    idx = select_fit_samples(g1, g2, far, params.axes)
+    idx = select_fit_samples(g1, g2, far, params.axes, step=centre_fit_step(fs, params.axes))
     centres = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], axes.j1, axes.j2,
                                 params.axes)
     acc_angle = accelerometer_angle_deg(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, centres)
