@@ -177,12 +177,13 @@ class SyncParams:
     points, so the cost of a long recording without turns stays that of eight windows."""
     check_centre_windows: int = 2
     """Windows the joint-centre cue checks a hinge-cue line on (:func:`pipeline.sync.clock_model`), each searched
-    around that line: where the two cues' lines differ by more than ``agree_s`` at mid-session, the leg is re-stamped
+    around that line, once the middle window alone differed from it by more than ``agree_s`` (where the cues agree,
+    one window per leg). Where the two lines differ by more than ``agree_s`` at mid-session, the leg is re-stamped
     by both and the timing under which Seel's Eq. 5 holds better is kept (:func:`pipeline.sync.centre_misfit`). A
     knee whose tibia turns as it flexes without the hinge fit leaning reads 10-25 ms into the hinge cue (an
     independent simulator: 6 of 80 legs beyond 10 ms, levels off by up to 24 deg); the centre cue alone fails where
-    a sensor sits far from the knee (lever arms x2 on the sweep's tune seeds). Three windows give the offset and its
-    drift at a third of the cost of ``max_centre_windows``."""
+    a sensor sits far from the knee (lever arms x2 on the sweep's tune seeds). Two windows give the offset and its
+    drift at a quarter of the cost of ``max_centre_windows``."""
     shock_g: float = 1.0
     """Acceleration above the fit band [g] (a sensor's raw acceleration minus its ``AxesParams.fit_cutoff_hz``
     low-pass, :func:`pipeline.sync.shock_mask`) marking a shock whose samples the joint-centre cue leaves out: 5 and

@@ -223,27 +223,43 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
         # without leaning the hinge fit reads a lag of its own into the hinge cue (10-25 ms on an independent
         # simulator), so the centre cue is asked too, around the hinge's line, and a disagreement is settled later
         if fit.offset_s is not None and axes_params is not None:
-            alt = _centre_line(prep, g1, g2, axes, params, axes_params, windows, around=fit,
-                               max_windows=params.check_centre_windows)
-            if alt.offset_s is not None and abs(alt.offset_s - fit.offset_s) > params.agree_s:
-                return ClockFit(fit.offset_s, fit.drift, alternative=alt)
-            return fit
+            return _checked_by_centre(prep, g1, g2, axes, params, axes_params, windows, fit)
         if fit.offset_s is not None or axes_params is None or sum(lag is not None for lag in hinge) >= 2:
             return fit
     elif axes_params is None:
         return ClockFit(None)
-    return _centre_line(prep, g1, g2, axes, params, axes_params, windows)
+    return _centre_line(prep, windows, params, _centre_lag_of(prep, g1, g2, axes, params, axes_params))
 
 
-def _centre_line(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
-                 axes_params: AxesParams, windows: list[slice], around: ClockFit | None = None,
-                 max_windows: int | None = None) -> ClockFit:
-    """The joint-centre cue's line (:func:`_line_model`) on at most ``max_windows`` (default ``max_centre_windows``)
-    of ``windows``, spread evenly; with ``around``, each window searched around that line's lag at its time instead
-    of the windows before it."""
+def _checked_by_centre(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
+                       axes_params: AxesParams, windows: list[slice], fit: ClockFit) -> ClockFit:
+    """The hinge cue's line ``fit``, with the joint-centre cue's line as its ``alternative`` where the two differ
+    by more than ``agree_s``: first the middle window alone, searched around the hinge line; where it differs, the
+    line on ``check_centre_windows`` windows (its centres handed on from the first fit)."""
+    assert fit.offset_s is not None
+    cue = _centre_lag_of(prep, g1, g2, axes, params, axes_params)
+    mid, t_mid = windows[len(windows) // 2], float(prep.t_s[prep.n // 2])
+    expected = fit.offset_s + fit.drift * (_cue_time(prep, mid, cue[1]) - t_mid)
+    probe = cue[0](mid, expected)
+    if probe is None or abs(probe.lag_s - expected) <= params.agree_s:
+        return fit
+    alt = _centre_line(prep, windows, params, cue, around=fit, max_windows=params.check_centre_windows)
+    if alt.offset_s is not None and abs(alt.offset_s - fit.offset_s) > params.agree_s:
+        return ClockFit(fit.offset_s, fit.drift, alternative=alt)
+    return fit
+
+
+CentreCue = tuple[Callable[[slice, float], LagEstimate | None], np.ndarray]
+
+
+def _centre_line(prep: PreparedLeg, windows: list[slice], params: SyncParams, cue: CentreCue,
+                 around: ClockFit | None = None, max_windows: int | None = None) -> ClockFit:
+    """The joint-centre cue's line (:func:`_line_model`; ``cue``: :func:`_centre_lag_of`) on at most
+    ``max_windows`` (default ``max_centre_windows``) of ``windows``, spread evenly; with ``around``, each window
+    searched around that line's lag at its time instead of the windows before it."""
     count = params.max_centre_windows if max_windows is None else max_windows
     pick = np.unique(np.linspace(0, len(windows) - 1, min(len(windows), count)).round())
-    lag_of, weight = _centre_lag_of(prep, g1, g2, axes, params, axes_params)
+    lag_of, weight = cue
     if around is not None and around.offset_s is not None:
         offset, drift, t_mid = around.offset_s, around.drift, float(prep.t_s[prep.n // 2])
 
@@ -412,7 +428,7 @@ def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
 
 
 def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
-                   axes_params: AxesParams) -> tuple[Callable[[slice, float], LagEstimate | None], np.ndarray]:
+                   axes_params: AxesParams) -> CentreCue:
     """The joint-centre lag of one window (:func:`pipeline.axes.estimate_centre_lag_s`), its inputs prepared once,
     and where in a window that lag is measured: (N,) the squared slope of the shank's acceleration on the fitted
     samples (the knee-centre acceleration changes most sharply at heel strike)."""
