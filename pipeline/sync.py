@@ -8,7 +8,9 @@ hardware-synchronised biomechZoo trial). Such a knee shows itself in the hinge f
 segments' long axes (``pipeline.axes.JointAxes.leaning``): its timing then comes from the joint centre. The
 joint-centre constraint needs rigid segments, which a heel-strike shock ringing through the shank is not for
 ~0.1 s: those samples are left out (:func:`shock_mask`). Where the knee is a hinge, the hinge cue is the more precise
-of the two and is used wherever it speaks (out-of-plane motion: turns, hip ab/adduction).
+of the two and is used wherever it speaks (out-of-plane motion: turns, hip ab/adduction). A tibia that turns as the
+knee flexes does not always make the hinge fit lean, so the joint-centre cue checks every hinge line: where the two
+disagree, the leg is re-stamped by both and the timing under which Eq. 5 fits better is kept (:func:`centre_misfit`).
 
 A 10-15 ms offset, common between two BLE sensors, would otherwise distort swing flexion by several degrees.
 
