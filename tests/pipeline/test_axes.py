@@ -13,6 +13,7 @@ from pipeline.axes import (
     JointCentres,
     accelerometer_angle_deg,
     angular_acceleration,
+    centre_fit_step,
     estimate_sync_lag_s,
     fit_joint_axes,
     fit_joint_centres,
@@ -281,3 +282,21 @@ def test_lag_search_memory_stays_that_of_the_window(holes: bool) -> None:
     finally:
         tracemalloc.stop()
     assert peak < 20e6
+
+
+def test_the_centre_fit_samples_span_the_same_stretch_of_gait_at_any_rate() -> None:
+    # one gait-like signal sampled at 100 and 200 Hz: the centre fit's budget covers the same time at both rates
+    assert [centre_fit_step(fs) for fs in (40.0, 50.0, 100.0, 128.0, 200.0, 400.0)] == [1, 1, 1, 1, 2, 4]
+    spans = {}
+    for fs in (100.0, 200.0):
+        t = np.arange(0, 120, 1 / fs)
+        g = np.stack([np.sin(2 * np.pi * t), np.cos(2 * np.pi * 0.9 * t), 0.1 * t], axis=1)
+        idx = select_fit_samples(g, g, np.ones(t.size, dtype=bool), step=centre_fit_step(fs))
+        assert idx.size <= WALKING.axes.max_fit_samples and np.all(idx % centre_fit_step(fs) == 0)
+        spans[fs] = len(np.unique(np.round(t[idx], 1)))  # distinct tenths of a second taken
+    assert spans[200.0] >= 0.9 * spans[100.0]
+    # without the step, 200 Hz bunches its budget into about half the time
+    t = np.arange(0, 120, 1 / 200.0)
+    g = np.stack([np.sin(2 * np.pi * t), np.cos(2 * np.pi * 0.9 * t), 0.1 * t], axis=1)
+    dense = select_fit_samples(g, g, np.ones(t.size, dtype=bool))
+    assert len(np.unique(np.round(t[dense], 1))) < 0.8 * spans[100.0]
