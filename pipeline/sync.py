@@ -131,13 +131,10 @@ def centre_misfit(leg: SyncedLeg, params: PipelineParams) -> float:
     median absolute deviation) of the residual on all of them. Eq. 5 holds on any knee that turns about a centre,
     a hinge or not, so at the right thigh-shank timing the two accelerometers agree best; the robust scale keeps a
     trimmed misfit from favouring a wrong fit."""
-    prep, cutoff = leg.prep, params.axes.fit_cutoff_hz
-    g1, g2 = leg.fit_gyr if leg.fit_gyr is not None else fit_gyros(prep, cutoff, thigh=leg.thigh_fit)
-    a1, a2 = (np.nan_to_num(a) for a in lowpass_runs_many((prep.acc_thigh_mps2, prep.acc_shank_mps2), prep.valid,
-                                                            cutoff, prep.fs_hz))
-    gd1, gd2 = angular_acceleration(g1, prep.fs_hz), angular_acceleration(g2, prep.fs_hz)
-    far = fit_margin_mask(prep.valid, prep.fs_hz, params.axes)
-    far &= ~shock_mask(((prep.acc_thigh_mps2, a1), (prep.acc_shank_mps2, a2)), prep.valid, prep.fs_hz, params.sync)
+    prep = leg.prep
+    g1, g2 = leg.fit_gyr if leg.fit_gyr is not None else fit_gyros(prep, params.axes.fit_cutoff_hz,
+                                                                   thigh=leg.thigh_fit)
+    a1, a2, gd1, gd2, far = _centre_inputs(prep, g1, g2, params.sync, params.axes)
     idx = select_fit_samples(g1, g2, far, params.axes, step=centre_fit_step(prep.fs_hz, params.axes))
     if idx.size < 50:
         return float("inf")
@@ -262,13 +259,13 @@ def _centre_line(prep: PreparedLeg, windows: list[slice], params: SyncParams, cu
     count = params.max_centre_windows if max_windows is None else max_windows
     pick = np.unique(np.linspace(0, len(windows) - 1, min(len(windows), count)).round())
     lag_of, weight = cue
+    search = lag_of
     if around is not None and around.offset_s is not None:
         offset, drift, t_mid = around.offset_s, around.drift, float(prep.t_s[prep.n // 2])
 
-        def lag_around(w: slice, _predicted: float) -> LagEstimate | None:
+        def search(w: slice, _predicted: float) -> LagEstimate | None:
             return lag_of(w, offset + drift * (_cue_time(prep, w, weight) - t_mid))
-        return _line_model(prep, [windows[int(i)] for i in pick], params, lag_around, weight=weight)
-    return _line_model(prep, [windows[int(i)] for i in pick], params, lag_of, weight=weight)
+    return _line_model(prep, [windows[int(i)] for i in pick], params, search, weight=weight)
 
 
 def _cue_time(prep: PreparedLeg, w: slice, weight: np.ndarray | None) -> float:
@@ -435,11 +432,7 @@ def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: Join
     and where in a window that lag is measured: (N,) the squared slope of the shank's acceleration on the fitted
     samples (the knee-centre acceleration changes most sharply at heel strike)."""
     fs = prep.fs_hz
-    a1, a2 = (np.nan_to_num(a) for a in lowpass_runs_many((prep.acc_thigh_mps2, prep.acc_shank_mps2), prep.valid,
-                                                            axes_params.fit_cutoff_hz, fs))
-    gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)
-    far = fit_margin_mask(prep.valid, fs, axes_params)
-    far &= ~shock_mask(((prep.acc_thigh_mps2, a1), (prep.acc_shank_mps2, a2)), prep.valid, fs, params)
+    a1, a2, gd1, gd2, far = _centre_inputs(prep, g1, g2, params, axes_params)
     # the first window that fits centres hands them on: the others start from them (one fit, no restarts, each)
     centres: list[np.ndarray] = []
 
@@ -451,6 +444,20 @@ def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: Join
             centres.append(fitted)
         return None if lag is None else LagEstimate(lag)
     return lag_of, row_norm(np.gradient(a2, axis=0)) ** 2 * far
+
+
+def _centre_inputs(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, params: SyncParams, axes_params: AxesParams
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What Seel's Eq. 5 is evaluated on for a leg: both accelerations low-passed at ``fit_cutoff_hz`` (NaN-free,
+    (N, 3) [m/s^2]), the Eq. 1 angular accelerations of the fit gyros ``g1``, ``g2``, and the usable samples (N,):
+    away from gaps and outside shocks (:func:`shock_mask`)."""
+    fs = prep.fs_hz
+    a1, a2 = (np.nan_to_num(a) for a in lowpass_runs_many((prep.acc_thigh_mps2, prep.acc_shank_mps2), prep.valid,
+                                                            axes_params.fit_cutoff_hz, fs))
+    gd1, gd2 = angular_acceleration(g1, fs), angular_acceleration(g2, fs)
+    far = fit_margin_mask(prep.valid, fs, axes_params)
+    far &= ~shock_mask(((prep.acc_thigh_mps2, a1), (prep.acc_shank_mps2, a2)), prep.valid, fs, params)
+    return a1, a2, gd1, gd2, far
 
 
 def shock_mask(acc: tuple[tuple[np.ndarray, np.ndarray], ...], valid: np.ndarray, fs_hz: float,
