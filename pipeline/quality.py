@@ -13,6 +13,8 @@ reasons come from :mod:`pipeline.policy`; the data's reasons from here:
 - ``peak_in_gap``: the stride's swing peak or minimum of the angle lies in such a hole longer than
   ``QualityParams.filled_peak_s``, or the swing-flexion rise just before the peak does, or a cubic bridge too long
   to keep that rise (the metric itself is a model);
+- ``long_gap``: the stride touches a filled hole longer than ``QualityParams.trusted_fill_s`` (half a stride: a
+  whole swing or stance phase may be the neighbours');
 - ``bout_edge``: the first or last stride of a bout is not steady (gait initiation and termination change stride
   time and swing speed: Jian et al. 1993, steady state within ~2 strides).
 """
@@ -54,7 +56,7 @@ def _hole_mask(t_s: np.ndarray, holes: Sequence[tuple[float, float]], margin: in
 def gap_reasons(t_s: np.ndarray, filled_s: Sequence[tuple[float, float]], angle_deg: np.ndarray,
                 strides: Sequence[tuple[int, int, int]], margin: int = 1,
                 bridged_s: Sequence[tuple[float, float]] = (), peak_lead_s: float = 0.0,
-                short_fill_s: float = 0.0) -> list[tuple[str, ...]]:
+                short_fill_s: float = 0.0, trusted_fill_s: float = float("inf")) -> list[tuple[str, ...]]:
     """The gap reasons of each stride ``(hs, to, hs_next)`` (sample indices of ``t_s``) against the filled holes
     ``filled_s`` (``(t_last_before, t_first_after)`` [s]). ``angle_deg`` (N,): finite on the strides. An event or
     extremum within ``margin`` samples of a hole counts as inside (the fill is matched to its edge samples).
@@ -62,8 +64,9 @@ def gap_reasons(t_s: np.ndarray, filled_s: Sequence[tuple[float, float]], angle_
     The swing peak is also ``peak_in_gap`` when it lies up to ``peak_lead_s`` [s] after a hole (a modelled part of
     the swing-flexion rise sets the peak's level) and for the holes ``bridged_s`` as well (bridged by the cubic
     but too long for it to keep the rise; their other reasons come from the policy). Filled holes up to
-    ``short_fill_s`` [s] long leave the peak and minimum measured. See ``QualityParams.peak_lead_s``,
-    ``QualityParams.filled_peak_s`` and ``QualityParams.bridged_peak_s``."""
+    ``short_fill_s`` [s] long leave the peak and minimum measured; a stride touching one longer than
+    ``trusted_fill_s`` [s] is ``long_gap``. See ``QualityParams.peak_lead_s``, ``QualityParams.filled_peak_s``,
+    ``QualityParams.bridged_peak_s`` and ``QualityParams.trusted_fill_s``."""
     if not (filled_s or bridged_s) or not strides:
         return [() for _ in strides]
     inside = _hole_mask(t_s, filled_s, margin)
@@ -71,6 +74,8 @@ def gap_reasons(t_s: np.ndarray, filled_s: Sequence[tuple[float, float]], angle_
     in_long = _hole_mask(t_s, long_fills, margin)
     near = _hole_mask(t_s, [*long_fills, *bridged_s], margin, peak_lead_s)
     cum = np.concatenate(([0], np.cumsum(inside)))
+    cum_long = np.concatenate(([0], np.cumsum(_hole_mask(t_s, [(g0, g1) for g0, g1 in filled_s
+                                                                if g1 - g0 > trusted_fill_s], margin))))
     cum_touched = np.concatenate(([0], np.cumsum(near | inside)))
     out: list[tuple[str, ...]] = []
     for a, t, b in strides:
@@ -86,6 +91,8 @@ def gap_reasons(t_s: np.ndarray, filled_s: Sequence[tuple[float, float]], angle_
         low = a + int(np.argmin(angle_deg[a:b + 1]))
         if near[peak] or in_long[low]:
             reasons.append("peak_in_gap")
+        if cum_long[b + 1] != cum_long[a]:
+            reasons.append("long_gap")
         out.append(tuple(reasons))
     return out
 

@@ -21,6 +21,8 @@ REASONS: dict[str, str] = {
     "event_in_gap": "a heel strike or toe-off fell inside a bridged gap",
     "peak_in_gap": "the swing peak, the stance minimum or the rise to the peak fell inside a modelled gap "
                    "(out of trends)",
+    "long_gap": "a gap longer than half a stride (QualityParams.trusted_fill_s) inside the stride was filled from "
+                "the neighbouring strides: a whole swing or stance phase may be theirs (out of trends)",
     "bout_edge": "first or last stride of a walking bout",
     "side_in_doubt": "both thighs shift their weight in early stance the way the other leg's would: the left and "
                      "right labels of the four sensors (or of the two thighs) look swapped, so the stride may "

@@ -357,7 +357,7 @@ def _strides(leg: str, data: LegInput, result: PolicyResult, leg_reasons: tuple[
     # bridged holes long enough for the cubic to miss the swing-flexion rise (the shorter ones keep the peak)
     long_bridges = [(g0, g1) for g0, g1 in data.prep.bridged_s if g1 - g0 > qp.bridged_peak_s]
     gap = gap_reasons(t_s, data.prep.filled_s, angle, triples, bridged_s=long_bridges, peak_lead_s=qp.peak_lead_s,
-                      short_fill_s=qp.filled_peak_s)
+                      short_fill_s=qp.filled_peak_s, trusted_fill_s=qp.trusted_fill_s)
     lobe = {int(h): k for k, h in enumerate(events.hs) if h >= 0}
     ks = [lobe[a] for a, _, _ in triples]
     swing_dps = data.shank_sag_dps[events.ms[np.asarray(ks, dtype=int) + 1]]

@@ -22,6 +22,7 @@ REASONS = {
     "assumed_level": "level assumed: no calibration of the standing knee angle recorded",
     "go_level": "running without a moment of quiet standing: the angle's level is unknown",
     "peak_in_gap": "the peak of the swing fell in a data gap",
+    "long_gap": "a long data gap was filled from the neighbouring strides",
     "event_in_gap": "a heel strike or toe-off fell in a data gap",
     "bout_edge": "first or last stride of a walk",
     "no_absolute_reference": "no still moment to anchor the angle (thigh/shank never quiet)",

@@ -85,3 +85,21 @@ def test_a_short_fill_under_the_peak_leaves_it_measured_a_long_one_does_not() ->
     assert out[1] == ("bridged_gap",)
     assert "peak_in_gap" in out[2] and "bridged_gap" in out[2]
     assert "peak_in_gap" in gap_reasons(t, holes, angle, strides, peak_lead_s=0.15)[1]  # every fill counts without
+
+
+def test_a_fill_longer_than_half_a_stride_keeps_the_stride_out_of_trends() -> None:
+    """A hole longer than ``trusted_fill_s`` between a stride's minimum and its peak leaves both measured, yet a whole
+    stance phase may be the neighbours': the stride is counted (``long_gap``) but not vouched for; a shorter one
+    there keeps trend quality."""
+    t = np.arange(600) / 100.0
+    angle = 30 - 30 * np.cos(np.pi * t)  # 2 s strides: minima at 0, 2, 4 s, peaks at 1, 3, 5 s
+    strides = [(0, 25, 200), (200, 225, 400), (400, 425, 599)]
+    trusted = WALKING.quality.trusted_fill_s
+    # after toe-off, ending before the swing-flexion rise that leads to the peak
+    holes = [(0.35, 0.35 + trusted - 0.2), (2.3, 2.3 + trusted + 0.03)]
+    out = gap_reasons(t, holes, angle, strides, peak_lead_s=0.15, short_fill_s=WALKING.quality.filled_peak_s,
+                      trusted_fill_s=trusted)
+    assert out[0] == ("bridged_gap",)
+    assert out[1] == ("bridged_gap", "long_gap")
+    assert out[2] == ()
+    assert stride_quality(out[0]) >= 0.5 > stride_quality(out[1])

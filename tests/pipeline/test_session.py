@@ -301,3 +301,32 @@ def test_a_hole_on_the_swing_rise_keeps_the_stride_out_of_trends(hole_s: float, 
         assert abs(same[0].peak_swing_flexion_deg - s.peak_swing_flexion_deg) < 1.0
     # the strides without a hole keep their quality
     assert sum(c.quality < 0.5 for c in cut.strides) <= sum(c.quality < 0.5 for c in lr.strides) + 1
+
+
+def _cut(streams: list[RawSensorStream], leg: str, segment: str, t0: float, t1: float) -> list[RawSensorStream]:
+    """``streams`` with the samples of one sensor in ``(t0, t1)`` removed."""
+    out = []
+    for st in streams:
+        keep = ~((st.t_s > t0) & (st.t_s < t1)) | (st.leg != leg) | (st.segment != segment)
+        out.append(dataclasses.replace(st, t_s=st.t_s[keep], gyr=st.gyr[keep], acc=st.acc[keep]))
+    return out
+
+
+def test_a_hole_longer_than_half_a_stride_keeps_the_stride_counted_but_out_of_trends() -> None:
+    """Five lost BLE packets (0.6 s) of one thigh across a stance phase: the stride is still found (the shank saw
+    its events) and kept, flagged ``long_gap`` below the trend threshold; with the fill limited to half a stride
+    it was lost."""
+    sim = _sim("normal", seed=3)
+    lr = process_session(sim.streams, activity=sim.activity).legs["left"]
+    s = lr.strides[len(lr.strides) // 2]
+    streams = _cut(sim.streams, "left", "thigh", s.t_start_s + 0.02, s.t_start_s + 0.62)
+
+    def same(params: object = WALKING) -> list:
+        leg = process_session(streams, activity=sim.activity, params=params).legs["left"]
+        return [c for c in leg.strides if abs(c.t_start_s - s.t_start_s) < 0.05 and abs(c.t_end_s - s.t_end_s) < 0.05]
+
+    kept = same()
+    assert len(kept) == 1
+    assert "long_gap" in kept[0].quality_reasons and kept[0].quality < 0.5
+    half = dataclasses.replace(WALKING, prepare=dataclasses.replace(WALKING.prepare, periodic_bridge_s=0.5))
+    assert same(half) == []
