@@ -8,7 +8,8 @@ packets; shorter than the swing-flexion phase, so the cubic still sees both side
 the cubic and reported (``bridged_s``, strides touching one get a quality note); those longer than
 ``PrepareParams.noted_bridge_s`` inside periodic gait are filled from the sensor's own neighbouring strides instead,
 warped to the hole's own timing (:func:`periodic_fill`, reported in ``filled_s``), and so are longer gaps up to
-``PrepareParams.periodic_bridge_s``; the rest is masked: no angle, no stride across.
+``PrepareParams.periodic_bridge_s`` (those beyond ``PrepareParams.one_sided_fill_s`` only with gait on both sides;
+strides touching them stay out of trends, :mod:`pipeline.quality`); the rest is masked: no angle, no stride across.
 """
 
 from __future__ import annotations
@@ -322,7 +323,8 @@ def periodic_fill(t_grid: np.ndarray, x: np.ndarray, gaps: list[tuple[float, flo
         (_, g1), _, i1 = group[-1]
         fill = None
         if i1 > i0 and g1 - g0 <= params.periodic_bridge_s and i0 >= 1 and i1 < n:
-            fill = _periodic_hole(x, bad, i0, i1, lags, ctx, edge, step, params)
+            fill = _periodic_hole(x, bad, i0, i1, lags, ctx, edge, step, params,
+                                  one_sided=g1 - g0 <= params.one_sided_fill_s)
         if fill is not None:
             if out is x:
                 out = x.copy()
@@ -363,10 +365,11 @@ hole of its own at the same phase)."""
 
 
 def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.ndarray, ctx: int, edge: int,
-                   step: int, params: PrepareParams) -> np.ndarray | None:
+                   step: int, params: PrepareParams, one_sided: bool = True) -> np.ndarray | None:
     """Samples ``[i0, i1)`` of ``x`` from the best-aligned neighbouring strides (:func:`periodic_fill`), None
-    without them. The period is searched on every ``step``-th lag and context sample; the template's edge shifts
-    (:func:`_warped_template`) then align it to the sample and below."""
+    without them. ``one_sided``: the context of one side alone may do (``PrepareParams.one_sided_fill_s``); else
+    each side's own context must repeat. The period is searched on every ``step``-th lag and context sample; the
+    template's edge shifts (:func:`_warped_template`) then align it to the sample and below."""
     n = x.shape[0]
     pre = np.arange(max(i0 - ctx, 0), i0)
     pre = pre[~bad[pre]]
@@ -382,9 +385,9 @@ def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.nd
     tries: list[tuple[str, tuple[tuple[int, np.ndarray, np.ndarray], ...]]] = []
     if pre.size + post.size >= ctx:
         tries.append(("both", ((-1, pre, post), (1, pre, post))))
-    if pre.size >= ctx // 2:  # the hole at a bout's end: the stride before it alone
+    if one_sided and pre.size >= ctx // 2:  # the hole at a bout's end: the stride before it alone
         tries.append(("pre", ((-1, pre, none),)))
-    if post.size >= ctx // 2:  # at a bout's start: the stride after it alone
+    if one_sided and post.size >= ctx // 2:  # at a bout's start: the stride after it alone
         tries.append(("post", ((1, none, post),)))
     for which, directions in tries:
         score = np.max([scores[which, sign] for sign, _, _ in directions], axis=0)
@@ -394,6 +397,8 @@ def _periodic_hole(x: np.ndarray, bad: np.ndarray, i0: int, i1: int, lags: np.nd
             lag = int(coarse[k])
             # a direction whose own context does not repeat (the stride after the bout's last one) is left out
             sides = [(sign, before, after) for sign, before, after in directions if scores[which, sign][k] >= min_corr]
+            if not one_sided and min(max(scores[s, -1][k], scores[s, 1][k]) for s in ("pre", "post")) < min_corr:
+                continue  # a long hole needs gait on both sides: each side's own context repeats
             if len(directions) == 1:
                 # one side of context is less selective than two (a slow drift matches itself one lag away as
                 # well), so gait must repeat once more: the same context two periods away matches too

@@ -137,6 +137,23 @@ def test_a_hole_at_a_bouts_end_is_filled_from_the_stride_before_it() -> None:
     assert np.max(np.abs(err)) < 10.0  # of a 300 deg/s swing
 
 
+def test_a_hole_longer_than_half_a_stride_at_a_bouts_end_stays_masked() -> None:
+    """Gait on one side only: a hole that long may hold the bout's end, so no gait is written into it; inside gait
+    the same hole is filled."""
+    t = np.arange(0, 12, 0.01)
+    walking = t < 7.0
+    g = np.where(walking[:, None], _gait(2 * np.pi * t / 1.1), 0.5)
+    long_s = WALKING.prepare.one_sided_fill_s + 0.1
+    assert long_s < WALKING.prepare.periodic_bridge_s
+    at_end = (t > 6.9 - long_s) & (t < 6.9)
+    _, gaps = _fill_error(t, g, at_end)
+    assert len(gaps) == 1
+    inside = (t > 4.0) & (t < 4.0 + long_s)
+    err, gaps = _fill_error(t, _gait(2 * np.pi * t / 1.1), inside)
+    assert not gaps
+    assert np.max(np.abs(err)) < 10.0
+
+
 def test_a_hole_whose_neighbours_lost_the_same_phase_takes_the_stride_two_periods_away() -> None:
     t = np.arange(0, 14, 0.01)
     g = _gait(2 * np.pi * t / 1.1)
