@@ -416,6 +416,26 @@ class FusionParams:
     """GO drift [deg] between two updates beyond which the stride falls back to CF."""
     mismatch_deg: float = 8.0
     """SD [deg] of GO minus CF over a stride beyond which the stride gets a mismatch note."""
+    bridge_disagree_deg: float = 4.0
+    """The level carried from rest by the gyros (:mod:`pipeline.quiet_bridge`) checks the mid-stance accelerometer
+    level: where the two differ by more than this [deg] (median over the leg's strides that have both), the leg takes
+    the bridged level. The accelerometer's mid-stance level rests on the joint centres and the thigh-shank clock and
+    fails by 10-30 deg when they fail; the bridge rests on static angles only. Both scatter by ~1-1.5 deg per leg on
+    the sweep's tune seeds, so agreeing legs keep the validated mid-stance level."""
+    bridge_min_strides: int = 3
+    """Strides with both levels that the check needs."""
+    bridge_anchor_s: float = 0.5
+    """Rest [s] at either end of a walk whose static accelerometer angle (median) anchors the integration."""
+    bridge_max_span_s: float = 60.0
+    """Longest run of motion [s] between two quiet periods that is bridged (a gyro's residual bias changes little
+    within a minute; a longer walk keeps the mid-stance level)."""
+    bridge_one_sided_s: float = 4.0
+    """A walk broken by a hole is integrated from either quiet end this far [s] (three strides or so) without the
+    far end's drift check: whole bridges of ~12 s on the sweep's tune seeds drifted p50 1.9, p90 3.9 deg (planar),
+    so a few seconds stay within ~1 deg."""
+    bridge_max_drift_deg: float = 10.0
+    """A bridge whose integral misses the static angle at its far end by more than this [deg] is not used: the
+    axes, a hole or a posture change it cannot follow broke it."""
 
 
 @dataclass(frozen=True)

@@ -41,6 +41,7 @@ from pipeline.leg_input import EstimatorDiagnostics, LegInput
 from pipeline.params import FusionParams, QualityParams
 from pipeline.posture import in_bouts, standing_reference
 from pipeline.quality import stride_quality
+from pipeline.quiet_bridge import bridged_angle, bridged_offsets
 from pipeline.signal_utils import ranges_mask, row_norm, segment_sums
 from pipeline.tuning import TuningDiagnostics
 from pipeline.types import AbsoluteReference
@@ -70,6 +71,10 @@ class PolicyResult:
     offset_median_deg: float | None = None
     tuning: TuningDiagnostics | None = None
     masked_implausible_samples: int = 0  # samples outside ``PostureParams.plausible_knee_deg``, set to NaN
+    # the gyro-bridged level minus the mid-stance accelerometer level [deg] (median over strides), and whether the
+    # bridged one was taken (FusionParams.bridge_disagree_deg)
+    bridge_check_deg: float | None = None
+    level_bridged: bool = False
 
 
 def _reference(ref: float | None) -> AbsoluteReference:
@@ -304,6 +309,17 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     # acc - ref reads 0 when standing; standing itself is standing_knee_deg of flexion
     ref_deg = ref - leg.params.posture.standing_knee_deg if ref is not None else 0.0
     offs, quiet_counts = stance_offsets(leg, go_rel + ref_deg, strides)
+    check, bridged_level = None, False
+    if absolute_ok and strides:
+        # the level carried from rest by the gyros where the walk lies between two quiet periods (quiet_bridge)
+        bridged = bridged_offsets(leg, go_rel, bridged_angle(leg, ref_deg, p), strides)
+        both = np.isfinite(bridged) & np.isfinite(offs)
+        if both.sum() >= p.bridge_min_strides:
+            check = float(np.median(bridged[both] - offs[both]))
+            if abs(check) > p.bridge_disagree_deg:
+                # strides outside the bridges move with the leg: their mid-stance level is off by the same
+                offs = np.where(np.isfinite(bridged), bridged, offs + check)
+                bridged_level = True
     finite = np.isfinite(offs)
     raw_level = float(np.median(offs[finite])) if finite.any() else 0.0
     if absolute_ok and finite.any():
@@ -344,4 +360,5 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     labels = np.where(np.isfinite(angle), labels, "")
     return PolicyResult(angle_deg=angle, estimator=labels.astype(str), choices=choices, absolute_reference=reference,
                         standing_ref_deg=ref_out, cf_shift_deg=round(cf_shift, 2),
-                        offset_median_deg=round(raw_level, 2))
+                        offset_median_deg=round(raw_level, 2),
+                        bridge_check_deg=None if check is None else round(check, 2), level_bridged=bridged_level)

@@ -1,0 +1,91 @@
+"""The absolute level of a walk from the quiet postures around it: the knee rate integrated from one quiet period
+to the next, its drift removed so that it meets the static angle at both ends.
+
+At rest the accelerometer angle (Seel et al. 2014, Eq. 7) sees gravity only: it needs no joint centres, no
+lever-arm terms and no thigh-shank clock, and its one unknown, the constant offset of the joint-plane frames, is
+fixed by quiet standing (:mod:`pipeline.posture`). In gait it sees every acceleration as well, so a per-stride level
+taken from it in mid-stance (:func:`pipeline.policy.stance_offsets`) carries whatever the joint-centre fit and the
+clock alignment got wrong, leg by leg. The gyroscopes carry the level from rest into the walk instead: the knee
+rate (Seel Eq. 4, the flexion rate about the fitted axes) integrated from the end of the quiet period before a
+walk reaches the start of the quiet period after it with the integral of the gyro's residual bias, which a linear
+term removes, as the two-point drift correction between static periods of strapdown integration (the zero-velocity
+updates of foot-mounted inertial navigation; Potter et al. 2022 correct lower-limb kinematics with them). The
+knee's angle about a fitted hinge axis is not an exact integral of a 3-D rotation, but over a periodic gait cycle
+its error returns to where it began, and what is left grows like a drift: the same line takes it.
+
+Used where the run between the two quiet periods is wholly measured (no masked hole, and none filled from the
+neighbouring strides, whose integral is theirs), is shorter than ``FusionParams.bridge_max_span_s`` and its drift
+stays below ``FusionParams.bridge_max_drift_deg``. Where a hole breaks it, the first and last
+``FusionParams.bridge_one_sided_s`` of it are integrated from the near end alone (the drift of a few seconds is
+small); elsewhere the policy keeps the mid-stance accelerometer level.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.estimators.go import integrate_runs
+from pipeline.leg_input import LegInput
+from pipeline.params import FusionParams
+from pipeline.posture import leg_quiet
+from pipeline.signal_utils import run_bounds
+
+
+def bridged_angle(leg: LegInput, zero_deg: float, params: FusionParams) -> np.ndarray:
+    """(N,) absolute knee angle [deg] between quiet periods (NaN elsewhere): the knee rate ``leg.rate_dps`` integrated
+    from the quiet period before each run of motion to the one after it, drift-corrected linearly so that it meets
+    the static accelerometer angle (``leg.acc_angle_deg - zero_deg``, median over ``params.bridge_anchor_s`` of rest at
+    either end) at both ends; a run broken by a hole only up to ``params.bridge_one_sided_s`` from either end.
+    ``zero_deg``: the accelerometer angle of a straight knee (:func:`pipeline.posture.acc_zero_deg`)."""
+    prep = leg.prep
+    n = prep.n
+    out = np.full(n, np.nan)
+    quiet = leg_quiet(leg) & np.isfinite(leg.acc_angle_deg)
+    starts, stops = run_bounds(quiet)
+    if starts.size < 2:
+        return out
+    fs = prep.fs_hz
+    anchor = max(int(round(params.bridge_anchor_s * fs)), 1)
+    rate = np.where(prep.measured(), leg.rate_dps, np.nan)
+    one_sided = int(round(params.bridge_one_sided_s * fs))
+    for k in range(starts.size - 1):
+        a, b = int(stops[k]), int(starts[k + 1])  # motion runs over [a, b): last quiet sample a - 1, next b
+        if b - a < 2 or (b - a) / fs > params.bridge_max_span_s:
+            continue
+        lvl_a = float(np.median(leg.acc_angle_deg[max(a - anchor, int(starts[k])):a])) - zero_deg
+        lvl_b = float(np.median(leg.acc_angle_deg[b:min(b + anchor, int(stops[k + 1]))])) - zero_deg
+        seg = rate[a - 1:b + 1]
+        broken = np.flatnonzero(~np.isfinite(seg))
+        if broken.size == 0:
+            theta = lvl_a + integrate_runs(seg, fs, np.ones(seg.size, dtype=bool))
+            drift = theta[-1] - lvl_b
+            if abs(drift) <= params.bridge_max_drift_deg:
+                out[a - 1:b + 1] = theta - drift * np.linspace(0.0, 1.0, theta.size)
+            continue
+        # a hole inside: from either end up to it, without the far end's check, over a few strides at most
+        head = seg[:min(int(broken[0]), one_sided)]
+        if head.size >= 2:
+            out[a - 1:a - 1 + head.size] = lvl_a + integrate_runs(head, fs, np.ones(head.size, dtype=bool))
+        tail = seg[max(int(broken[-1]) + 1, seg.size - one_sided):]
+        if tail.size >= 2:
+            back = integrate_runs(tail[::-1], fs, np.ones(tail.size, dtype=bool))[::-1]
+            out[b + 1 - tail.size:b + 1] = lvl_b - back
+    return out
+
+
+def bridged_offsets(leg: LegInput, go_rel: np.ndarray, bridged: np.ndarray, strides: list[tuple[int, int, int]]
+                    ) -> np.ndarray:
+    """Per stride, the mean of (bridged angle - GO) [deg] over the stride's mid-stance (the window of
+    :func:`pipeline.policy.stance_offsets`), NaN where the stride is not bridged throughout that window."""
+    if not strides:
+        return np.zeros(0)
+    w0, w1 = leg.params.fusion.midstance_window
+    out = np.full(len(strides), np.nan)
+    for k, (hs, to, end) in enumerate(strides):
+        length = end - hs
+        lo = hs + int(round(w0 * length))
+        hi = max(min(hs + int(round(w1 * length)), to) + 1, lo + 1)
+        d = bridged[lo:hi] - go_rel[lo:hi]
+        if d.size and np.isfinite(d).all():
+            out[k] = float(d.mean())
+    return out
