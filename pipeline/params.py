@@ -533,6 +533,13 @@ class RunningParams:
     """Cycle length [s] for the impact mask when no plausible interval is known (a typical running stride)."""
     auto_estimator: str = "ekf"
     """The running ``auto`` estimator: best on the simulator without reference tuning (bench/accuracy.py)."""
+    bridge_disagree_deg: float = 6.5
+    """The check of the filter's level by the rests around each run (:func:`pipeline.quiet_bridge.level_check`, whole
+    rest-to-rest bridges only): beyond this [deg] the leg takes the bridged level. Wider than walking's
+    (``FusionParams.bridge_disagree_deg``): with 3-D hip and knee motion the running knee rate about a hinge axis
+    drifts more, and on the sweep's tune seeds (``joint_3d_mixed``, running 6 g) correct legs disagreed by up to 4.3
+    deg (1.5 times that here; with one-sided pieces, 8.8); sensor positions put 20-30 cm off moved running legs by
+    4.5-10 deg (tune seeds 0-4). So only gross failures are caught."""
     no_reference_quality: float = 0.4
     """Stride quality without a quiet-standing zero: the level is then GO's (zero at the minimum before swing),
     which a running knee never reaches (it stays 10-25 deg flexed), so peak and minimum flexion may be off by that

@@ -41,7 +41,7 @@ from pipeline.leg_input import EstimatorDiagnostics, LegInput
 from pipeline.params import FusionParams, QualityParams
 from pipeline.posture import in_bouts, standing_reference
 from pipeline.quality import stride_quality
-from pipeline.quiet_bridge import bridged_angle, bridged_offsets
+from pipeline.quiet_bridge import bridged_angle, bridged_offsets, level_check
 from pipeline.signal_utils import ranges_mask, row_norm, segment_sums
 from pipeline.tuning import TuningDiagnostics
 from pipeline.types import AbsoluteReference
@@ -147,6 +147,15 @@ def running_auto(leg: LegInput) -> PolicyResult:
     levelled = go_levelled(leg, angle) if ref is None else None
     if levelled is not None:
         angle = levelled
+    check, bridged_level = None, False
+    if ref is not None:
+        # the filter's level rests on the accelerometer angle in motion (joint centres, clock); the rests around
+        # each run check it (pipeline.quiet_bridge), as walking's
+        fp = leg.params.fusion
+        check = level_check(leg, angle, ref - leg.params.posture.standing_knee_deg, fp)
+        if check is not None and abs(check) > rp.bridge_disagree_deg:
+            angle = angle + check
+            bridged_level = True
     labels = np.where(np.isfinite(angle), name, "").astype(str)
     reasons: tuple[str, ...] = (() if ref is not None else ("no_absolute_reference",))
     reasons += (("go_level",) if levelled is not None else ()) + _level_reasons(leg)
@@ -157,7 +166,8 @@ def running_auto(leg: LegInput) -> PolicyResult:
                           reasons=reasons, fallback=False)
     return PolicyResult(angle_deg=angle, estimator=labels, choices=tuple(choice for _ in leg.events.strides),
                         absolute_reference=_reference(ref), standing_ref_deg=None if ref is None else round(ref, 2),
-                        tuning=_tuning(diag))
+                        tuning=_tuning(diag), bridge_check_deg=None if check is None else round(check, 2),
+                        level_bridged=bridged_level)
 
 
 def go_levelled(leg: LegInput, angle: np.ndarray) -> np.ndarray | None:

@@ -31,11 +31,12 @@ from pipeline.posture import leg_quiet
 from pipeline.signal_utils import run_bounds
 
 
-def bridged_angle(leg: LegInput, zero_deg: float, params: FusionParams) -> np.ndarray:
+def bridged_angle(leg: LegInput, zero_deg: float, params: FusionParams, one_sided: bool = True) -> np.ndarray:
     """(N,) absolute knee angle [deg] between quiet periods (NaN elsewhere): the knee rate ``leg.rate_dps`` integrated
     from the quiet period before each run of motion to the one after it, drift-corrected linearly so that it meets
     the static accelerometer angle (``leg.acc_angle_deg - zero_deg``, median over ``params.bridge_anchor_s`` of rest at
-    either end) at both ends; a run broken by a hole only up to ``params.bridge_one_sided_s`` from either end.
+    either end) at both ends; a run broken by a hole only up to ``params.bridge_one_sided_s`` from either end
+    (``one_sided``; else not at all).
     ``zero_deg``: the accelerometer angle of a straight knee (:func:`pipeline.posture.acc_zero_deg`)."""
     prep = leg.prep
     n = prep.n
@@ -47,7 +48,7 @@ def bridged_angle(leg: LegInput, zero_deg: float, params: FusionParams) -> np.nd
     fs = prep.fs_hz
     anchor = max(int(round(params.bridge_anchor_s * fs)), 1)
     rate = np.where(prep.measured(), leg.rate_dps, np.nan)
-    one_sided = int(round(params.bridge_one_sided_s * fs))
+    reach = int(round(params.bridge_one_sided_s * fs)) if one_sided else 0
     for k in range(starts.size - 1):
         a, b = int(stops[k]), int(starts[k + 1])  # motion runs over [a, b): last quiet sample a - 1, next b
         if b - a < 2 or (b - a) / fs > params.bridge_max_span_s:
@@ -63,10 +64,10 @@ def bridged_angle(leg: LegInput, zero_deg: float, params: FusionParams) -> np.nd
                 out[a - 1:b + 1] = theta - drift * np.linspace(0.0, 1.0, theta.size)
             continue
         # a hole inside: from either end up to it, without the far end's check, over a few strides at most
-        head = seg[:min(int(broken[0]), one_sided)]
+        head = seg[:min(int(broken[0]), reach)]
         if head.size >= 2:
             out[a - 1:a - 1 + head.size] = lvl_a + integrate_runs(head, fs, np.ones(head.size, dtype=bool))
-        tail = seg[max(int(broken[-1]) + 1, seg.size - one_sided):]
+        tail = seg[max(int(broken[-1]) + 1, seg.size - reach):]
         if tail.size >= 2:
             back = integrate_runs(tail[::-1], fs, np.ones(tail.size, dtype=bool))[::-1]
             out[b + 1 - tail.size:b + 1] = lvl_b - back
@@ -89,3 +90,17 @@ def bridged_offsets(leg: LegInput, go_rel: np.ndarray, bridged: np.ndarray, stri
         if d.size and np.isfinite(d).all():
             out[k] = float(d.mean())
     return out
+
+
+def level_check(leg: LegInput, angle_deg: np.ndarray, zero_deg: float, params: FusionParams) -> float | None:
+    """The bridged angle (:func:`bridged_angle`, whole bridges only) minus ``angle_deg`` (N,) [deg], median over the
+    leg's strides of
+    each stride's mean difference where both are finite throughout it; None with fewer than
+    ``params.bridge_min_strides`` such strides. The check of a running leg's level (the walking policy checks its
+    per-stride offsets the same way, :func:`pipeline.policy.fuse`)."""
+    d = bridged_angle(leg, zero_deg, params, one_sided=False) - angle_deg
+    per_stride = [float(d[a:b + 1].mean()) for a, _, b in leg.events.strides if np.isfinite(d[a:b + 1]).all()]
+    if len(per_stride) < params.bridge_min_strides:
+        return None
+    return float(np.median(per_stride))
+

@@ -55,3 +55,26 @@ def test_a_failed_joint_centre_fit_is_caught_and_the_leg_takes_the_bridged_level
     checked = process_session(sim.streams, activity="walking").legs["left"]
     assert checked.diagnostics.level_bridged
     assert abs(_mean_peak_error(checked, sim, "left") - clean) < 1.5
+
+
+def test_a_running_leg_moved_by_a_failed_joint_centre_fit_takes_the_bridged_level(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same failure in running (the EKF's level rests on the accelerometer angle in motion): a leg moved by
+    ~10 deg is caught by whole rest-to-rest bridges and returns to within 2 deg of the clean run's error."""
+    import pipeline.running as running
+
+    sim = simulate_session(SimConfig(pattern="running", fs_hz=200.0, seed=1, duration_s=90.0, bout_strides=12))
+    clean_leg = process_session(sim.streams, activity="running").legs["left"]
+    assert not clean_leg.diagnostics.level_bridged
+    clean = _mean_peak_error(clean_leg, sim, "left")
+    fit = running.fit_joint_centres
+
+    def off_by_decimetres(*args: object, **kwargs: object) -> object:
+        c = fit(*args, **kwargs)
+        return dataclasses.replace(c, o1=c.o1 + np.array([0.25, -0.15, 0.1]), o2=c.o2 + np.array([-0.1, 0.2, 0.05]))
+
+    monkeypatch.setattr(running, "fit_joint_centres", off_by_decimetres)
+    leg = process_session(sim.streams, activity="running").legs["left"]
+    assert leg.diagnostics.bridge_check_deg is not None and abs(leg.diagnostics.bridge_check_deg) > 6.5
+    assert leg.diagnostics.level_bridged
+    assert abs(_mean_peak_error(leg, sim, "left") - clean) < 2.0
