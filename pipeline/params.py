@@ -540,6 +540,11 @@ class RunningParams:
     drifts more, and on the sweep's tune seeds (``joint_3d_mixed``, running 6 g) correct legs disagreed by up to 4.3
     deg (1.5 times that here; with one-sided pieces, 8.8); sensor positions put 20-30 cm off moved running legs by
     4.5-10 deg (tune seeds 0-4). So only gross failures are caught."""
+    bridge_min_fs_hz: float = 100.0
+    """Lowest sample rate [Hz] at which the running level is checked: a running swing reaches 600-1000 deg/s with
+    content up to ~20 Hz, and at 50 Hz the integral between rests drifted by several deg per run (accuracy bench,
+    running at 50 Hz, tune seeds 0-9: |check| up to 8.3 deg with the filter's level right; none above 3 at 100 and
+    200 Hz)."""
     no_reference_quality: float = 0.4
     """Stride quality without a quiet-standing zero: the level is then GO's (zero at the minimum before swing),
     which a running knee never reaches (it stays 10-25 deg flexed), so peak and minimum flexion may be off by that

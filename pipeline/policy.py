@@ -148,7 +148,7 @@ def running_auto(leg: LegInput) -> PolicyResult:
     if levelled is not None:
         angle = levelled
     check, bridged_level = None, False
-    if ref is not None:
+    if ref is not None and leg.fs_hz >= rp.bridge_min_fs_hz:
         # the filter's level rests on the accelerometer angle in motion (joint centres, clock); the rests around
         # each run check it (pipeline.quiet_bridge), as walking's
         fp = leg.params.fusion
