@@ -248,3 +248,17 @@ def _strides(ms: np.ndarray, to: np.ndarray, hs: np.ndarray, bout: np.ndarray,
             continue
         out.append((a, t, b))
     return out
+
+
+def midstance_bounds(strides: list[tuple[int, int, int]], window: tuple[float, float]
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Per stride ``(hs, to, hs_next)`` the half-open sample range ``[lo, hi)`` of its mid-stance: the share
+    ``window`` of the stride from heel strike, never past toe-off, at least one sample
+    (``pipeline.params.FusionParams.midstance_window``)."""
+    arr = np.asarray(strides, dtype=int).reshape(-1, 3)
+    length = arr[:, 2] - arr[:, 0]
+    w0, w1 = window
+    lo = arr[:, 0] + np.round(w0 * length).astype(int)
+    hi = np.maximum(np.minimum(arr[:, 0] + np.round(w1 * length).astype(int), arr[:, 1]) + 1, lo + 1)
+    return lo, hi
+

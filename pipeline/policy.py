@@ -39,6 +39,7 @@ from pipeline.estimators.go import GoDiagnostics, go_relative
 from pipeline.estimators.kf import FilterDiagnostics
 from pipeline.leg_input import EstimatorDiagnostics, LegInput
 from pipeline.params import FusionParams, QualityParams
+from pipeline.phases import midstance_bounds
 from pipeline.posture import in_bouts, standing_reference
 from pipeline.quality import stride_quality
 from pipeline.quiet_bridge import bridged_angle, bridged_offsets, level_check
@@ -225,11 +226,7 @@ def stance_offsets(leg: LegInput, go_rel: np.ndarray, strides: list[tuple[int, i
     ok = np.isfinite(diff)
     d0 = np.where(ok, diff, 0.0)
     quiet = ok & (speed < p.calm_dps)
-    arr = np.asarray(strides)
-    length = arr[:, 2] - arr[:, 0]
-    w0, w1 = p.midstance_window
-    lo = arr[:, 0] + np.round(w0 * length).astype(int)
-    hi = np.maximum(np.minimum(arr[:, 0] + np.round(w1 * length).astype(int), arr[:, 1]) + 1, lo + 1)
+    lo, hi = midstance_bounds(strides, p.midstance_window)
     n_quiet = segment_sums(quiet, lo, hi)
     n_ok = segment_sums(ok, lo, hi)
     s_quiet = segment_sums(np.where(quiet, d0, 0.0), lo, hi)

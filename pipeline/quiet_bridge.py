@@ -27,8 +27,9 @@ import numpy as np
 from pipeline.estimators.go import integrate_runs
 from pipeline.leg_input import LegInput
 from pipeline.params import FusionParams
+from pipeline.phases import midstance_bounds
 from pipeline.posture import leg_quiet
-from pipeline.signal_utils import run_bounds
+from pipeline.signal_utils import run_bounds, segment_sums
 
 
 def bridged_angle(leg: LegInput, zero_deg: float, params: FusionParams, one_sided: bool = True) -> np.ndarray:
@@ -80,16 +81,12 @@ def bridged_offsets(leg: LegInput, go_rel: np.ndarray, bridged: np.ndarray, stri
     :func:`pipeline.policy.stance_offsets`), NaN where the stride is not bridged throughout that window."""
     if not strides:
         return np.zeros(0)
-    w0, w1 = leg.params.fusion.midstance_window
-    out = np.full(len(strides), np.nan)
-    for k, (hs, to, end) in enumerate(strides):
-        length = end - hs
-        lo = hs + int(round(w0 * length))
-        hi = max(min(hs + int(round(w1 * length)), to) + 1, lo + 1)
-        d = bridged[lo:hi] - go_rel[lo:hi]
-        if d.size and np.isfinite(d).all():
-            out[k] = float(d.mean())
-    return out
+    lo, hi = midstance_bounds(strides, leg.params.fusion.midstance_window)
+    d = bridged - go_rel
+    ok = np.isfinite(d)
+    n_ok = segment_sums(ok, lo, hi)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n_ok == hi - lo, segment_sums(np.where(ok, d, 0.0), lo, hi) / n_ok, np.nan)
 
 
 def level_check(leg: LegInput, angle_deg: np.ndarray, zero_deg: float, params: FusionParams) -> float | None:
@@ -98,9 +95,15 @@ def level_check(leg: LegInput, angle_deg: np.ndarray, zero_deg: float, params: F
     each stride's mean difference where both are finite throughout it; None with fewer than
     ``params.bridge_min_strides`` such strides. The check of a running leg's level (the walking policy checks its
     per-stride offsets the same way, :func:`pipeline.policy.fuse`)."""
-    d = bridged_angle(leg, zero_deg, params, one_sided=False) - angle_deg
-    per_stride = [float(d[a:b + 1].mean()) for a, _, b in leg.events.strides if np.isfinite(d[a:b + 1]).all()]
-    if len(per_stride) < params.bridge_min_strides:
+    strides = leg.events.strides
+    if len(strides) < params.bridge_min_strides:
         return None
-    return float(np.median(per_stride))
+    d = bridged_angle(leg, zero_deg, params, one_sided=False) - angle_deg
+    arr = np.asarray(strides)
+    lo, hi = arr[:, 0], arr[:, 2] + 1
+    ok = np.isfinite(d)
+    whole = segment_sums(ok, lo, hi) == hi - lo
+    if whole.sum() < params.bridge_min_strides:
+        return None
+    return float(np.median(segment_sums(np.where(ok, d, 0.0), lo, hi)[whole] / (hi - lo)[whole]))
 
