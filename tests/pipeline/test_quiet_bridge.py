@@ -52,8 +52,10 @@ def test_a_failed_joint_centre_fit_is_caught_and_the_leg_takes_the_bridged_level
     unchecked = dataclasses.replace(WALKING, fusion=dataclasses.replace(WALKING.fusion, bridge_disagree_deg=1e9))
     broken = process_session(sim.streams, activity="walking", params=unchecked).legs["left"]
     assert abs(_mean_peak_error(broken, sim, "left") - clean) > 4.0
-    checked = process_session(sim.streams, activity="walking").legs["left"]
+    result = process_session(sim.streams, activity="walking")
+    checked = result.legs["left"]
     assert checked.diagnostics.level_bridged
+    assert any(w.startswith("left leg: the knee angle's level in motion disagreed") for w in result.warnings)
     assert abs(_mean_peak_error(checked, sim, "left") - clean) < 1.5
 
 
