@@ -24,51 +24,82 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.axes import level_directions
 from pipeline.estimators.go import integrate_runs
 from pipeline.leg_input import LegInput
 from pipeline.params import FusionParams
 from pipeline.phases import midstance_bounds
-from pipeline.posture import leg_quiet
+from pipeline.posture import leg_quiet, standing_mask
 from pipeline.signal_utils import run_bounds, segment_sums
 
 
+def heading_deg(leg: LegInput) -> np.ndarray:
+    """(N,) the thigh's rotation [deg] about its mean up direction (the unit mean specific force over the session,
+    :func:`pipeline.axes.level_directions`), integrated from the session's start (NaN-free: holes add nothing). The
+    thigh's long axis stays within ~30 deg of vertical in gait, so a turn of the body shows in it at cos 30 deg or
+    more, while straight walking only rocks it by the hip's rotation (+-5 deg)."""
+    prep = leg.prep
+    ups = level_directions(prep.acc_thigh_mps2, prep.acc_shank_mps2, prep.valid)
+    if ups is None:
+        return np.zeros(prep.n)
+    rate = np.rad2deg(prep.gyr_thigh_rps @ ups[0])
+    rate = np.where(prep.valid & np.isfinite(rate), rate, 0.0)
+    return integrate_runs(rate, prep.fs_hz, np.ones(prep.n, dtype=bool))
+
+
+def _clear(heading: np.ndarray, measured: np.ndarray, max_turn_deg: float) -> int:
+    """How many leading samples are measured and keep ``heading`` within ``max_turn_deg`` of its first value."""
+    stop = np.flatnonzero(~measured | (np.abs(heading - heading[0]) > max_turn_deg))
+    return int(stop[0]) if stop.size else heading.size
+
+
 def bridged_angle(leg: LegInput, zero_deg: float, params: FusionParams, one_sided: bool = True) -> np.ndarray:
-    """(N,) absolute knee angle [deg] between quiet periods (NaN elsewhere): the knee rate ``leg.rate_dps`` integrated
-    from the quiet period before each run of motion to the one after it, drift-corrected linearly so that it meets
-    the static accelerometer angle (``leg.acc_angle_deg - zero_deg``, median over ``params.bridge_anchor_s`` of rest at
-    either end) at both ends; a run broken by a hole only up to ``params.bridge_one_sided_s`` from either end
-    (``one_sided``; else not at all).
-    ``zero_deg``: the accelerometer angle of a straight knee (:func:`pipeline.posture.acc_zero_deg`)."""
+    """(N,) absolute knee angle [deg] between quiet standing periods (NaN elsewhere): the knee rate ``leg.rate_dps``
+    integrated from the standing before each run of motion to the standing after it, drift-corrected linearly so that
+    it meets the static accelerometer angle (``leg.acc_angle_deg - zero_deg``, median over ``params.bridge_anchor_s``
+    of standing at either end) at both ends; a run broken by a hole only up to ``params.bridge_one_sided_s`` from
+    either end (``one_sided``; else not at all), and a run in which the body turns (``params.bridge_max_turn_deg``)
+    only up to the turn from either end, the same way.
+    ``zero_deg``: the accelerometer angle of a straight knee (:func:`pipeline.posture.acc_zero_deg`).
+
+    Anchors are standing only: the zero is defined there, while a seated thigh's skin shifts with the flexion and
+    the static angle at 90 deg is the most sensitive to an axis error. A turn of the body is a rotation about the
+    vertical that the fitted thigh and shank axes, levelled to within a few deg, take in unequally: a 180 deg turn
+    with axes 4 deg apart adds a step of up to 180 sin 4 deg = 12 deg that no drift line removes."""
     prep = leg.prep
     n = prep.n
     out = np.full(n, np.nan)
-    quiet = leg_quiet(leg) & np.isfinite(leg.acc_angle_deg)
-    starts, stops = run_bounds(quiet)
+    stand = standing_mask(leg, leg_quiet(leg)) & np.isfinite(leg.acc_angle_deg)
+    starts, stops = run_bounds(stand)
     if starts.size < 2:
         return out
     fs = prep.fs_hz
     anchor = max(int(round(params.bridge_anchor_s * fs)), 1)
     rate = np.where(prep.measured(), leg.rate_dps, np.nan)
+    heading = heading_deg(leg)
     reach = int(round(params.bridge_one_sided_s * fs)) if one_sided else 0
     for k in range(starts.size - 1):
-        a, b = int(stops[k]), int(starts[k + 1])  # motion runs over [a, b): last quiet sample a - 1, next b
+        a, b = int(stops[k]), int(starts[k + 1])  # motion runs over [a, b): last standing sample a - 1, next b
         if b - a < 2 or (b - a) / fs > params.bridge_max_span_s:
             continue
         lvl_a = float(np.median(leg.acc_angle_deg[max(a - anchor, int(starts[k])):a])) - zero_deg
         lvl_b = float(np.median(leg.acc_angle_deg[b:min(b + anchor, int(stops[k + 1]))])) - zero_deg
         seg = rate[a - 1:b + 1]
-        broken = np.flatnonzero(~np.isfinite(seg))
-        if broken.size == 0:
+        # how far from either end the run is measured and the body has not turned
+        ok, turn = np.isfinite(seg), heading[a - 1:b + 1]
+        fwd = _clear(turn, ok, params.bridge_max_turn_deg)
+        bwd = _clear(turn[::-1], ok[::-1], params.bridge_max_turn_deg)
+        if fwd == seg.size:
             theta = lvl_a + integrate_runs(seg, fs, np.ones(seg.size, dtype=bool))
             drift = theta[-1] - lvl_b
             if abs(drift) <= params.bridge_max_drift_deg:
                 out[a - 1:b + 1] = theta - drift * np.linspace(0.0, 1.0, theta.size)
             continue
-        # a hole inside: from either end up to it, without the far end's check, over a few strides at most
-        head = seg[:min(int(broken[0]), reach)]
+        # a hole or a turn inside: from either end up to it, without the far end's check, over a few strides at most
+        head = seg[:min(fwd, reach)]
         if head.size >= 2:
             out[a - 1:a - 1 + head.size] = lvl_a + integrate_runs(head, fs, np.ones(head.size, dtype=bool))
-        tail = seg[max(int(broken[-1]) + 1, seg.size - reach):]
+        tail = seg[seg.size - min(bwd, reach):]
         if tail.size >= 2:
             back = integrate_runs(tail[::-1], fs, np.ones(tail.size, dtype=bool))[::-1]
             out[b + 1 - tail.size:b + 1] = lvl_b - back
