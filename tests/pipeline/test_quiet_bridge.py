@@ -80,3 +80,35 @@ def test_a_running_leg_moved_by_a_failed_joint_centre_fit_takes_the_bridged_leve
     assert leg.diagnostics.bridge_check_deg is not None and abs(leg.diagnostics.bridge_check_deg) > 6.5
     assert leg.diagnostics.level_bridged
     assert abs(_mean_peak_error(leg, sim, "left") - clean) < 2.0
+
+
+def test_bridges_stop_at_turns_and_start_from_standing(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A U-turn in the middle of a bout: the thigh's heading shows it (> 120 deg), and no bridged piece runs across
+    it (each stays within ``bridge_max_turn_deg`` of its anchored end); every piece touches quiet standing."""
+    import pipeline.policy as policy
+    import pipeline.quiet_bridge as quiet_bridge
+    from pipeline.posture import leg_quiet, standing_mask
+
+    seen: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def recording(leg, zero_deg, params, one_sided=True):  # noqa: ANN001, ANN202 - the wrapped function's signature
+        out = quiet_bridge.bridged_angle(leg, zero_deg, params, one_sided)
+        seen.append((out, quiet_bridge.heading_deg(leg), standing_mask(leg, leg_quiet(leg))))
+        return out
+
+    monkeypatch.setattr(policy, "bridged_angle", recording)
+    sim = simulate_session(SimConfig(pattern="normal", fs_hz=100.0, seed=2, duration_s=90.0, bout_strides=12,
+                                     walking_turns=True))
+    process_session(sim.streams, activity="walking")
+    limit = WALKING.fusion.bridge_max_turn_deg
+    for bridged, heading, standing in seen:
+        assert np.ptp(heading) > 120.0
+        pieces = np.flatnonzero(np.diff(np.concatenate(([0], np.isfinite(bridged).astype(int), [0]))))
+        assert pieces.size >= 4  # at least two bridged pieces
+        for a, b in zip(pieces[::2], pieces[1::2], strict=True):
+            # a piece integrated from its start or back from its end (the two halves of a bridge cut by a turn
+            # in place meet) stays within the limit of the end it was integrated from
+            near_start = np.abs(heading[a:b] - heading[a]) <= limit
+            near_end = np.abs(heading[a:b] - heading[b - 1]) <= limit
+            assert (near_start | near_end).all()
+            assert standing[max(a - 1, 0)] or standing[min(b, standing.size - 1)]
