@@ -1,23 +1,25 @@
-"""The absolute level of a walk from the quiet postures around it: the knee rate integrated from one quiet period
+"""The absolute level of a walk from the quiet standing around it: the knee rate integrated from one standing period
 to the next, its drift removed so that it meets the static angle at both ends.
 
-At rest the accelerometer angle (Seel et al. 2014, Eq. 7) sees gravity only: it needs no joint centres, no
-lever-arm terms and no thigh-shank clock, and its one unknown, the constant offset of the joint-plane frames, is
-fixed by quiet standing (:mod:`pipeline.posture`). In gait it sees every acceleration as well, so a per-stride level
-taken from it in mid-stance (:func:`pipeline.policy.stance_offsets`) carries whatever the joint-centre fit and the
-clock alignment got wrong, leg by leg. The gyroscopes carry the level from rest into the walk instead: the knee
-rate (Seel Eq. 4, the flexion rate about the fitted axes) integrated from the end of the quiet period before a
-walk reaches the start of the quiet period after it with the integral of the gyro's residual bias, which a linear
-term removes, as the two-point drift correction between static periods of strapdown integration (the zero-velocity
-updates of foot-mounted inertial navigation; Potter et al. 2022 correct lower-limb kinematics with them). The
-knee's angle about a fitted hinge axis is not an exact integral of a 3-D rotation, but over a periodic gait cycle
-its error returns to where it began, and what is left grows like a drift: the same line takes it.
+In quiet standing the accelerometer angle (Seel et al. 2014, Eq. 7) sees gravity only: it needs no joint centres,
+no lever-arm terms and no thigh-shank clock, and its one unknown, the constant offset of the joint-plane frames, is
+fixed there (:mod:`pipeline.posture`). In gait it sees every acceleration as well, so a per-stride level taken from
+it in mid-stance (:func:`pipeline.policy.stance_offsets`) carries whatever the joint-centre fit and the clock
+alignment got wrong, leg by leg. The gyroscopes carry the level from standing into the walk instead: the knee rate
+(Seel Eq. 4, the flexion rate about the fitted axes) integrated from the end of the standing before a walk reaches
+the start of the standing after it with the integral of the gyro's residual bias, which a linear term removes, as
+the two-point drift correction between static periods of strapdown integration (the zero-velocity updates of
+foot-mounted inertial navigation; Potter et al. 2022 correct lower-limb kinematics with them). The knee's angle
+about a fitted hinge axis is not an exact integral of a 3-D rotation, but over a periodic gait cycle its error
+returns to where it began, and what is left grows like a drift: the same line takes it. A turn of the body does not
+return (:func:`bridged_angle`), so it ends a bridge.
 
-Used where the run between the two quiet periods is wholly measured (no masked hole, and none filled from the
-neighbouring strides, whose integral is theirs), is shorter than ``FusionParams.bridge_max_span_s`` and its drift
-stays below ``FusionParams.bridge_max_drift_deg``. Where a hole breaks it, the first and last
-``FusionParams.bridge_one_sided_s`` of it are integrated from the near end alone (the drift of a few seconds is
-small); elsewhere the policy keeps the mid-stance accelerometer level.
+Used where the run between the two standing periods is wholly measured (no masked hole, and none filled from the
+neighbouring strides, whose integral is theirs), holds no turn, is shorter than ``FusionParams.bridge_max_span_s``
+and its drift stays below ``FusionParams.bridge_max_drift_deg``. Where a hole or a turn breaks it, up to
+``FusionParams.bridge_one_sided_s`` from either end are integrated from that end alone (the drift of a few seconds
+is small); elsewhere the policy keeps the mid-stance accelerometer level, which this one checks
+(:func:`pipeline.policy.fuse`, :func:`level_check`).
 """
 
 from __future__ import annotations
