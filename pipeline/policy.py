@@ -40,7 +40,7 @@ from pipeline.estimators.kf import FilterDiagnostics
 from pipeline.leg_input import EstimatorDiagnostics, LegInput
 from pipeline.params import FusionParams, QualityParams
 from pipeline.phases import midstance_bounds
-from pipeline.posture import in_bouts, standing_reference
+from pipeline.posture import in_bouts, standing_mask, standing_reference
 from pipeline.quality import stride_quality
 from pipeline.quiet_bridge import bridged_angle, bridged_offsets, level_check
 from pipeline.signal_utils import ranges_mask, row_norm, segment_sums
@@ -153,7 +153,7 @@ def running_auto(leg: LegInput) -> PolicyResult:
         # the filter's level rests on the accelerometer angle in motion (joint centres, clock); the rests around
         # each run check it (pipeline.quiet_bridge), as walking's
         fp = leg.params.fusion
-        check = level_check(leg, angle, ref - leg.params.posture.standing_knee_deg, fp)
+        check = level_check(leg, angle, ref - leg.params.posture.standing_knee_deg, fp, standing_mask(leg))
         if check is not None and abs(check) > rp.bridge_disagree_deg:
             angle = angle + check
             bridged_level = True
@@ -311,7 +311,8 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     p = leg.params.fusion
     strides = leg.events.strides
     n = go_rel.shape[0]
-    ref = standing_reference(leg, leg.acc_angle_deg, in_bouts(leg))
+    standing = standing_mask(leg, exclude=in_bouts(leg))
+    ref = standing_reference(leg, leg.acc_angle_deg, standing=standing)
     absolute_ok = ref is not None
     # acc - ref reads 0 when standing; standing itself is standing_knee_deg of flexion
     ref_deg = ref - leg.params.posture.standing_knee_deg if ref is not None else 0.0
@@ -319,7 +320,7 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     check, bridged_level = None, False
     if absolute_ok and strides:
         # the level carried from rest by the gyros where the walk lies between two quiet periods (quiet_bridge)
-        bridged = bridged_offsets(leg, go_rel, bridged_angle(leg, ref_deg, p), strides)
+        bridged = bridged_offsets(leg, go_rel, bridged_angle(leg, ref_deg, p, standing), strides)
         both = np.isfinite(bridged) & np.isfinite(offs)
         if both.sum() >= p.bridge_min_strides:
             check = float(np.median(bridged[both] - offs[both]))

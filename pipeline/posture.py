@@ -135,10 +135,10 @@ def in_bouts(leg: LegInput) -> np.ndarray:
 
 
 def standing_reference(leg: LegInput, acc_angle_deg: np.ndarray, exclude: np.ndarray | None = None,
-                       quiet: np.ndarray | None = None) -> float | None:
+                       quiet: np.ndarray | None = None, standing: np.ndarray | None = None) -> float | None:
     """Accelerometer angle [deg] of quiet upright standing (median over :func:`standing_mask`), or None with less
-    than ``quiet_min_s`` of standing in the session."""
-    stand = standing_mask(leg, quiet, exclude) & np.isfinite(acc_angle_deg)
+    than ``quiet_min_s`` of standing in the session. ``standing``: that mask when the caller has it already."""
+    stand = (standing_mask(leg, quiet, exclude) if standing is None else standing) & np.isfinite(acc_angle_deg)
     if stand.sum() < leg.params.posture.quiet_min_s * leg.fs_hz:
         return None
     return float(np.median(acc_angle_deg[stand]))

@@ -26,25 +26,23 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.axes import level_directions
 from pipeline.estimators.go import integrate_runs
 from pipeline.leg_input import LegInput
 from pipeline.params import FusionParams
 from pipeline.phases import midstance_bounds
-from pipeline.posture import leg_quiet, standing_mask
 from pipeline.signal_utils import run_bounds, segment_sums
 
 
 def heading_deg(leg: LegInput) -> np.ndarray:
-    """(N,) the thigh's rotation [deg] about its mean up direction (the unit mean specific force over the session,
-    :func:`pipeline.axes.level_directions`), integrated from the session's start (NaN-free: holes add nothing). The
-    thigh's long axis stays within ~30 deg of vertical in gait, so a turn of the body shows in it at cos 30 deg or
-    more, while straight walking only rocks it by the hip's rotation (+-5 deg)."""
+    """(N,) the thigh's rotation [deg] about its mean up direction (the unit mean specific force over the
+    session's valid samples, as :func:`pipeline.axes.level_directions` takes it), integrated from the session's start
+    (NaN-free: holes add nothing). The thigh's long axis stays within ~30 deg of vertical in gait, so a turn of the
+    body shows in it at cos 30 deg or more, while straight walking only rocks it by the hip's rotation (+-5 deg)."""
     prep = leg.prep
-    ups = level_directions(prep.acc_thigh_mps2, prep.acc_shank_mps2, prep.valid)
-    if ups is None:
+    up = prep.acc_thigh_mps2[prep.valid].mean(axis=0) if prep.valid.any() else np.zeros(3)
+    if not np.isfinite(up).all() or np.linalg.norm(up) < 1.0:
         return np.zeros(prep.n)
-    rate = np.rad2deg(prep.gyr_thigh_rps @ ups[0])
+    rate = np.rad2deg(prep.gyr_thigh_rps @ (up / np.linalg.norm(up)))
     rate = np.where(prep.valid & np.isfinite(rate), rate, 0.0)
     return integrate_runs(rate, prep.fs_hz, np.ones(prep.n, dtype=bool))
 
@@ -55,14 +53,16 @@ def _clear(heading: np.ndarray, measured: np.ndarray, max_turn_deg: float) -> in
     return int(stop[0]) if stop.size else heading.size
 
 
-def bridged_angle(leg: LegInput, zero_deg: float, params: FusionParams, one_sided: bool = True) -> np.ndarray:
+def bridged_angle(leg: LegInput, zero_deg: float, params: FusionParams, standing: np.ndarray,
+                  one_sided: bool = True) -> np.ndarray:
     """(N,) absolute knee angle [deg] between quiet standing periods (NaN elsewhere): the knee rate ``leg.rate_dps``
     integrated from the standing before each run of motion to the standing after it, drift-corrected linearly so that
     it meets the static accelerometer angle (``leg.acc_angle_deg - zero_deg``, median over ``params.bridge_anchor_s``
     of standing at either end) at both ends; a run broken by a hole only up to ``params.bridge_one_sided_s`` from
     either end (``one_sided``; else not at all), and a run in which the body turns (``params.bridge_max_turn_deg``)
     only up to the turn from either end, the same way.
-    ``zero_deg``: the accelerometer angle of a straight knee (:func:`pipeline.posture.acc_zero_deg`).
+    ``zero_deg``: the accelerometer angle of a straight knee (:func:`pipeline.posture.acc_zero_deg`); ``standing``:
+    the leg's quiet standing (:func:`pipeline.posture.standing_mask`).
 
     Anchors are standing only: the zero is defined there, while a seated thigh's skin shifts with the flexion and
     the static angle at 90 deg is the most sensitive to an axis error. A turn of the body is a rotation about the
@@ -71,7 +71,7 @@ def bridged_angle(leg: LegInput, zero_deg: float, params: FusionParams, one_side
     prep = leg.prep
     n = prep.n
     out = np.full(n, np.nan)
-    stand = standing_mask(leg, leg_quiet(leg)) & np.isfinite(leg.acc_angle_deg)
+    stand = standing & np.isfinite(leg.acc_angle_deg)
     starts, stops = run_bounds(stand)
     if starts.size < 2:
         return out
@@ -122,7 +122,8 @@ def bridged_offsets(leg: LegInput, go_rel: np.ndarray, bridged: np.ndarray, stri
         return np.where(n_ok == hi - lo, segment_sums(np.where(ok, d, 0.0), lo, hi) / n_ok, np.nan)
 
 
-def level_check(leg: LegInput, angle_deg: np.ndarray, zero_deg: float, params: FusionParams) -> float | None:
+def level_check(leg: LegInput, angle_deg: np.ndarray, zero_deg: float, params: FusionParams, standing: np.ndarray
+                ) -> float | None:
     """The bridged angle (:func:`bridged_angle`, whole bridges only) minus ``angle_deg`` (N,) [deg], median over the
     leg's strides of
     each stride's mean difference where both are finite throughout it; None with fewer than
@@ -131,7 +132,7 @@ def level_check(leg: LegInput, angle_deg: np.ndarray, zero_deg: float, params: F
     strides = leg.events.strides
     if len(strides) < params.bridge_min_strides:
         return None
-    d = bridged_angle(leg, zero_deg, params, one_sided=False) - angle_deg
+    d = bridged_angle(leg, zero_deg, params, standing, one_sided=False) - angle_deg
     arr = np.asarray(strides)
     lo, hi = arr[:, 0], arr[:, 2] + 1
     ok = np.isfinite(d)

@@ -87,13 +87,12 @@ def test_bridges_stop_at_turns_and_start_from_standing(monkeypatch: pytest.Monke
     it (each stays within ``bridge_max_turn_deg`` of its anchored end); every piece touches quiet standing."""
     import pipeline.policy as policy
     import pipeline.quiet_bridge as quiet_bridge
-    from pipeline.posture import leg_quiet, standing_mask
 
     seen: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
 
-    def recording(leg, zero_deg, params, one_sided=True):  # noqa: ANN001, ANN202 - the wrapped function's signature
-        out = quiet_bridge.bridged_angle(leg, zero_deg, params, one_sided)
-        seen.append((out, quiet_bridge.heading_deg(leg), standing_mask(leg, leg_quiet(leg))))
+    def recording(leg, zero_deg, params, standing, one_sided=True):  # noqa: ANN001, ANN202 - the wrapped signature
+        out = quiet_bridge.bridged_angle(leg, zero_deg, params, standing, one_sided)
+        seen.append((out, quiet_bridge.heading_deg(leg), standing))
         return out
 
     monkeypatch.setattr(policy, "bridged_angle", recording)
