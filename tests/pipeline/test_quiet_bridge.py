@@ -34,11 +34,11 @@ def test_legs_whose_levels_agree_keep_the_mid_stance_level() -> None:
         assert not lr.diagnostics.level_bridged
 
 
-@pytest.mark.parametrize("seed", [1, 4])
+@pytest.mark.parametrize("seed", [1, 3, 4])
 def test_a_failed_joint_centre_fit_is_caught_and_the_leg_takes_the_bridged_level(
         seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
     """Sensor positions 20-30 cm off (as a clock error absorbed by the joint-centre fit leaves them) move the
-    mid-stance level by degrees; the static angles at rest do not see them, so the check takes the bridged level
+    mid-stance level by degrees; the static angles in standing do not see them, so the check takes the bridged level
     and the leg's peak error returns to within 1.5 deg of the uncorrupted run's."""
     sim = _sim(seed)
     clean = _mean_peak_error(process_session(sim.streams, activity="walking").legs["left"], sim, "left")
@@ -51,7 +51,7 @@ def test_a_failed_joint_centre_fit_is_caught_and_the_leg_takes_the_bridged_level
     monkeypatch.setattr(walking, "fit_joint_centres", off_by_decimetres)
     unchecked = dataclasses.replace(WALKING, fusion=dataclasses.replace(WALKING.fusion, bridge_disagree_deg=1e9))
     broken = process_session(sim.streams, activity="walking", params=unchecked).legs["left"]
-    assert abs(_mean_peak_error(broken, sim, "left") - clean) > 4.0
+    assert abs(_mean_peak_error(broken, sim, "left") - clean) > WALKING.fusion.bridge_disagree_deg
     result = process_session(sim.streams, activity="walking")
     checked = result.legs["left"]
     assert checked.diagnostics.level_bridged
