@@ -124,9 +124,8 @@ def bridged_offsets(leg: LegInput, go_rel: np.ndarray, bridged: np.ndarray, stri
 
 def level_check(leg: LegInput, angle_deg: np.ndarray, zero_deg: float, params: FusionParams, standing: np.ndarray
                 ) -> float | None:
-    """The bridged angle (:func:`bridged_angle`, whole bridges only) minus ``angle_deg`` (N,) [deg], median over the
-    leg's strides of
-    each stride's mean difference where both are finite throughout it; None with fewer than
+    """The bridged angle (:func:`bridged_angle`, whole bridges only) minus ``angle_deg`` (N,) [deg]: the median over
+    the leg's strides of each stride's mean difference, where both are finite throughout it; None with fewer than
     ``params.bridge_min_strides`` such strides. The check of a running leg's level (the walking policy checks its
     per-stride offsets the same way, :func:`pipeline.policy.fuse`)."""
     strides = leg.events.strides
