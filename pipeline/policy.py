@@ -363,6 +363,10 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     # GO inside the strides that kept it; extending it to the bout edges (gait initiation and termination, where
     # its drift line is extrapolated) is worse on the simulator (crouch) and mixed on the real trial
     go_mask = ranges_mask(n, lo[use], hi[use])
+    if bridged_level:
+        # the CF in a fallback stride follows the accelerometer's level in motion, which the check rejected;
+        # outside the strides (standing, sitting) it is the static angle and stays
+        angle[ranges_mask(n, lo[~use], hi[~use])] += check
     angle[go_mask] = go_abs[go_mask]
     labels = np.where(go_mask, "go", labels)
     labels = np.where(np.isfinite(angle), labels, "")

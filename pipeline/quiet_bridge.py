@@ -101,7 +101,7 @@ def bridged_angle(leg: LegInput, zero_deg: float, params: FusionParams, standing
         head = seg[:min(fwd, reach)]
         if head.size >= 2:
             out[a - 1:a - 1 + head.size] = lvl_a + integrate_runs(head, fs, np.ones(head.size, dtype=bool))
-        tail = seg[seg.size - min(bwd, reach):]
+        tail = seg[max(seg.size - min(bwd, reach), head.size):]  # never over the head (a turn of 45-90 deg)
         if tail.size >= 2:
             back = integrate_runs(tail[::-1], fs, np.ones(tail.size, dtype=bool))[::-1]
             out[b + 1 - tail.size:b + 1] = lvl_b - back

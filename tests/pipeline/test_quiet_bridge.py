@@ -111,3 +111,34 @@ def test_bridges_stop_at_turns_and_start_from_standing(monkeypatch: pytest.Monke
             near_end = np.abs(heading[a:b] - heading[b - 1]) <= limit
             assert (near_start | near_end).all()
             assert standing[max(a - 1, 0)] or standing[min(b, standing.size - 1)]
+
+
+def test_cf_fallback_strides_of_a_bridged_leg_move_with_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A leg that takes the bridged level moves its CF fallback strides too (their CF follows the accelerometer's
+    level in motion, which the check rejected): with GO's drift limit at 1 deg half the strides fall back, and both
+    kinds come back to within 1 deg of the uncorrupted run's error."""
+    sim = _sim(1)
+    fallback = dataclasses.replace(WALKING, fusion=dataclasses.replace(WALKING.fusion, drift_max_deg=1.0))
+
+    def by_estimator(lr: LegResult) -> dict[str, float]:
+        truth = sim.truth["left"].strides
+        errs: dict[str, list[float]] = {}
+        for i, j in match_strides(lr.strides, truth):
+            s = lr.strides[i]
+            errs.setdefault(s.estimator, []).append(s.peak_swing_flexion_deg - truth[j].peak_swing_flexion_deg)
+        return {k: float(np.mean(v)) for k, v in errs.items() if len(v) >= 5}
+
+    clean = by_estimator(process_session(sim.streams, activity="walking", params=fallback).legs["left"])
+    fit = walking.fit_joint_centres
+
+    def off_by_decimetres(*args: object, **kwargs: object) -> object:
+        c = fit(*args, **kwargs)
+        return dataclasses.replace(c, o1=c.o1 + np.array([0.25, -0.15, 0.1]), o2=c.o2 + np.array([-0.1, 0.2, 0.05]))
+
+    monkeypatch.setattr(walking, "fit_joint_centres", off_by_decimetres)
+    leg = process_session(sim.streams, activity="walking", params=fallback).legs["left"]
+    assert leg.diagnostics.level_bridged
+    broken = by_estimator(leg)
+    assert set(clean) == set(broken) == {"go", "cf"}
+    for name in ("go", "cf"):
+        assert abs(broken[name] - clean[name]) < 1.0
