@@ -305,13 +305,17 @@ def level_directions(acc1_mps2: np.ndarray, acc2_mps2: np.ndarray, valid: np.nda
     on average, over every gait cycle (the pelvis level, hip ab/adduction a few deg either way), and a segment's
     own accelerations in gait and posture changes lie mostly in its sagittal plane, so the mean of gravity plus
     acceleration is nearly perpendicular to the flexion axis. None without a usable mean (a sensor reading zeros)."""
-    out = []
-    for acc in (acc1_mps2, acc2_mps2):
-        m = acc[valid].mean(axis=0) if valid.any() else np.zeros(3)
-        if not np.isfinite(m).all() or np.linalg.norm(m) < 1.0:
-            return None
-        out.append(m / np.linalg.norm(m))
-    return out[0], out[1]
+    up1, up2 = mean_up(acc1_mps2, valid), mean_up(acc2_mps2, valid)
+    return None if up1 is None or up2 is None else (up1, up2)
+
+
+def mean_up(acc_mps2: np.ndarray, valid: np.ndarray) -> np.ndarray | None:
+    """One segment's unit mean specific force (3,) over the valid samples of ``acc_mps2`` (N, 3), sensor frame: its
+    up direction on average; None without a usable mean (a sensor reading zeros)."""
+    m = acc_mps2[valid].mean(axis=0) if valid.any() else np.zeros(3)
+    if not np.isfinite(m).all() or np.linalg.norm(m) < 1.0:
+        return None
+    return m / np.linalg.norm(m)
 
 
 def axis_up(prep: PreparedLeg, params: AxesParams = WALKING.axes) -> tuple[np.ndarray, np.ndarray] | None:

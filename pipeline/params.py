@@ -427,20 +427,21 @@ class FusionParams:
     bridge_min_strides: int = 3
     """Strides with both levels that the check needs."""
     bridge_anchor_s: float = 0.5
-    """Rest [s] at either end of a walk whose static accelerometer angle (median) anchors the integration."""
+    """Quiet standing [s] at either end of a walk whose static accelerometer angle (median) anchors the
+    integration."""
     bridge_max_span_s: float = 60.0
-    """Longest run of motion [s] between two quiet periods that is bridged (a gyro's residual bias changes little
+    """Longest run of motion [s] between two standing periods that is bridged (a gyro's residual bias changes little
     within a minute; a longer walk keeps the mid-stance level)."""
     bridge_one_sided_s: float = 4.0
-    """A walk broken by a hole is integrated from either quiet end this far [s] (three strides or so) without the
-    far end's drift check: whole bridges of ~12 s on the sweep's tune seeds drifted p50 1.9, p90 3.9 deg (planar),
-    so a few seconds stay within ~1 deg."""
+    """A walk broken by a hole or a turn is integrated from either standing end this far [s] (three strides or so)
+    without the far end's drift check: whole bridges of ~12 s on the sweep's tune seeds drifted p50 1.9, p90 3.9 deg
+    (planar), so a few seconds stay within ~1 deg."""
     bridge_max_turn_deg: float = 45.0
     """A run in which the body turns by more than this [deg] (the thigh's rotation about its mean up direction,
     :func:`pipeline.quiet_bridge.heading_deg`) is bridged only up to the turn from either end (as across a hole,
-    ``bridge_one_sided_s``): the turn adds a step of up to its angle times the
-    sine of the axes' misalignment (:func:`pipeline.quiet_bridge.bridged_angle`). Straight walking rocks the thigh by
-    the hip's rotation only (+-5 deg), a U-turn by 150-180 deg."""
+    ``bridge_one_sided_s``): the turn adds a step of up to its angle times the sine of the axes' misalignment
+    (:func:`pipeline.quiet_bridge.bridged_angle`). Straight walking rocks the thigh by the hip's rotation only (+-5
+    deg), a U-turn by 150-180 deg."""
     bridge_max_drift_deg: float = 10.0
     """A bridge whose integral misses the static angle at its far end by more than this [deg] is not used: the
     axes, a hole or a posture change it cannot follow broke it."""
@@ -542,12 +543,12 @@ class RunningParams:
     auto_estimator: str = "ekf"
     """The running ``auto`` estimator: best on the simulator without reference tuning (bench/accuracy.py)."""
     bridge_disagree_deg: float = 6.5
-    """The check of the filter's level by the rests around each run (:func:`pipeline.quiet_bridge.level_check`, whole
-    rest-to-rest bridges only): beyond this [deg] the leg takes the bridged level. Wider than walking's
-    (``FusionParams.bridge_disagree_deg``): with 3-D hip and knee motion the running knee rate about a hinge axis
-    drifts more, and on the sweep's tune seeds (``joint_3d_mixed``, running 6 g) correct legs disagreed by up to 4.3
-    deg (1.5 times that here; with one-sided pieces, 8.8); sensor positions put 20-30 cm off moved running legs by
-    4.5-10 deg (tune seeds 0-4). So only gross failures are caught."""
+    """The check of the filter's level by the quiet standing around each run (:func:`pipeline.quiet_bridge.level_check`,
+    whole standing-to-standing bridges only): beyond this [deg] the leg takes the bridged level. Wider than walking's
+    (``FusionParams.bridge_disagree_deg``): with 3-D hip and knee motion the running knee rate about a hinge axis drifts
+    more, and on the sweep's tune seeds (``joint_3d_mixed``, running 6 g) correct legs disagreed by up to 4.3 deg (1.5
+    times that here; with one-sided pieces, 8.8); sensor positions put 20-30 cm off moved running legs by 4.5-10 deg
+    (tune seeds 0-4). So only gross failures are caught."""
     bridge_min_fs_hz: float = 100.0
     """Lowest sample rate [Hz] at which the running level is checked: a running swing reaches 600-1000 deg/s with
     content up to ~20 Hz, and at 50 Hz the integral between rests drifted by several deg per run (accuracy bench,

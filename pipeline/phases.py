@@ -261,4 +261,3 @@ def midstance_bounds(strides: list[tuple[int, int, int]], window: tuple[float, f
     lo = arr[:, 0] + np.round(w0 * length).astype(int)
     hi = np.maximum(np.minimum(arr[:, 0] + np.round(w1 * length).astype(int), arr[:, 1]) + 1, lo + 1)
     return lo, hi
-

@@ -150,8 +150,8 @@ def running_auto(leg: LegInput) -> PolicyResult:
         angle = levelled
     check, bridged_level = None, False
     if ref is not None and leg.fs_hz >= rp.bridge_min_fs_hz:
-        # the filter's level rests on the accelerometer angle in motion (joint centres, clock); the rests around
-        # each run check it (pipeline.quiet_bridge), as walking's
+        # the filter's level rests on the accelerometer angle in motion (joint centres, clock); the quiet standing
+        # around each run checks it (pipeline.quiet_bridge), as walking's
         fp = leg.params.fusion
         check = level_check(leg, angle, ref - leg.params.posture.standing_knee_deg, fp, standing_mask(leg))
         if check is not None and abs(check) > rp.bridge_disagree_deg:
@@ -319,7 +319,7 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     offs, quiet_counts = stance_offsets(leg, go_rel + ref_deg, strides)
     check, bridged_level = None, False
     if absolute_ok and strides:
-        # the level carried from rest by the gyros where the walk lies between two quiet periods (quiet_bridge)
+        # the level the gyros carry from the quiet standing around each walk (quiet_bridge)
         bridged = bridged_offsets(leg, go_rel, bridged_angle(leg, ref_deg, p, standing), strides)
         both = np.isfinite(bridged) & np.isfinite(offs)
         if both.sum() >= p.bridge_min_strides:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.axes import mean_up
 from pipeline.estimators.go import integrate_runs
 from pipeline.leg_input import LegInput
 from pipeline.params import FusionParams
@@ -34,15 +35,15 @@ from pipeline.signal_utils import run_bounds, segment_sums
 
 
 def heading_deg(leg: LegInput) -> np.ndarray:
-    """(N,) the thigh's rotation [deg] about its mean up direction (the unit mean specific force over the
-    session's valid samples, as :func:`pipeline.axes.level_directions` takes it), integrated from the session's start
-    (NaN-free: holes add nothing). The thigh's long axis stays within ~30 deg of vertical in gait, so a turn of the
-    body shows in it at cos 30 deg or more, while straight walking only rocks it by the hip's rotation (+-5 deg)."""
+    """(N,) the thigh's rotation [deg] about its mean up direction (:func:`pipeline.axes.mean_up`), integrated from the
+    session's start (NaN-free: holes add nothing). The thigh's long axis stays within ~30 deg of vertical in gait, so a
+    turn of the body shows in it at cos 30 deg or more, while straight walking only rocks it by the hip's rotation (+-5
+    deg)."""
     prep = leg.prep
-    up = prep.acc_thigh_mps2[prep.valid].mean(axis=0) if prep.valid.any() else np.zeros(3)
-    if not np.isfinite(up).all() or np.linalg.norm(up) < 1.0:
+    up = mean_up(prep.acc_thigh_mps2, prep.valid)
+    if up is None:
         return np.zeros(prep.n)
-    rate = np.rad2deg(prep.gyr_thigh_rps @ (up / np.linalg.norm(up)))
+    rate = np.rad2deg(prep.gyr_thigh_rps @ up)
     rate = np.where(prep.valid & np.isfinite(rate), rate, 0.0)
     return integrate_runs(rate, prep.fs_hz, np.ones(prep.n, dtype=bool))
 
@@ -108,6 +109,14 @@ def bridged_angle(leg: LegInput, zero_deg: float, params: FusionParams, standing
     return out
 
 
+def _whole_means(d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The mean of ``d`` (N,) over each range ``[lo, hi)``, NaN where the range holds a non-finite value."""
+    ok = np.isfinite(d)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(segment_sums(ok, lo, hi) == hi - lo, segment_sums(np.where(ok, d, 0.0), lo, hi) / (hi - lo),
+                        np.nan)
+
+
 def bridged_offsets(leg: LegInput, go_rel: np.ndarray, bridged: np.ndarray, strides: list[tuple[int, int, int]]
                     ) -> np.ndarray:
     """Per stride, the mean of (bridged angle - GO) [deg] over the stride's mid-stance (the window of
@@ -115,11 +124,7 @@ def bridged_offsets(leg: LegInput, go_rel: np.ndarray, bridged: np.ndarray, stri
     if not strides:
         return np.zeros(0)
     lo, hi = midstance_bounds(strides, leg.params.fusion.midstance_window)
-    d = bridged - go_rel
-    ok = np.isfinite(d)
-    n_ok = segment_sums(ok, lo, hi)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(n_ok == hi - lo, segment_sums(np.where(ok, d, 0.0), lo, hi) / n_ok, np.nan)
+    return _whole_means(bridged - go_rel, lo, hi)
 
 
 def level_check(leg: LegInput, angle_deg: np.ndarray, zero_deg: float, params: FusionParams, standing: np.ndarray
@@ -131,12 +136,8 @@ def level_check(leg: LegInput, angle_deg: np.ndarray, zero_deg: float, params: F
     strides = leg.events.strides
     if len(strides) < params.bridge_min_strides:
         return None
-    d = bridged_angle(leg, zero_deg, params, standing, one_sided=False) - angle_deg
     arr = np.asarray(strides)
-    lo, hi = arr[:, 0], arr[:, 2] + 1
-    ok = np.isfinite(d)
-    whole = segment_sums(ok, lo, hi) == hi - lo
-    if whole.sum() < params.bridge_min_strides:
-        return None
-    return float(np.median(segment_sums(np.where(ok, d, 0.0), lo, hi)[whole] / (hi - lo)[whole]))
-
+    means = _whole_means(bridged_angle(leg, zero_deg, params, standing, one_sided=False) - angle_deg,
+                         arr[:, 0], arr[:, 2] + 1)
+    means = means[np.isfinite(means)]
+    return float(np.median(means)) if means.size >= params.bridge_min_strides else None

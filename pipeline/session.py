@@ -106,7 +106,7 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
     warnings += [f"{leg} leg: its thigh and shank clocks run apart faster than crystal clocks can; the knee angle's "
                  "timing is unknown and its strides are kept out of trends (clock_disagreement)"
                  for leg in sorted(legs) if _clock_unknown(legs[leg])]
-    warnings += [f"{leg} leg: the knee angle's level in motion disagreed with the level carried from the rests "
+    warnings += [f"{leg} leg: the knee angle's level in motion disagreed with the level carried from the standing "
                  f"around the walks by {d.bridge_check_deg:+.1f} deg; the latter was used (level_bridged)"
                  for leg in sorted(legs) if (d := legs[leg].diagnostics) is not None and d.level_bridged]
     for leg, how in assigned.items():

@@ -124,9 +124,9 @@ class LegDiagnostics:
     o2_m: tuple[float, ...]  # shank sensor relative to the knee centre [m]
     cf_shift_deg: float | None = None  # walking auto: shift applied to the CF fallback
     offset_median_deg: float | None = None  # walking auto: median per-stride offset of GO to the accelerometer
-    # walking auto: the level carried from rest by the gyros (pipeline.quiet_bridge) minus the mid-stance
-    # accelerometer level [deg], median over strides (None without both); ``level_bridged``: they disagreed beyond
-    # FusionParams.bridge_disagree_deg and the leg took the bridged level
+    # the level the gyros carry from quiet standing (pipeline.quiet_bridge) minus the accelerometer's level in motion
+    # [deg], median over strides (None without both); ``level_bridged``: they disagreed beyond
+    # FusionParams.bridge_disagree_deg (running: RunningParams.bridge_disagree_deg) and the leg took the bridged level
     bridge_check_deg: float | None = None
     level_bridged: bool = False
     tau_s: float | None = None  # KF/EKF fusion time constant when tuned
