@@ -97,6 +97,7 @@ _SHORT = {"sync_offset_ms": 0.0, "clock_drift_ppm": 0.0, "standing_s": 1.0}
 
 _BURSTY = {"loss_model": "bursty"}
 _RUN = {"pattern": "running", "fs_hz": 200.0, "activities": ("standing",)}
+_RUN_LOSS = {**_RUN, "fs_hz": 128.0, "impact_g": 6.0, "packet_samples": 20, **_BURSTY}
 AXES: dict[str, Axis] = {
     "standing": Axis("Standing knee flexion (the pipeline's absolute zero; gait curve unchanged)", (
         _v("0 deg", stand_knee_deg=0.0), _v("4 deg", stand_knee_deg=4.0), _v("8 deg", stand_knee_deg=8.0),
@@ -125,6 +126,14 @@ AXES: dict[str, Axis] = {
         _v("10 g, ringing, no quiet standing", RUNNING_TARGETS, impact_g=10.0, impact_model="ringing",
            **{**_RUN, "standing_s": 0.5, "bout_strides": 1000})),
         note="Targets for running: |peak bias| <= 2 deg, RMSE <= 4 deg (issue 9)."),
+    "running_loss": Axis("Running (128 Hz, 6 g) with bursty packet loss per sensor (20-sample packets, mean burst 4 "
+                         "packets)", (
+        _v("0 %", RUNNING_TARGETS, packet_loss=0.0, **_RUN_LOSS),
+        _v("3 %", RUNNING_TARGETS, packet_loss=0.03, **_RUN_LOSS),
+        _v("5 %", RUNNING_TARGETS, packet_loss=0.05, **_RUN_LOSS),
+        _v("10 %", {**RUNNING_TARGETS, "recall": 0.9}, packet_loss=0.10, **_RUN_LOSS)),
+        note="Running targets as above; recall target at 10 % loss: >= 0.9. The EKF restarts after every hole, "
+             "filled or masked (pipeline.filter_inputs.run_per_segment)."),
     "lever": Axis("Lever arms and mounting", (
         _v("aligned mounting", mounting="aligned"), _v("random mounting (default)"),
         _v("lever arms x1.5", lever_scale=1.5),

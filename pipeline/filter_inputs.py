@@ -52,11 +52,23 @@ def debiased_rate(leg: LegInput) -> np.ndarray:
     return rate if bias is None else rate - bias
 
 
+STENCIL_HALF = 2
+"""Samples on either side of a sample that Seel's Eq. 1 (the five-point angular acceleration,
+:func:`pipeline.axes.angular_acceleration`) reads."""
+
+
 def update_mask(leg: LegInput) -> np.ndarray:
     """(N,) bool, where the accelerometer may update the filters: valid samples with a finite accelerometer angle,
     restricted by the leg's ``acc_update_mask`` when it has one (running: 40-80 % of each cycle and quiet periods,
-    never at an impact)."""
-    mask = leg.prep.valid & np.isfinite(leg.acc_angle_deg)
+    never at an impact). Never within ``STENCIL_HALF`` samples of a masked gap: the lever-arm term (Seel Eq. 6)
+    differentiates the gyro across the hole there, whose zeroed samples make the angular acceleration and so the
+    accelerometer angle anything (an EKF update with such a sample once threw a restarted filter 180 deg off)."""
+    valid = leg.prep.valid
+    near_hole = ~valid
+    for k in range(1, STENCIL_HALF + 1):
+        near_hole[k:] |= ~valid[:-k]
+        near_hole[:-k] |= ~valid[k:]
+    mask = ~near_hole & np.isfinite(leg.acc_angle_deg)
     extra = leg.acc_update_mask
     return mask & np.asarray(extra, dtype=bool) if extra is not None else mask
 
@@ -68,10 +80,36 @@ def r_scale(leg: LegInput, quiet: np.ndarray) -> np.ndarray:
 
 
 def run_per_segment(leg: LegInput, fn: Callable[[int, int], np.ndarray]) -> np.ndarray:
-    """``fn(a, b)`` on each valid run ``[a, b)`` of the leg (the filters restart after a masked gap), NaN elsewhere."""
+    """``fn(a, b)`` on each valid run ``[a, b)`` of the leg, NaN elsewhere. The filters restart after a masked gap,
+    and after a hole filled from the neighbouring strides (``PreparedLeg.filled_s``): a filter integrates the
+    fill's rate like a measured one, and a neighbouring stride's integral misses the lost one's by several degrees,
+    which a recursive filter carries forward over the following strides until its accelerometer updates wear it off
+    (walking's GO restarts every stride and never carries it). Inside the fill the filter's angle is moved linearly
+    onto the restarted filter's first value, as a drift between two anchors.
+
+    Measured on running with bursty loss (tune seeds 0-9, 128 Hz, 20-sample packets): peak LoA at 3 / 5 / 10 %
+    loss -8.2 .. 8.0 / -10.8 .. 10.8 / -10.2 .. 10.1 deg carried through the fills, -4.3 .. 4.0 / -5.4 .. 4.7 /
+    -5.6 .. 4.5 restarted (-4.2 .. 4.0 without loss)."""
     ok = leg.prep.valid & np.isfinite(leg.rate_dps)
+    measured = leg.prep.measured()
     out = np.full(ok.shape[0], np.nan)
     for a, b in true_runs(ok):
-        if b - a >= 2:
-            out[a:b] = fn(a, b)
+        if b - a < 2:
+            continue
+        m = measured[a:b]
+        # a piece restarts at the first measured sample after each fill
+        restarts = [k for k in (a + 1 + np.flatnonzero(m[1:] & ~m[:-1])).tolist() if k <= b - 2]
+        bounds = [a, *restarts, b]
+        for s, e in zip(bounds[:-1], bounds[1:], strict=True):
+            out[s:e] = fn(s, e)
+        for k1 in restarts:
+            # the fill ends the piece before k1: ramp its angle onto k1's restarted value
+            k0 = k1 - 1
+            while k0 > a and not measured[k0]:
+                k0 -= 1
+            if not (np.isfinite(out[k0]) and np.isfinite(out[k1])):
+                continue
+            prev = out[k1 - 1] + (out[k1 - 1] - out[k1 - 2]) if k1 - 2 >= k0 else out[k1 - 1]
+            u = (np.arange(k0 + 1, k1) - k0) / (k1 - k0)
+            out[k0 + 1:k1] += u * (out[k1] - prev)
     return out

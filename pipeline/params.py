@@ -325,6 +325,10 @@ class KfParams:
     against a stride, so within-stride accelerometer errors average out, short against gyro drift."""
     quiet_r_scale: float = 0.01
     """R is multiplied by this while the leg is quiet: the accelerometer angle then sees gravity only."""
+    start_span_s: float = 1.0
+    """A filter's start value (at the session's start and after every hole) explains this much [s] of accelerometer
+    angle given the gyroscope's motion (:func:`pipeline.estimators.kf.start_from_measurement`): one stride or more,
+    so the segment accelerations average out, short enough that the gyro's drift over it stays below a degree."""
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,7 @@ from pipeline.estimators.kf import (
     filter_setup,
     interval_rate,
     q_for_time_constant,
+    start_from_measurement,
 )
 from pipeline.filter_inputs import debiased_rate, r_scale, run_per_segment, update_mask
 from pipeline.leg_input import LegInput
@@ -57,8 +58,9 @@ def ekf_angle(rate_dps: np.ndarray, acc_a_plane_mps2: np.ndarray, acc_b_plane_mp
     ``acc_*_plane_mps2`` are (N, 2): the lever-arm-corrected accelerations projected on each segment's joint-plane
     axes ``(x_i, y_i)`` of Eq. 7, with ``b = Rot(alpha) a``. ``tau_s`` sets Q as in the KF, with R's angle
     equivalent ``r_x / g^2``. ``update_mask`` False skips the measurement update (impacts, NaN samples).
-    Without ``x0_deg`` the state starts at the accelerometer angle of the first usable sample (variance
-    ``R_DEG2``). ``r_scale`` (per sample) multiplies R, as in :func:`pipeline.estimators.kf.kf_angle`.
+    Without ``x0_deg`` the state starts where the first second of usable accelerometer angles puts it
+    (:func:`pipeline.estimators.kf.start_from_measurement`, variance ``R_DEG2``). ``r_scale`` (per sample)
+    multiplies R, as in :func:`pipeline.estimators.kf.kf_angle`.
     With ``r_x = r_y`` an exactly equivalent, faster form runs unless ``force_general``."""
     rate = interval_rate(np.asarray(rate_dps, dtype=float))
     a1 = np.asarray(acc_a_plane_mps2, dtype=float).reshape(-1, 2)
@@ -75,13 +77,9 @@ def ekf_angle(rate_dps: np.ndarray, acc_a_plane_mps2: np.ndarray, acc_b_plane_mp
     ry = rx if r_y_mps2_sq is None else float(r_y_mps2_sq)
     q = q_for_time_constant(tau_s, fs_hz, 0.5 * (rx + ry) / G_MPS2**2)
     if x0_deg is None:
-        first = np.flatnonzero(mask)
-        if first.size:
-            k0 = int(first[0])
-            x = math.atan2(a1[k0, 0] * a2[k0, 1] - a1[k0, 1] * a2[k0, 0], a1[k0, 0] * a2[k0, 0] + a1[k0, 1] * a2[k0, 1])
-            x -= math.radians(float(np.sum(rate[:k0])) * dt)  # carried back to sample 0 with the gyroscope
-        else:
-            x = 0.0
+        theta = np.degrees(np.arctan2(a1[:, 0] * a2[:, 1] - a1[:, 1] * a2[:, 0],
+                                      a1[:, 0] * a2[:, 0] + a1[:, 1] * a2[:, 1]))
+        x = math.radians(start_from_measurement(theta, mask, rate_dps, dt))
     else:
         x = math.radians(x0_deg)
     p = DEG2_TO_RAD2 * (R_DEG2 if p0_deg2 is None else p0_deg2)

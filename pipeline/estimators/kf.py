@@ -36,6 +36,7 @@ from pipeline.tuning import TuningDiagnostics, tune_time_constant
 # defaults of the bare filter functions, from the walking preset (the leg-level estimators read ``leg.params.kf``)
 R_DEG2 = WALKING.kf.r_deg2
 FILTER_TAU_S = WALKING.kf.filter_tau_s
+START_SPAN_S = WALKING.kf.start_span_s
 
 
 def gain_for_time_constant(tau_s: float, fs_hz: float) -> float:
@@ -138,13 +139,19 @@ def kf_gains(update_mask: np.ndarray, q: float, r: float | np.ndarray, p0: float
     return gains
 
 
-def start_from_measurement(z: np.ndarray, mask: np.ndarray, rate_dps: np.ndarray, dt: float) -> float:
-    """Initial state from the first usable accelerometer angle, carried back to sample 0 with the gyroscope."""
+def start_from_measurement(z: np.ndarray, mask: np.ndarray, rate_dps: np.ndarray, dt: float,
+                           span_s: float = START_SPAN_S) -> float:
+    """Initial state [deg] at sample 0: the angle that best explains the usable accelerometer angles ``z`` of the
+    first ``span_s`` after the first one, given the gyroscope's motion (median of accelerometer angle minus the
+    rate's integral from sample 0). One sample's accelerometer angle in gait is off by the segment accelerations of
+    that instant, several degrees; over ``span_s`` they average out while the integral's drift stays well below a
+    degree (the walking CF starts the same way, :func:`pipeline.estimators.cf.complementary_filter`)."""
     first = np.flatnonzero(mask)
     if not first.size:
         return 0.0
-    f = int(first[0])
-    return float(z[f] - dt * np.sum(interval_rate(rate_dps)[:f]))
+    use = first[first < first[0] + max(int(round(span_s / dt)), 1)]
+    moved = np.concatenate(([0.0], np.cumsum(interval_rate(rate_dps)[:-1]))) * dt
+    return float(np.median(z[use] - moved[use]))
 
 
 def kf_angle(rate_dps: np.ndarray, acc_angle_deg: np.ndarray, fs_hz: float, *,
@@ -156,9 +163,10 @@ def kf_angle(rate_dps: np.ndarray, acc_angle_deg: np.ndarray, fs_hz: float, *,
     ``rate_dps``: relative angular rate about the joint axis (``g1.j1 - g2.j2``), ``acc_angle_deg``: the
     accelerometer angle (Eq. 7), ``update_mask``: where the accelerometer angle may update the state (False around
     foot strikes and where it is NaN). Initialisation needs no motion capture: ``x0_deg`` (e.g. the angle of a
-    standing period) with variance ``p0_deg2``; without it the filter starts from the first usable accelerometer
-    angle with variance R. ``r_scale`` (per sample, default 1) multiplies R: the accelerometer angle is far more
-    trustworthy while the leg is still (no segment accelerations) than in motion; Q stays set by ``tau_s``."""
+    standing period) with variance ``p0_deg2``; without it the filter starts where the first second of usable
+    accelerometer angles puts it (:func:`start_from_measurement`) with variance R. ``r_scale`` (per sample,
+    default 1) multiplies R: the accelerometer angle is far more trustworthy while the leg is still (no segment
+    accelerations) than in motion; Q stays set by ``tau_s``."""
     rate = np.asarray(rate_dps, dtype=float)
     z = np.asarray(acc_angle_deg, dtype=float)
     n = rate.shape[0]

@@ -13,9 +13,10 @@ from pipeline.estimators.kf import (
     kf_gains,
     linear_recursion,
     q_for_time_constant,
+    start_from_measurement,
     time_constant_for_q,
 )
-from pipeline.filter_inputs import stride_bias_dps
+from pipeline.filter_inputs import run_per_segment, stride_bias_dps
 
 FS = 200.0
 
@@ -143,8 +144,19 @@ def test_kf_initialises_from_accelerometer_angle() -> None:
     n = int(5 * FS)
     _, angle, rate = _knee(n)
     est = kf_angle(rate, angle + 20.0, FS)  # constant accelerometer bias: the estimate follows it
-    assert est[0] == pytest.approx(angle[0] + 20.0)
+    assert est[0] == pytest.approx(angle[0] + 20.0, abs=0.01)
     assert np.abs(est - angle - 20.0).max() < 0.5
+
+
+def test_filters_start_where_a_second_of_accelerometer_angles_puts_them() -> None:
+    """A segment acceleration of the first instant (here 8 deg, ringing at 7 Hz) does not set the start: the median
+    of a second of accelerometer angle minus the gyro's integral does."""
+    n = int(5 * FS)
+    t, angle, rate = _knee(n)
+    z = angle + 8.0 * np.cos(2 * np.pi * 7.0 * t)
+    assert abs(start_from_measurement(z, np.ones(n, dtype=bool), rate, 1 / FS) - angle[0]) < 0.5
+    late = np.arange(n) >= 50  # the first usable sample later: carried back to sample 0 with the gyroscope
+    assert abs(start_from_measurement(z, late, rate, 1 / FS) - angle[0]) < 0.5
 
 
 def test_ekf_tracks_rotated_accelerations() -> None:
@@ -198,3 +210,29 @@ def test_isotropic_ekf_shortcut_equals_equations_22_to_24() -> None:
     np.testing.assert_allclose(fast, slow, atol=1e-8)
     aniso = ekf_angle(rate, a_thigh, a_shank, FS, update_mask=mask, r_y_mps2_sq=30.0)
     assert np.abs(aniso - fast).max() > 0.1  # a different R does change the estimate
+
+
+def test_filters_restart_after_a_masked_gap_and_after_a_fill() -> None:
+    """``run_per_segment`` restarts at the first measured sample after a fill and moves the fill's angle linearly
+    onto the restarted value, so the trace stays continuous and the fill's integral is not carried on."""
+    from types import SimpleNamespace
+
+    n = 100
+    valid = np.ones(n, dtype=bool)
+    valid[70:75] = False  # a masked gap
+    measured = valid.copy()
+    measured[30:40] = False  # a fill: valid, but a neighbouring stride's samples
+    prep = SimpleNamespace(valid=valid, measured=lambda: measured)
+    leg = SimpleNamespace(prep=prep, rate_dps=np.zeros(n))
+    calls: list[tuple[int, int]] = []
+
+    def fn(a: int, b: int) -> np.ndarray:
+        calls.append((a, b))
+        return np.full(b - a, 10.0 * len(calls))  # each restart its own level
+
+    out = run_per_segment(leg, fn)  # type: ignore[arg-type]
+    assert calls == [(0, 40), (40, 70), (75, 100)]
+    assert np.all(out[:30] == 10.0) and np.all(out[40:70] == 20.0) and np.all(out[75:] == 30.0)
+    assert np.all(np.isnan(out[70:75]))
+    ramp = out[29:41]
+    assert np.all(np.diff(ramp) > 0) and ramp[0] == 10.0 and ramp[-1] == 20.0  # from the last measured to the restart
