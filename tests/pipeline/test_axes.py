@@ -300,3 +300,25 @@ def test_the_centre_fit_samples_span_the_same_stretch_of_gait_at_any_rate() -> N
     g = np.stack([np.sin(2 * np.pi * t), np.cos(2 * np.pi * 0.9 * t), 0.1 * t], axis=1)
     dense = select_fit_samples(g, g, np.ones(t.size, dtype=bool))
     assert len(np.unique(np.round(t[dense], 1))) < 0.8 * spans[100.0]
+
+
+def test_thigh_sign_follows_the_segments_angles_not_their_rates() -> None:
+    """Thigh and shank ANGLES co-vary in gait (both most forward at heel strike): the thigh's sign follows them even
+    when opposed high-frequency motion (soft tissue, ringing after heel strike) makes the RATES anti-correlated, which
+    flipped the thigh of some legs on an independent simulator (a knee read as the sum of the segments' angles)."""
+    fs, stride_s = 100.0, 1.1
+    n = int(fs * stride_s * 20)
+    t = np.arange(n) / fs
+    phase = (t / stride_s) % 1.0
+    thigh = 20 * np.cos(2 * np.pi * (phase - 0.87))
+    knee = 60 * np.exp(-(((phase - 0.72) / 0.09) ** 2)) + 15 * np.exp(-(((phase - 0.15) / 0.07) ** 2))
+    ring = 600 * np.sin(2 * np.pi * 12 * t) * np.exp(-phase / 0.1)
+    w1 = np.gradient(thigh) * fs + ring
+    w2 = np.gradient(thigh - knee) * fs - ring
+    assert np.corrcoef(w1, w2)[0, 1] < 0  # the rates alone would flip the thigh
+    j = np.array([0.0, 0.0, 1.0])
+    g1, g2 = np.outer(np.radians(w1), j), np.outer(np.radians(w2), j)
+    hs = np.arange(0, n, int(fs * stride_s))
+    strides = [(int(a), int(a) + 60, int(b)) for a, b in zip(hs[:-1], hs[1:], strict=True)]
+    assert np.array_equal(orient_thigh_on_gait(j, j, g1, g2, strides), j)
+    assert np.array_equal(orient_thigh_on_gait(-j, j, g1, g2, strides), j)
