@@ -42,7 +42,7 @@ from pipeline.params import FusionParams, QualityParams
 from pipeline.phases import midstance_bounds
 from pipeline.posture import in_bouts, standing_mask, standing_reference
 from pipeline.quality import stride_quality
-from pipeline.quiet_bridge import bridged_angle, bridged_offsets, level_check
+from pipeline.quiet_bridge import bridged_angle, bridged_offsets, level_check, stride_means
 from pipeline.signal_utils import ranges_mask, row_norm, segment_sums
 from pipeline.tuning import TuningDiagnostics
 from pipeline.types import AbsoluteReference
@@ -261,14 +261,7 @@ def _stride_flags(leg: LegInput, go_diag: GoDiagnostics, go_abs: np.ndarray, cf_
     for g0, g1 in prep.bridged_s:
         i0, i1 = np.searchsorted(prep.t_s, [g0, g1])
         bridged |= (lo <= i1) & (hi > i0)
-    zi, zf, drift = go_diag.zau_idx, go_diag.zau_found, go_diag.drift_deg
-    zl, zh = np.searchsorted(zi, lo), np.searchsorted(zi, hi)
-    missing = np.concatenate(([0], np.cumsum(~zf)))
-    no_crossing = (missing[zh] - missing[zl]) > 0
-    big_drift = np.concatenate(([0], np.cumsum(np.nan_to_num(np.abs(drift)) > p.drift_max_deg))) if drift.size \
-        else np.zeros(1, dtype=int)
-    d_lo, d_hi = np.clip(zl - 1, 0, drift.size), np.clip(zh, 0, drift.size)
-    drifted = (big_drift[d_hi] - big_drift[d_lo]) > 0
+    no_crossing, drifted = _go_failures(go_diag, p, lo, hi)
     e = go_abs - cf_used
     e_ok = np.isfinite(e)
     e0 = np.where(e_ok, e, 0.0)
@@ -277,6 +270,29 @@ def _stride_flags(leg: LegInput, go_diag: GoDiagnostics, go_abs: np.ndarray, cf_
     var_e = np.maximum(segment_sums(e0 * e0, lo, hi) / ne - mean_e ** 2, 0.0)
     return _StrideFlags(go_complete=go_complete, no_crossing=no_crossing, drifted=drifted, saturated=saturated,
                         bridged=bridged, mismatch=np.sqrt(var_e) > p.mismatch_deg)
+
+
+def _go_failures(go_diag: GoDiagnostics, p: FusionParams, lo: np.ndarray, hi: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Per stride ``[lo, hi)``: whether GO found no zero crossing in it, and whether its drift exceeded
+    ``p.drift_max_deg``."""
+    zi, zf, drift = go_diag.zau_idx, go_diag.zau_found, go_diag.drift_deg
+    zl, zh = np.searchsorted(zi, lo), np.searchsorted(zi, hi)
+    missing = np.concatenate(([0], np.cumsum(~zf)))
+    no_crossing = (missing[zh] - missing[zl]) > 0
+    big_drift = np.concatenate(([0], np.cumsum(np.nan_to_num(np.abs(drift)) > p.drift_max_deg))) if drift.size \
+        else np.zeros(1, dtype=int)
+    d_lo, d_hi = np.clip(zl - 1, 0, drift.size), np.clip(zh, 0, drift.size)
+    return no_crossing, (big_drift[d_hi] - big_drift[d_lo]) > 0
+
+
+def _fallback_check(bridged_ang: np.ndarray, cf_used: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                    p: FusionParams) -> float | None:
+    """The bridged angle minus the CF [deg], median over the CF fallback strides ``[lo, hi)`` bridged throughout
+    (:func:`pipeline.quiet_bridge.stride_means`); None with fewer than ``p.bridge_min_strides`` of them."""
+    d = stride_means(bridged_ang - cf_used, lo, hi)
+    d = d[np.isfinite(d)]
+    return float(np.median(d)) if d.size >= p.bridge_min_strides else None
 
 
 def _choose(flags: _StrideFlags, k: int, absolute_ok: bool, quiet_count: int, p: FusionParams,
@@ -317,11 +333,16 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     # acc - ref reads 0 when standing; standing itself is standing_knee_deg of flexion
     ref_deg = ref - leg.params.posture.standing_knee_deg if ref is not None else 0.0
     offs, quiet_counts = stance_offsets(leg, go_rel + ref_deg, strides)
-    check, bridged_level = None, False
+    check, bridged_level, bridged_ang = None, False, None
+    arr = np.asarray(strides, dtype=int).reshape(-1, 3)
+    lo, hi = arr[:, 0], arr[:, 2] + 1
     if absolute_ok and strides:
-        # the level the gyros carry from the quiet standing around each walk (quiet_bridge)
-        bridged = bridged_offsets(leg, go_rel, bridged_angle(leg, ref_deg, p, standing), strides)
-        both = np.isfinite(bridged) & np.isfinite(offs)
+        # the level the gyros carry from the quiet standing around each walk (quiet_bridge), against the mid-stance
+        # level of the strides whose GO holds (a GO that found no zero crossing or drifted has no level to check)
+        bridged_ang = bridged_angle(leg, ref_deg, p, standing)
+        bridged = bridged_offsets(leg, go_rel, bridged_ang, strides)
+        no_crossing, drifted = _go_failures(go_diag, p, lo, hi)
+        both = np.isfinite(bridged) & np.isfinite(offs) & ~no_crossing & ~drifted
         if both.sum() >= p.bridge_min_strides:
             check = float(np.median(bridged[both] - offs[both]))
             if abs(check) > p.bridge_disagree_deg:
@@ -347,8 +368,6 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
                             standing_ref_deg=ref_out, cf_shift_deg=round(cf_shift, 2))
     centres = np.array([(a + b) / 2.0 for a, _, b in strides])
     go_abs = go_rel + np.interp(np.arange(n), centres, smooth)
-    arr = np.asarray(strides)
-    lo, hi = arr[:, 0], arr[:, 2] + 1
     flags = _stride_flags(leg, go_diag, go_abs, cf_used, lo, hi)
     level = _level_reasons(leg)
     # a choice depends on the stride only through its flags: one per distinct combination, shared (frozen)
@@ -363,10 +382,15 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     # GO inside the strides that kept it; extending it to the bout edges (gait initiation and termination, where
     # its drift line is extrapolated) is worse on the simulator (crouch) and mixed on the real trial
     go_mask = ranges_mask(n, lo[use], hi[use])
-    if bridged_level:
-        # the CF in a fallback stride follows the accelerometer's level in motion, which the check rejected;
+    cf_check = _fallback_check(bridged_ang, cf_used, lo[~use], hi[~use], p) if bridged_ang is not None else None
+    cf_moves = cf_check is not None and abs(cf_check) > p.bridge_disagree_deg
+    if cf_moves or (cf_check is None and bridged_level):
+        # the CF in a fallback stride follows the accelerometer's level in motion: checked by the bridges on its own
+        # strides where they reach them, else moved with the leg's GO strides when their level was rejected;
         # outside the strides (standing, sitting) it is the static angle and stays
-        angle[ranges_mask(n, lo[~use], hi[~use])] += check
+        angle[ranges_mask(n, lo[~use], hi[~use])] += cf_check if cf_moves else check
+    if check is None and cf_check is not None:
+        check, bridged_level = cf_check, cf_moves
     angle[go_mask] = go_abs[go_mask]
     labels = np.where(go_mask, "go", labels)
     labels = np.where(np.isfinite(angle), labels, "")

@@ -109,7 +109,7 @@ def bridged_angle(leg: LegInput, zero_deg: float, params: FusionParams, standing
     return out
 
 
-def _whole_means(d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+def stride_means(d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """The mean of ``d`` (N,) over each range ``[lo, hi)``, NaN where the range holds a non-finite value."""
     ok = np.isfinite(d)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -124,7 +124,7 @@ def bridged_offsets(leg: LegInput, go_rel: np.ndarray, bridged: np.ndarray, stri
     if not strides:
         return np.zeros(0)
     lo, hi = midstance_bounds(strides, leg.params.fusion.midstance_window)
-    return _whole_means(bridged - go_rel, lo, hi)
+    return stride_means(bridged - go_rel, lo, hi)
 
 
 def level_check(leg: LegInput, angle_deg: np.ndarray, zero_deg: float, params: FusionParams, standing: np.ndarray
@@ -137,7 +137,7 @@ def level_check(leg: LegInput, angle_deg: np.ndarray, zero_deg: float, params: F
     if len(strides) < params.bridge_min_strides:
         return None
     arr = np.asarray(strides)
-    means = _whole_means(bridged_angle(leg, zero_deg, params, standing, one_sided=False) - angle_deg,
+    means = stride_means(bridged_angle(leg, zero_deg, params, standing, one_sided=False) - angle_deg,
                          arr[:, 0], arr[:, 2] + 1)
     means = means[np.isfinite(means)]
     return float(np.median(means)) if means.size >= params.bridge_min_strides else None

@@ -142,3 +142,21 @@ def test_cf_fallback_strides_of_a_bridged_leg_move_with_it(monkeypatch: pytest.M
     assert set(clean) == set(broken) == {"go", "cf"}
     for name in ("go", "cf"):
         assert abs(broken[name] - clean[name]) < 1.0
+
+
+def test_fallback_strides_are_checked_on_their_own_bridged_strides() -> None:
+    """A CF fallback stride's level is the CF's, not the mid-stance level of a GO that failed there: the bridges
+    check it on the fallback strides themselves (``pipeline.policy._fallback_check``), where they reach at least
+    ``FusionParams.bridge_min_strides`` of them whole."""
+    from pipeline.policy import _fallback_check
+
+    p = WALKING.fusion
+    n = 1000
+    cf = 20 * np.sin(np.linspace(0, 30, n))
+    bridged = cf + 5.0
+    bridged[:100] = np.nan  # the first stride is not bridged throughout
+    lo, hi = np.arange(0, 1000, 100), np.arange(100, 1100, 100)
+    assert _fallback_check(bridged, cf, lo, hi, p) == pytest.approx(5.0)
+    k = p.bridge_min_strides
+    assert _fallback_check(bridged, cf, lo[:k], hi[:k], p) is None  # one of the k is not whole
+    assert _fallback_check(bridged, cf, lo[1:k + 1], hi[1:k + 1], p) == pytest.approx(5.0)
