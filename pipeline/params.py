@@ -220,7 +220,8 @@ class PhaseParams:
     min_peak_dps: float = 50.0
     """Smallest mid-swing peak [deg/s]: slow walking reaches ~150; standing sway stays far below."""
     rel_peak: float = 0.35
-    """A lobe must reach this share of the session's median swing peak (turns, shuffles are lower)."""
+    """A lobe must reach this share of the session's typical swing peak, the upper quartile of its lobes (turns,
+    shuffles and the tibia's roll over the foot in mid-stance are lower)."""
     stance_neg_dps: float = 10.0
     """The smoothed rate must drop below minus this [deg/s] between two swings (a real stance)."""
     min_period_s: float = 0.5

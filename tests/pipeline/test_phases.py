@@ -82,3 +82,18 @@ def test_no_stride_ends_next_to_a_masked_gap() -> None:
     guard = int(WALKING.phases.gap_guard_s * s.fs_hz)
     for a2, _, b2 in detect_gait_events(w, s.fs_hz, valid=valid).strides:
         assert valid[max(a2 - guard, 0):b2 + guard + 1].all()
+
+
+def test_the_tibias_roll_over_the_foot_is_no_swing() -> None:
+    """In mid-stance the tibia rolls forward over the foot: a positive lobe of its own (here 90 deg/s against 350 in
+    swing, as in fast walking). With one per stride, half of the lobes are stance lobes; they must not count as
+    swings (the median of all lobes fell between the two kinds and let them through: no stride at all)."""
+    fs, stride_s = 100.0, 0.9
+    t = np.arange(int(20 * stride_s * fs)) / fs
+    phase = (t / stride_s) % 1.0
+    swing = 350 * np.exp(-(((phase - 0.75) / 0.08) ** 2))
+    roll = 90 * np.exp(-(((phase - 0.3) / 0.08) ** 2))
+    dips = -120 * np.exp(-(((phase - 0.55) / 0.05) ** 2)) - 60 * np.exp(-(((phase - 0.05) / 0.04) ** 2))
+    ev = detect_gait_events(swing + roll + dips, fs)
+    assert len(ev.strides) >= 15
+    assert np.all(np.abs(((ev.ms / fs / stride_s) % 1.0) - 0.75) < 0.05)  # every mid-swing is a swing's
