@@ -354,20 +354,27 @@ def orient_thigh_on_gait(j1: np.ndarray, j2: np.ndarray, g1: np.ndarray, g2: np.
     while the thigh has nearly stopped. A wrong sign makes the knee angle the sum of the two segments' angles, with
     no swing peak to find. Squats, jumps or sit-to-stand move the two segments in opposite senses, so they never vote
     (``strides`` are gait strides). ``j1`` unchanged without strides."""
-    if not strides:
-        return j1
+    arr = np.asarray(strides, dtype=np.int64).reshape(-1, 3)
     w1, w2 = g1 @ j1, g2 @ j2
-    cov = 0.0
-    for a, _, b in strides:
-        x1, x2 = w1[a:b + 1], w2[a:b + 1]
-        if x1.size < 3 or not (np.isfinite(x1).all() and np.isfinite(x2).all()):
-            continue
-        ramp = np.linspace(0.0, 1.0, x1.size)
-        th1, th2 = np.cumsum(x1), np.cumsum(x2)
-        th1 -= th1[0] + ramp * (th1[-1] - th1[0])
-        th2 -= th2[0] + ramp * (th2[-1] - th2[0])
-        cov += float(np.dot(th1 - th1.mean(), th2 - th2.mean()))
-    return -j1 if cov < 0 else j1
+    ok = np.isfinite(w1) & np.isfinite(w2)
+    bad = np.concatenate(([0], np.cumsum(~ok)))
+    a, b = arr[:, 0], arr[:, 2]
+    keep = (b - a >= 2) & (bad[b + 1] == bad[a])
+    if not keep.any():
+        return j1
+    a, b = a[keep], b[keep]
+    # every stride's samples at once (O(N), no loop over strides): the angle from the stride's start, less the line
+    # from its start to its end value
+    size = b - a + 1
+    sid = np.repeat(np.arange(a.size), size)
+    k = np.arange(size.sum()) - np.repeat(np.cumsum(size) - size, size) + a[sid]
+    ramp = (k - a[sid]) / (b - a)[sid]
+    th = []
+    for w in (w1, w2):
+        c = np.cumsum(np.where(ok, w, 0.0))
+        t = c[k] - c[a][sid] - ramp * (c[b] - c[a])[sid]
+        th.append(t - (np.bincount(sid, t) / size)[sid])
+    return -j1 if float(np.dot(th[0], th[1])) < 0 else j1
 
 
 def hinge_rates(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
