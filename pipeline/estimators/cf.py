@@ -56,7 +56,8 @@ def cf_running_leg(leg: LegInput, tau_s: float | None = None) -> tuple[np.ndarra
     al. skip the impacts for CF, KF and EKF alike) and the same time constant, so the two differ only in the gain
     schedule."""
     tau, diag, _ = filter_setup(leg, tau_s)
-    rate = interval_rate(debiased_rate(leg))
+    raw_rate = debiased_rate(leg)
+    rate = interval_rate(raw_rate)
     mask = update_mask(leg)
     z = np.asarray(leg.acc_angle_deg, dtype=float) - diag.acc_zero_deg
     fs = leg.fs_hz
@@ -65,10 +66,10 @@ def cf_running_leg(leg: LegInput, tau_s: float | None = None) -> tuple[np.ndarra
     def run(a: int, b: int) -> np.ndarray:
         gains = np.where(mask[a:b], lam, 0.0)
         drive = np.concatenate(([0.0], rate[a:b - 1] / fs))
-        x0 = start_from_measurement(z[a:b], mask[a:b], rate[a:b], 1.0 / fs)
+        x0 = start_from_measurement(z[a:b], mask[a:b], raw_rate[a:b], 1.0 / fs)
         return linear_recursion(1.0 - gains, (1.0 - gains) * drive + gains * np.where(mask[a:b], z[a:b], 0.0), x0)
 
-    return run_per_segment(leg, run), diag
+    return run_per_segment(leg, run, mask), diag
 
 
 def cf_estimator(leg: LegInput) -> tuple[np.ndarray, EstimatorDiagnostics]:

@@ -187,5 +187,5 @@ def ekf_leg(leg: LegInput, tau_s: float | None = None) -> tuple[np.ndarray, Filt
     r = r_mps2_sq(leg.params.kf.r_deg2)
     angle = run_per_segment(leg, lambda a, b: ekf_angle(rate[a:b], thigh[a:b], shank[a:b], fs, tau_s=tau,
                                                         r_x_mps2_sq=r, update_mask=mask[a:b],
-                                                        r_scale=scale[a:b]))
+                                                        r_scale=scale[a:b]), mask)
     return angle, diag

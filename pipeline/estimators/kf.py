@@ -252,5 +252,5 @@ def kf_leg(leg: LegInput, tau_s: float | None = None) -> tuple[np.ndarray, Filte
     fs = leg.fs_hz
     r = leg.params.kf.r_deg2
     angle = run_per_segment(leg, lambda a, b: kf_angle(rate[a:b], z[a:b], fs, tau_s=tau, r_deg2=r,
-                                                       update_mask=mask[a:b], r_scale=scale[a:b]))
+                                                       update_mask=mask[a:b], r_scale=scale[a:b]), mask)
     return angle, diag

@@ -230,9 +230,19 @@ def test_filters_restart_after_a_masked_gap_and_after_a_fill() -> None:
         calls.append((a, b))
         return np.full(b - a, 10.0 * len(calls))  # each restart its own level
 
-    out = run_per_segment(leg, fn)  # type: ignore[arg-type]
+    out = run_per_segment(leg, fn, np.ones(n, dtype=bool))  # type: ignore[arg-type]
     assert calls == [(0, 40), (40, 70), (75, 100)]
     assert np.all(out[:30] == 10.0) and np.all(out[40:70] == 20.0) and np.all(out[75:] == 30.0)
     assert np.all(np.isnan(out[70:75]))
     ramp = out[29:41]
     assert np.all(np.diff(ramp) > 0) and ramp[0] == 10.0 and ramp[-1] == 20.0  # from the last measured to the restart
+
+    # no usable accelerometer sample after the fill: no start value there, so the filter carries on through it;
+    # none in the run after the masked gap: that run has no level and stays NaN
+    usable = np.ones(n, dtype=bool)
+    usable[40:70] = False
+    usable[75:] = False
+    calls.clear()
+    out = run_per_segment(leg, fn, usable)  # type: ignore[arg-type]
+    assert calls == [(0, 70)]
+    assert np.all(out[:70] == 10.0) and np.all(np.isnan(out[70:]))
