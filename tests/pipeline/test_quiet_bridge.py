@@ -160,3 +160,30 @@ def test_fallback_strides_are_checked_on_their_own_bridged_strides() -> None:
     k = p.bridge_min_strides
     assert _fallback_check(bridged, cf, lo[:k], hi[:k], p) is None  # one of the k is not whole
     assert _fallback_check(bridged, cf, lo[1:k + 1], hi[1:k + 1], p) == pytest.approx(5.0)
+
+
+def test_a_leg_whose_go_failed_everywhere_keeps_its_cf_level(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every stride a CF fallback (GO found no zero crossing) and GO's mid-stance levels 8 deg off, as a failed GO
+    leaves them: the level check must not read those levels (it skips strides whose GO failed), and the CF strides
+    keep the level their own bridged strides confirm."""
+    import pipeline.policy as policy
+
+    sim = _sim(0)
+    base = process_session(sim.streams, activity="walking")
+    offsets = policy.stance_offsets
+
+    def failed(go_diag: object, p: object, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.ones(lo.size, dtype=bool), np.zeros(lo.size, dtype=bool)
+
+    def off_by_8(*args: object) -> tuple[np.ndarray, np.ndarray]:
+        offs, counts = offsets(*args)
+        return offs + 8.0, counts
+
+    monkeypatch.setattr(policy, "_go_failures", failed)
+    monkeypatch.setattr(policy, "stance_offsets", off_by_8)
+    res = process_session(sim.streams, activity="walking")
+    for leg, lr in res.legs.items():
+        assert lr.strides and all(s.estimator == "cf" for s in lr.strides)
+        assert not lr.diagnostics.level_bridged
+        assert lr.diagnostics.bridge_check_deg is not None and abs(lr.diagnostics.bridge_check_deg) < 3.0
+        assert abs(_mean_peak_error(lr, sim, leg) - _mean_peak_error(base.legs[leg], sim, leg)) < 1.5
