@@ -459,6 +459,10 @@ def _shifted(sel: np.ndarray | slice, k: int) -> np.ndarray | slice:
     return slice(sel.start + k, sel.stop + k) if isinstance(sel, slice) else sel + k
 
 
+ANGULAR_ACCELERATION_HALF_WIDTH = 2
+"""Samples on either side of a sample that :func:`angular_acceleration` (Seel Eq. 1, five points) reads."""
+
+
 def angular_acceleration(g: np.ndarray, fs_hz: float) -> np.ndarray:
     """Seel Eq. 1 (Rhudy et al. 2024, Eq. 1): five-point central difference; one-sided at the ends."""
     if g.shape[0] < 5:

@@ -13,9 +13,10 @@ from collections.abc import Callable
 
 import numpy as np
 
+from pipeline.axes import ANGULAR_ACCELERATION_HALF_WIDTH
 from pipeline.leg_input import LegInput
 from pipeline.params import WALKING, FilterInputParams
-from pipeline.signal_utils import true_runs
+from pipeline.signal_utils import away_from_holes, true_runs
 
 
 def stride_bias_dps(rate_dps: np.ndarray, strides: list[tuple[int, int]],
@@ -52,23 +53,14 @@ def debiased_rate(leg: LegInput) -> np.ndarray:
     return rate if bias is None else rate - bias
 
 
-STENCIL_HALF = 2
-"""Samples on either side of a sample that Seel's Eq. 1 (the five-point angular acceleration,
-:func:`pipeline.axes.angular_acceleration`) reads."""
-
-
 def update_mask(leg: LegInput) -> np.ndarray:
     """(N,) bool, where the accelerometer may update the filters: valid samples with a finite accelerometer angle,
     restricted by the leg's ``acc_update_mask`` when it has one (running: 40-80 % of each cycle and quiet periods,
-    never at an impact). Never within ``STENCIL_HALF`` samples of a masked gap: the lever-arm term (Seel Eq. 6)
+    never at an impact). Never within the reach of Seel's Eq. 1 (``pipeline.axes.ANGULAR_ACCELERATION_HALF_WIDTH``
+    samples) of a masked gap: the lever-arm term (Seel Eq. 6)
     differentiates the gyro across the hole there, whose zeroed samples make the angular acceleration and so the
     accelerometer angle anything (an EKF update with such a sample once threw a restarted filter 180 deg off)."""
-    valid = leg.prep.valid
-    near_hole = ~valid
-    for k in range(1, STENCIL_HALF + 1):
-        near_hole[k:] |= ~valid[:-k]
-        near_hole[:-k] |= ~valid[k:]
-    mask = ~near_hole & np.isfinite(leg.acc_angle_deg)
+    mask = away_from_holes(leg.prep.valid, ANGULAR_ACCELERATION_HALF_WIDTH) & np.isfinite(leg.acc_angle_deg)
     extra = leg.acc_update_mask
     return mask & np.asarray(extra, dtype=bool) if extra is not None else mask
 
@@ -99,8 +91,9 @@ def run_per_segment(leg: LegInput, fn: Callable[[int, int], np.ndarray], usable:
     ok = leg.prep.valid & np.isfinite(leg.rate_dps)
     measured = leg.prep.measured()
     out = np.full(ok.shape[0], np.nan)
+    n_usable = np.concatenate(([0], np.cumsum(usable)))  # usable samples in [x, y): n_usable[y] - n_usable[x]
     for a, b in true_runs(ok):
-        if b - a < 2 or not usable[a:b].any():
+        if b - a < 2 or n_usable[b] == n_usable[a]:
             continue
         m = measured[a:b]
         # a piece may restart at the first measured sample after each fill
@@ -108,7 +101,7 @@ def run_per_segment(leg: LegInput, fn: Callable[[int, int], np.ndarray], usable:
         restarts: list[int] = []
         start = a
         for k, nxt in zip(cands, [*cands[1:], b][:len(cands)], strict=True):
-            if usable[start:k].any() and usable[k:nxt].any():
+            if n_usable[k] > n_usable[start] and n_usable[nxt] > n_usable[k]:
                 restarts.append(k)
                 start = k
         bounds = [a, *restarts, b]

@@ -42,7 +42,7 @@ from pipeline.params import FusionParams, QualityParams
 from pipeline.phases import midstance_bounds
 from pipeline.posture import in_bouts, standing_mask, standing_reference
 from pipeline.quality import stride_quality
-from pipeline.quiet_bridge import bridged_angle, bridged_offsets, level_check, stride_means
+from pipeline.quiet_bridge import bridged_angle, bridged_offsets, level_check, stride_check
 from pipeline.signal_utils import ranges_mask, row_norm, segment_sums
 from pipeline.tuning import TuningDiagnostics
 from pipeline.types import AbsoluteReference
@@ -286,15 +286,6 @@ def _go_failures(go_diag: GoDiagnostics, p: FusionParams, lo: np.ndarray, hi: np
     return no_crossing, (big_drift[d_hi] - big_drift[d_lo]) > 0
 
 
-def _fallback_check(bridged_ang: np.ndarray, cf_used: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                    p: FusionParams) -> float | None:
-    """The bridged angle minus the CF [deg], median over the CF fallback strides ``[lo, hi)`` bridged throughout
-    (:func:`pipeline.quiet_bridge.stride_means`); None with fewer than ``p.bridge_min_strides`` of them."""
-    d = stride_means(bridged_ang - cf_used, lo, hi)
-    d = d[np.isfinite(d)]
-    return float(np.median(d)) if d.size >= p.bridge_min_strides else None
-
-
 def _choose(flags: _StrideFlags, k: int, absolute_ok: bool, quiet_count: int, p: FusionParams,
             q: QualityParams, level_reasons: tuple[str, ...] = ()) -> StrideChoice:
     """GO or the CF fallback for stride ``k``, its quality and reasons."""
@@ -382,7 +373,8 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     # GO inside the strides that kept it; extending it to the bout edges (gait initiation and termination, where
     # its drift line is extrapolated) is worse on the simulator (crouch) and mixed on the real trial
     go_mask = ranges_mask(n, lo[use], hi[use])
-    cf_check = _fallback_check(bridged_ang, cf_used, lo[~use], hi[~use], p) if bridged_ang is not None else None
+    cf_check = None if bridged_ang is None else stride_check(bridged_ang - cf_used, lo[~use], hi[~use],
+                                                             p.bridge_min_strides)
     cf_moves = cf_check is not None and abs(cf_check) > p.bridge_disagree_deg
     if cf_moves or (cf_check is None and bridged_level):
         # the CF in a fallback stride follows the accelerometer's level in motion: checked by the bridges on its own

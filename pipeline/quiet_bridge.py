@@ -117,6 +117,15 @@ def stride_means(d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
                         np.nan)
 
 
+def stride_check(d: np.ndarray, lo: np.ndarray, hi: np.ndarray, min_strides: int) -> float | None:
+    """The median over the ranges ``[lo, hi)`` of ``d``'s (N,) mean where ``d`` is finite throughout a range
+    (:func:`stride_means`); None with fewer than ``min_strides`` such ranges. The check of a level against the
+    bridged one."""
+    means = stride_means(d, lo, hi)
+    means = means[np.isfinite(means)]
+    return float(np.median(means)) if means.size >= min_strides else None
+
+
 def bridged_offsets(leg: LegInput, go_rel: np.ndarray, bridged: np.ndarray, strides: list[tuple[int, int, int]]
                     ) -> np.ndarray:
     """Per stride, the mean of (bridged angle - GO) [deg] over the stride's mid-stance (the window of
@@ -137,7 +146,5 @@ def level_check(leg: LegInput, angle_deg: np.ndarray, zero_deg: float, params: F
     if len(strides) < params.bridge_min_strides:
         return None
     arr = np.asarray(strides)
-    means = stride_means(bridged_angle(leg, zero_deg, params, standing, one_sided=False) - angle_deg,
-                         arr[:, 0], arr[:, 2] + 1)
-    means = means[np.isfinite(means)]
-    return float(np.median(means)) if means.size >= params.bridge_min_strides else None
+    return stride_check(bridged_angle(leg, zero_deg, params, standing, one_sided=False) - angle_deg,
+                        arr[:, 0], arr[:, 2] + 1, params.bridge_min_strides)

@@ -76,32 +76,31 @@ def ekf_angle(rate_dps: np.ndarray, acc_a_plane_mps2: np.ndarray, acc_b_plane_mp
     rx = float(r_x_mps2_sq)
     ry = rx if r_y_mps2_sq is None else float(r_y_mps2_sq)
     q = q_for_time_constant(tau_s, fs_hz, 0.5 * (rx + ry) / G_MPS2**2)
+    # the angle from a to b (Eq. 23's measurement as one angle): the start value's and the isotropic loop's
+    theta = np.arctan2(a1[:, 0] * a2[:, 1] - a1[:, 1] * a2[:, 0], a1[:, 0] * a2[:, 0] + a1[:, 1] * a2[:, 1])
     if x0_deg is None:
-        theta = np.degrees(np.arctan2(a1[:, 0] * a2[:, 1] - a1[:, 1] * a2[:, 0],
-                                      a1[:, 0] * a2[:, 0] + a1[:, 1] * a2[:, 1]))
-        x = math.radians(start_from_measurement(theta, mask, rate_dps, dt))
+        x = math.radians(start_from_measurement(np.degrees(theta), mask, rate_dps, dt))
     else:
         x = math.radians(x0_deg)
     p = DEG2_TO_RAD2 * (R_DEG2 if p0_deg2 is None else p0_deg2)
     du = (np.radians(rate) * dt).tolist()
     scale = np.ones(n) if r_scale is None else np.broadcast_to(np.asarray(r_scale, float), (n,))
     if rx == ry and not force_general:
-        out = _isotropic_loop(x, p, q, rx, du, mask, scale, a1, a2)
+        out = _isotropic_loop(x, p, q, rx, du, mask, scale, a1, a2, theta)
     else:
         out = _general_loop(x, p, q, rx, ry, du, mask, scale, a1, a2)
     return np.degrees(np.asarray(out))
 
 
 def _isotropic_loop(x: float, p: float, q: float, r: float, du: list[float], mask: np.ndarray, scale: np.ndarray,
-                    a1: np.ndarray, a2: np.ndarray) -> list[float]:
+                    a1: np.ndarray, a2: np.ndarray, theta: np.ndarray) -> list[float]:
     """Eq. 15 with R = r I, simplified exactly: H = Rot(x + 90 deg) a is orthogonal to h(x) = Rot(x) a and has
     |H| = |a|, so (Sherman-Morrison) K = P H^T / (P |a|^2 + r) and the update is
     ``x += P |a| |b| / (P |a|^2 + r) * sin(theta - x)``, ``P *= r / (P |a|^2 + r)``, theta the angle from a to b
-    (precomputed for all samples). About twice as fast as the general loop."""
+    (``theta`` (N,) [rad], precomputed for all samples). About twice as fast as the general loop."""
     n = len(du)
     aa = np.einsum("ij,ij->i", a1, a1)
     ab = np.sqrt(aa * np.einsum("ij,ij->i", a2, a2))
-    theta = np.arctan2(a1[:, 0] * a2[:, 1] - a1[:, 1] * a2[:, 0], a1[:, 0] * a2[:, 0] + a1[:, 1] * a2[:, 1])
     aa_l, ab_l, th_l = aa.tolist(), ab.tolist(), theta.tolist()
     rs_l = (r * scale).tolist()
     mask_l = mask.tolist()

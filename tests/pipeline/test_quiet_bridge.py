@@ -146,9 +146,9 @@ def test_cf_fallback_strides_of_a_bridged_leg_move_with_it(monkeypatch: pytest.M
 
 def test_fallback_strides_are_checked_on_their_own_bridged_strides() -> None:
     """A CF fallback stride's level is the CF's, not the mid-stance level of a GO that failed there: the bridges
-    check it on the fallback strides themselves (``pipeline.policy._fallback_check``), where they reach at least
+    check it on the fallback strides themselves (``pipeline.quiet_bridge.stride_check``), where they reach at least
     ``FusionParams.bridge_min_strides`` of them whole."""
-    from pipeline.policy import _fallback_check
+    from pipeline.quiet_bridge import stride_check
 
     p = WALKING.fusion
     n = 1000
@@ -156,10 +156,10 @@ def test_fallback_strides_are_checked_on_their_own_bridged_strides() -> None:
     bridged = cf + 5.0
     bridged[:100] = np.nan  # the first stride is not bridged throughout
     lo, hi = np.arange(0, 1000, 100), np.arange(100, 1100, 100)
-    assert _fallback_check(bridged, cf, lo, hi, p) == pytest.approx(5.0)
+    assert stride_check(bridged - cf, lo, hi, p.bridge_min_strides) == pytest.approx(5.0)
     k = p.bridge_min_strides
-    assert _fallback_check(bridged, cf, lo[:k], hi[:k], p) is None  # one of the k is not whole
-    assert _fallback_check(bridged, cf, lo[1:k + 1], hi[1:k + 1], p) == pytest.approx(5.0)
+    assert stride_check(bridged - cf, lo[:k], hi[:k], p.bridge_min_strides) is None  # one of the k is not whole
+    assert stride_check(bridged - cf, lo[1:k + 1], hi[1:k + 1], p.bridge_min_strides) == pytest.approx(5.0)
 
 
 def test_a_leg_whose_go_failed_everywhere_keeps_its_cf_level(monkeypatch: pytest.MonkeyPatch) -> None:
