@@ -171,6 +171,13 @@ AXES: dict[str, Axis] = {
         _v("3 x 180 deg per bout, 1.5 strides each", turn_every_bouts=1, turns_per_bout=3, turn_strides=1.5),
         _v("3 x 90 deg per bout, 1 stride each", turn_every_bouts=1, turns_per_bout=3, turn_strides=1.0,
            turn_angle_deg=90.0))),
+    "pace": Axis("Walking pace changing between bouts (SimConfig.bout_pace: excursions x p, cadence x sqrt(p))", (
+        _v("normal, every other bout at pace 0.6", bout_pace=(1.0, 0.6)),
+        _v("fast, every other bout at pace 0.5", pattern="fast", bout_pace=(1.0, 0.5)),
+        _v("fast, every other bout at pace 0.4 (a shuffle)", pattern="fast", bout_pace=(1.0, 0.4)),
+        _v("fast, bouts at pace 1 / 0.7 / 0.45", pattern="fast", bout_pace=(1.0, 0.7, 0.45))),
+        note="A clinic session mixes a brisk walk test with the patient's own slow walking; the slow bouts' shank "
+             "swings reach a third of the brisk ones'."),
     "sitting": Axis("Sitting between bouts", (
         _v("seated 90 deg", activities=("sitting",)), _v("seated 70 deg", activities=("sitting",), sit_knee_deg=70.0),
         _v("3 sit-to-stand repetitions", activities=("sit_to_stand",)))),

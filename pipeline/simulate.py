@@ -193,6 +193,11 @@ class SimConfig:
     # soft-tissue artefact of the thigh sensor: the skin (and strap) turns about the femur's long axis with knee
     # flexion, this many deg at 60 deg of flexion (bone-pin vs skin-marker studies: up to ~10 deg, Benoit et al. 2006)
     thigh_sta_deg: float = 0.0
+    # walking pace per bout, cycled over the bouts (empty: every bout at the pattern's own pace). A pace p scales the
+    # bout's gait excursions (knee, hip, pelvis bob) by p and its cadence by sqrt(p), so the forward speed goes with
+    # p^1.5 and the segments' angular velocities with p^1.5 too: 0.5 turns brisk walking into a rehabilitation
+    # shuffle (shank swing peaks ~460 -> ~160 deg/s on "fast") in the same session
+    bout_pace: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -297,6 +302,7 @@ class _Timeline:
     heading_rad: np.ndarray
     bouts: list[_Bout]
     moves: _Moves = field(default_factory=_Moves)
+    pace: np.ndarray | float = 1.0  # SimConfig.bout_pace on the grid (1 between bouts, where env is 0)
 
 
 # Keyframes of non-gait movements: (time s, knee deg, hip deg, pelvis height m) relative to quiet standing.
@@ -355,15 +361,17 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
     done = 0
     k = 0
     while True:
+        pace = cfg.bout_pace[k % len(cfg.bout_pace)] if cfg.bout_pace else 1.0
+        bout_stride_s = stride_s / np.sqrt(pace)
         if total_strides is not None:
             n = min(cfg.bout_strides, total_strides - done)
         else:
-            n = int(min(cfg.bout_strides, max(3, ((cfg.duration_s or 0) - t - tail_s) / stride_s)))
+            n = int(min(cfg.bout_strides, max(3, ((cfg.duration_s or 0) - t - tail_s) / bout_stride_s)))
         if n < 3:
             break
-        dur = n * stride_s
+        dur = n * bout_stride_s
         turn = cfg.walking_turns and k % cfg.turn_every_bouts == cfg.turn_every_bouts - 1 and n >= 8
-        events.append(("walk", t, t + dur, {"turn": turn}))
+        events.append(("walk", t, t + dur, {"turn": turn, "pace": pace, "stride_s": bout_stride_s}))
         t += dur
         done += n
         if total_strides is not None and done >= total_strides:
@@ -397,19 +405,23 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
     sit = np.zeros_like(grid)
     heading = np.zeros_like(grid)
     freq = np.zeros_like(grid)
+    pace_grid = np.ones_like(grid) if cfg.bout_pace else 1.0
     bouts: list[_Bout] = []
     moves = _Moves()
     for kind, t0, t1, p in events:
         if kind == "walk":
+            bout_stride_s = p["stride_s"]
             # Gait initiation/termination: amplitude ramps over the first and last stride.
-            ramp = np.minimum(_smoothstep((grid - t0) / stride_s), _smoothstep((t1 - grid) / stride_s))
+            ramp = np.minimum(_smoothstep((grid - t0) / bout_stride_s), _smoothstep((t1 - grid) / bout_stride_s))
             env = np.maximum(env, ramp)
             inside = (grid >= t0) & (grid <= t1)
-            n = max(1, round((t1 - t0) / stride_s))
+            n = max(1, round((t1 - t0) / bout_stride_s))
             cv = 0.02 * cfg.variability
-            per = 1.0 / (stride_s * np.clip(1 + cv * rng.standard_normal(n + 2), 0.85, 1.15))
-            knots = t0 + (np.arange(n + 2) - 0.5) * stride_s
+            per = 1.0 / (bout_stride_s * np.clip(1 + cv * rng.standard_normal(n + 2), 0.85, 1.15))
+            knots = t0 + (np.arange(n + 2) - 0.5) * bout_stride_s
             freq[inside] = CubicSpline(knots, per)(grid[inside])
+            if cfg.bout_pace:
+                pace_grid[inside] = p["pace"]
             bouts.append(_Bout(t0, t1, bool(p["turn"])))
             if p["turn"]:
                 n_turns = max(1, cfg.turns_per_bout)
@@ -419,7 +431,7 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
                 for i, mid in enumerate(mids):
                     sign = 1.0 if i % 2 == 0 else -1.0  # several turns per bout: alternate, like a slalom
                     heading += sign * np.pi * (cfg.turn_angle_deg / 180.0) * _smoothstep(
-                        (grid - mid + 0.5 * ts * stride_s) / (ts * stride_s))
+                        (grid - mid + 0.5 * ts * bout_stride_s) / (ts * bout_stride_s))
         elif kind == "sit":
             ramp = p.get("ramp", 2.0)
             down = _smoothstep((grid - t0) / ramp)
@@ -438,7 +450,7 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
         frac = phase[i0] - np.floor(phase[i0])
         phase[i0:] += (1 - frac) % 1
         del i1
-    return _Timeline(grid, env, phase, sit, heading, bouts, moves)
+    return _Timeline(grid, env, phase, sit, heading, bouts, moves, pace_grid)
 
 
 def _add_moves(mv: _Moves, grid: np.ndarray, kind: str, t0: float, lead: int, legs: tuple[str, ...],
@@ -851,12 +863,13 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
         stand_knee = float(cfg.stand_knee_deg)
     stand_hip = rng.uniform(0, 5)
     heading = tl.heading_rad + _smooth_noise(rng, t, np.radians(1.0), 2.0)
-    height = tl.env * spec.bob_m * np.cos(4 * np.pi * tl.phase) - 0.45 * tl.sit
+    height = tl.env * tl.pace * spec.bob_m * np.cos(4 * np.pi * tl.phase) - 0.45 * tl.sit
     if tl.moves.height is not None:
         height = height + tl.moves.height
     body = _BodySplines(
         heading=make_interp_spline(t, heading, k=5),
-        speed=make_interp_spline(t, tl.env * spec.speed_ms * (1 + 0.06 * np.cos(4 * np.pi * tl.phase)), k=5),
+        speed=make_interp_spline(t, tl.env * tl.pace**1.5 * spec.speed_ms * (1 + 0.06 * np.cos(4 * np.pi * tl.phase)),
+                                 k=5),
         height=make_interp_spline(t, height, k=5),
     )
 
@@ -872,14 +885,15 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
         phases[leg] = phase
         s_knee = _eval_fourier(knee_c, phase % 1.0)
         s_min = s_knee.min()
-        amp = subj_knee * (1 + _per_stride_signal(rng, phase, 0.025 * var))
+        amp = subj_knee * tl.pace * (1 + _per_stride_signal(rng, phase, 0.025 * var))
         off = _per_stride_signal(rng, phase, 0.6 * var)
         gait_knee = s_min + amp * (s_knee - s_min) + off
         i_leg = 0 if leg == "left" else 1
         if cfg.knee_scale[i_leg] != 1.0 or cfg.knee_shift_deg[i_leg] != 0.0:
             gait_knee = s_min + cfg.knee_scale[i_leg] * amp * (s_knee - s_min) + off + cfg.knee_shift_deg[i_leg]
         leg_stand = stand_knee + cfg.stand_knee_right_extra_deg if leg == "right" else stand_knee
-        gait_hip = subj_hip * _eval_fourier(hip_c, phase % 1.0) * (1 + _per_stride_signal(rng, phase, 0.03 * var))
+        gait_hip = subj_hip * tl.pace * _eval_fourier(hip_c, phase % 1.0) * (
+            1 + _per_stride_signal(rng, phase, 0.03 * var))
         sway_k = _smooth_noise(rng, t, 0.7, 1.5)
         sway_h = _smooth_noise(rng, t, 0.7, 1.5)
         post_knee = (1 - tl.sit) * (leg_stand + sway_k) + tl.sit * (cfg.sit_knee_deg + sway_k)
