@@ -220,8 +220,15 @@ class PhaseParams:
     min_peak_dps: float = 50.0
     """Smallest mid-swing peak [deg/s]: slow walking reaches ~150; standing sway stays far below."""
     rel_peak: float = 0.35
-    """A lobe must reach this share of the session's typical swing peak, the upper quartile of its lobes (turns,
-    shuffles and the tibia's roll over the foot in mid-stance are lower)."""
+    """A lobe reaching this share of the session's typical swing peak, the upper quartile of its lobes, is a swing
+    (turns, shuffles and the tibia's roll over the foot in mid-stance are lower)."""
+    rel_peak_local: float = 0.6
+    """So is a lobe reaching this share of the largest lobe near it (``rel_window_lobes``): a slow bout in a brisk
+    session. Consecutive swings of steady gait differ by a few %; a step-up's trailing-leg lobes are half the
+    leading leg's and the tibia's roll a third of the swing."""
+    rel_window_lobes: int = 4
+    """Neighbours on either side (and within ``max_period_s``) that a lobe is compared with: with up to one stance
+    lobe per stride, 4 hold the swings of two strides each side."""
     stance_neg_dps: float = 10.0
     """The smoothed rate must drop below minus this [deg/s] between two swings (a real stance)."""
     min_period_s: float = 0.5

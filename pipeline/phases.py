@@ -157,18 +157,37 @@ def detect_gait_events(shank_sag_dps: np.ndarray, fs_hz: float, valid: np.ndarra
 
 
 def _swing_peaks(ws: np.ndarray, fs_hz: float, p: PhaseParams) -> list[tuple[int, int, int]]:
-    """Swing lobes of the smoothed rate ``ws`` that reach ``min_peak_dps`` and ``rel_peak`` of the typical swing
-    peak: the upper quartile of the lobes reaching ``min_peak_dps``. Not their median: in mid-stance the tibia rolls
-    forward over the foot, a positive lobe of its own (80-100 deg/s in fast walking on an independent simulator, a
-    third of the swing's), one per stride at most, so up to half of the lobes may be stance lobes and their median
-    falls between the two kinds; the upper quartile is a swing peak either way."""
+    """Swing lobes of the smoothed rate ``ws``: lobes reaching ``min_peak_dps`` that are swings among the session's
+    (``rel_peak`` of the upper quartile of its lobes) or swings among their neighbours (``rel_peak_local`` of the
+    largest of the ``rel_window_lobes`` lobes on either side that lie within ``max_period_s`` of it).
+
+    Why the upper quartile, not the median: in mid-stance the tibia rolls forward over the foot, a positive lobe of
+    its own (80-100 deg/s in fast walking on an independent simulator, a third of the swing's), one per stride at
+    most, so up to half of the lobes may be stance lobes and their median falls between the two kinds; the upper
+    quartile is a swing peak either way. Why the neighbours too: the swing peak grows with walking speed (~150
+    deg/s in a rehabilitation shuffle, ~450 in brisk walking) and a session mixes both, so a shuffle is a third of
+    the session's swings and would fail their rule. Among its neighbours it passes: consecutive swings of steady
+    gait are alike (stride-to-stride variability of a few %), so the local rule asks for more (nearly as large as
+    the largest lobe within a stride of it, not a third of the typical one) and still rejects the tibia's roll and
+    the small lobes of the trailing leg in a step-up, which lie next to lobes twice their height. The local rule only
+    adds lobes, so a session of one pace finds what it found with the session's rule alone."""
     lobes = _merge_lobes(ws, _swing_lobes(ws, 0.5 * p.min_peak_dps), fs_hz, p.stance_neg_dps)
     if not lobes:
         return []
-    heights = np.array([ws[pk] for _, pk, _ in lobes])
-    big = heights[heights >= p.min_peak_dps]
-    thresh = max(p.min_peak_dps, p.rel_peak * float(np.percentile(big, 75))) if big.size else np.inf
-    return [lb for lb, h in zip(lobes, heights, strict=True) if h >= thresh]
+    arr = np.asarray(lobes)
+    heights = ws[arr[:, 1]]
+    big = np.flatnonzero(heights >= p.min_peak_dps)
+    if big.size == 0:
+        return []
+    session = p.rel_peak * float(np.percentile(heights[big], 75))
+    k = p.rel_window_lobes
+    h = np.pad(heights[big], k, constant_values=np.nan)
+    t = np.pad(arr[big, 1].astype(float), k, constant_values=np.nan)
+    h_win, t_win = sliding_window_view(h, 2 * k + 1), sliding_window_view(t, 2 * k + 1)
+    near = np.abs(t_win - t_win[:, k:k + 1]) <= p.max_period_s * fs_hz  # NaN padding compares False
+    local = p.rel_peak_local * np.where(near, h_win, 0.0).max(axis=1)
+    keep = heights[big] >= np.minimum(session, local)
+    return [lobes[i] for i in big[keep].tolist()]
 
 
 def _toe_offs(we: np.ndarray, starts: np.ndarray, ms_a: np.ndarray, fs_hz: float, p: PhaseParams) -> np.ndarray:

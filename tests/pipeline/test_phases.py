@@ -97,3 +97,44 @@ def test_the_tibias_roll_over_the_foot_is_no_swing() -> None:
     ev = detect_gait_events(swing + roll + dips, fs)
     assert len(ev.strides) >= 15
     assert np.all(np.abs(((ev.ms / fs / stride_s) % 1.0) - 0.75) < 0.05)  # every mid-swing is a swing's
+
+
+def _gait_rate(t: np.ndarray, stride_s: float, swing_dps: float) -> np.ndarray:
+    """A shank sagittal rate [deg/s] of steady gait: a swing lobe, the tibia's roll in mid-stance (a quarter of the
+    swing) and the stance dips around them."""
+    phase = (t / stride_s) % 1.0
+    return swing_dps * (np.exp(-(((phase - 0.75) / 0.08) ** 2)) + 0.25 * np.exp(-(((phase - 0.3) / 0.08) ** 2))
+                        - 0.35 * np.exp(-(((phase - 0.55) / 0.05) ** 2))
+                        - 0.2 * np.exp(-(((phase - 0.05) / 0.04) ** 2)))
+
+
+def test_a_shuffle_after_a_brisk_walk_keeps_its_strides() -> None:
+    """A brisk walk (swings of 450 deg/s) and, after 3 s of standing, a rehabilitation shuffle (130 deg/s, slower
+    cadence) in one session: the shuffle's swings are a quarter of the session's and failed the session-wide rule
+    (no shuffle stride at all); among their neighbours they are swings."""
+    fs = 100.0
+    brisk = _gait_rate(np.arange(int(12 * 0.95 * fs)) / fs, 0.95, 450.0)
+    shuffle = _gait_rate(np.arange(int(12 * 1.6 * fs)) / fs, 1.6, 130.0)
+    w = np.concatenate([brisk, np.zeros(int(3 * fs)), shuffle])
+    ev = detect_gait_events(w, fs)
+    t0_shuffle = (brisk.size + 3 * fs) / fs
+    starts_s = np.array([a for a, _, _ in ev.strides]) / fs
+    assert np.sum(starts_s > t0_shuffle) >= 9
+    assert np.sum(starts_s < brisk.size / fs) >= 9
+    mid_swing_phase = np.where(ev.ms / fs < t0_shuffle, ev.ms / fs / 0.95, (ev.ms / fs - t0_shuffle) / 1.6) % 1.0
+    assert np.all(np.abs(mid_swing_phase - 0.75) < 0.05)  # no tibia roll taken for a swing, brisk or slow
+
+
+def test_a_lobe_half_the_height_of_its_neighbours_is_no_swing() -> None:
+    """Step-ups beside a walk: lobes of 110 deg/s next to lobes of 55 (the leading and the trailing leg's shank),
+    far below the walk's swings. Neither rule may make swings of the small ones, so no bout forms of them."""
+    fs = 100.0
+    walk = _gait_rate(np.arange(int(12 * 1.1 * fs)) / fs, 1.1, 380.0)
+    t = np.arange(int(20 * fs)) / fs
+    lobe_times, heights = np.arange(1.0, 19.0, 1.8), np.tile([110.0, 60.0, 60.0, 110.0], 3)[:10]
+    steps = sum(h * np.exp(-(((t - c) / 0.15) ** 2)) - 0.4 * h * np.exp(-(((t - c - 0.5) / 0.15) ** 2))
+                for c, h in zip(lobe_times, heights, strict=True))
+    ev = detect_gait_events(np.concatenate([walk, np.zeros(int(3 * fs)), steps]), fs)
+    found = np.interp(ev.ms / fs - (walk.size / fs + 3), t, steps, left=np.nan)
+    assert np.sum(found > 90) >= 4  # the step-ups' large lobes stand out among their neighbours
+    assert not np.any(found < 90)  # the small ones never
