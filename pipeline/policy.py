@@ -76,6 +76,9 @@ class PolicyResult:
     # bridged one was taken (FusionParams.bridge_disagree_deg)
     bridge_check_deg: float | None = None
     level_bridged: bool = False
+    # the same check on the CF fallback strides alone (their level follows the accelerometer in motion), and whether
+    # they were moved by it; ``level_bridged`` also holds when only they were
+    fallback_bridge_check_deg: float | None = None
 
 
 def _reference(ref: float | None) -> AbsoluteReference:
@@ -382,11 +385,13 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
         # outside the strides (standing, sitting) it is the static angle and stays
         angle[ranges_mask(n, lo[~use], hi[~use])] += cf_check if cf_moves else check
     if check is None and cf_check is not None:
-        check, bridged_level = cf_check, cf_moves
+        check = cf_check
     angle[go_mask] = go_abs[go_mask]
     labels = np.where(go_mask, "go", labels)
     labels = np.where(np.isfinite(angle), labels, "")
     return PolicyResult(angle_deg=angle, estimator=labels.astype(str), choices=choices, absolute_reference=reference,
                         standing_ref_deg=ref_out, cf_shift_deg=round(cf_shift, 2),
                         offset_median_deg=round(raw_level, 2),
-                        bridge_check_deg=None if check is None else round(check, 2), level_bridged=bridged_level)
+                        bridge_check_deg=None if check is None else round(check, 2),
+                        level_bridged=bridged_level or cf_moves,
+                        fallback_bridge_check_deg=None if cf_check is None else round(cf_check, 2))

@@ -106,14 +106,22 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
     warnings += [f"{leg} leg: its thigh and shank clocks run apart faster than crystal clocks can; the knee angle's "
                  "timing is unknown and its strides are kept out of trends (clock_disagreement)"
                  for leg in sorted(legs) if _clock_unknown(legs[leg])]
-    warnings += [f"{leg} leg: the knee angle's level in motion disagreed with the level carried from the standing "
-                 f"around the walks by {d.bridge_check_deg:+.1f} deg; the latter was used (level_bridged)"
-                 for leg in sorted(legs) if (d := legs[leg].diagnostics) is not None and d.level_bridged]
+    warnings += [_level_bridged_warning(leg, d) for leg in sorted(legs)
+                 if (d := legs[leg].diagnostics) is not None and d.level_bridged]
     for leg, how in assigned.items():
         lr = legs.get(leg)
         if lr is not None and lr.diagnostics is not None:
             lr.diagnostics = dataclasses.replace(lr.diagnostics, assignment=how)
     return SessionResult(algorithm_version=ALGORITHM_VERSION, activity=activity, legs=legs, warnings=warnings)
+
+
+def _level_bridged_warning(leg: str, d: LegDiagnostics) -> str:
+    """The session warning of a leg that took the level carried from standing (``level_bridged``), with the check of
+    its CF fallback strides when they had their own."""
+    own = d.fallback_bridge_check_deg
+    fallback = "" if own is None or own == d.bridge_check_deg else f" ({own:+.1f} deg on its CF fallback strides)"
+    return (f"{leg} leg: the knee angle's level in motion disagreed with the level carried from the standing around "
+            f"the walks by {d.bridge_check_deg:+.1f} deg{fallback}; the latter was used (level_bridged)")
 
 
 def _offset_warnings(synced: Mapping[str, SyncedLeg], by_leg: Mapping[str, Mapping[str, RawSensorStream]],
@@ -401,6 +409,7 @@ def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, stride
         o1_m=tuple(np.round(centres.o1, 4).tolist()), o2_m=tuple(np.round(centres.o2, 4).tolist()),
         cf_shift_deg=result.cf_shift_deg, offset_median_deg=result.offset_median_deg,
         bridge_check_deg=result.bridge_check_deg, level_bridged=result.level_bridged,
+        fallback_bridge_check_deg=result.fallback_bridge_check_deg,
         tau_s=None if result.tuning is None else result.tuning.tau_s, running=running,
         standing_knee_deg=data.params.posture.standing_knee_deg,
         level_source="calibration" if calibration is not None else "assumed",

@@ -129,6 +129,7 @@ class LegDiagnostics:
     # FusionParams.bridge_disagree_deg (running: RunningParams.bridge_disagree_deg) and the leg took the bridged level
     bridge_check_deg: float | None = None
     level_bridged: bool = False
+    fallback_bridge_check_deg: float | None = None  # the check on the CF fallback strides alone (walking auto)
     tau_s: float | None = None  # KF/EKF fusion time constant when tuned
     running: RunningDiagnostics | None = None
     # the standing knee flexion the level rests on, and whether it was measured ("calibration") or "assumed"

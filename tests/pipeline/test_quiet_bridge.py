@@ -187,3 +187,32 @@ def test_a_leg_whose_go_failed_everywhere_keeps_its_cf_level(monkeypatch: pytest
         assert not lr.diagnostics.level_bridged
         assert lr.diagnostics.bridge_check_deg is not None and abs(lr.diagnostics.bridge_check_deg) < 3.0
         assert abs(_mean_peak_error(lr, sim, leg) - _mean_peak_error(base.legs[leg], sim, leg)) < 1.5
+
+
+def test_cf_fallback_strides_off_level_are_moved_and_said_so(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every other stride a CF fallback whose level is 8 deg off, the GO strides right: the fallback strides are
+    moved by their own check, and the leg says so (level_bridged, the fallback strides' own figure, the warning),
+    although the GO strides' check agrees."""
+    import pipeline.policy as policy
+
+    sim = _sim(0)
+    base = process_session(sim.streams, activity="walking")
+    fuse = policy.fuse
+
+    def every_other(go_diag: object, p: object, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.arange(lo.size) % 2 == 1, np.zeros(lo.size, dtype=bool)
+
+    def cf_off_by_8(leg: object, go_rel: np.ndarray, go_diag: object, cf: np.ndarray) -> object:
+        return fuse(leg, go_rel, go_diag, cf + 8.0)
+
+    monkeypatch.setattr(policy, "_go_failures", every_other)
+    monkeypatch.setattr(policy, "fuse", cf_off_by_8)
+    res = process_session(sim.streams, activity="walking")
+    for leg, lr in res.legs.items():
+        d = lr.diagnostics
+        assert sum(s.estimator == "cf" for s in lr.strides) >= 5
+        assert d.bridge_check_deg is not None and abs(d.bridge_check_deg) < 3.0
+        assert d.fallback_bridge_check_deg is not None and abs(d.fallback_bridge_check_deg + 8.0) < 2.0
+        assert d.level_bridged
+        assert any(w.startswith(f"{leg} leg:") and "CF fallback strides" in w for w in res.warnings)
+        assert abs(_mean_peak_error(lr, sim, leg) - _mean_peak_error(base.legs[leg], sim, leg)) < 1.5
