@@ -345,36 +345,56 @@ def orient_axes(j1: np.ndarray, j2: np.ndarray, g1: np.ndarray, g2: np.ndarray,
 
 
 def orient_thigh_on_gait(j1: np.ndarray, j2: np.ndarray, g1: np.ndarray, g2: np.ndarray,
-                         strides: list[tuple[int, int, int]]) -> np.ndarray:
-    """The sign of ``j1`` from gait only (the detected strides ``(hs, to, hs_next)``): the one under which the thigh's
-    and the shank's ANGLES about their axes (``g.j`` integrated over each stride, its drift removed as the angle
-    returns after a stride) co-vary positively. Both segments are most forward at heel strike and most backward at
-    toe-off in every walking pattern, so their angles co-vary strongly; their RATES do not (r 0.15-0.25 on the real
-    biomechZoo trial, and below zero on some legs of an independent simulator): the shank's fast forward swing comes
-    while the thigh has nearly stopped. A wrong sign makes the knee angle the sum of the two segments' angles, with
-    no swing peak to find. Squats, jumps or sit-to-stand move the two segments in opposite senses, so they never vote
-    (``strides`` are gait strides). ``j1`` unchanged without strides."""
-    arr = np.asarray(strides, dtype=np.int64).reshape(-1, 3)
-    w1, w2 = g1 @ j1, g2 @ j2
-    ok = np.isfinite(w1) & np.isfinite(w2)
-    bad = np.concatenate(([0], np.cumsum(~ok)))
-    a, b = arr[:, 0], arr[:, 2]
-    keep = (b - a >= 2) & (bad[b + 1] == bad[a])
-    if not keep.any():
+                         strides: list[tuple[int, int, int]], fs_hz: float) -> np.ndarray:
+    """The sign of ``j1`` from gait only (the detected strides ``(hs, to, hs_next)``): the one under which the knee
+    extends least beyond its mid-stance flexion over a stride (:func:`knee_dips_deg`, median over strides).
+
+    In mid-stance the knee is near its fullest extension in every gait (Perry and Burnfield 2010: ~5 deg more at
+    terminal stance and heel strike; in running mid-stance is the stance's flexion peak), so the right sign dips
+    1-7 deg below it in walking and up to ~20 in running (the simulator's patterns). A wrong sign makes the knee
+    angle the sum of the two segments' angles, which at heel strike (thigh and shank both forward) lies 30-45 deg
+    below its mid-stance value in walking and 70-100 in running: such a knee would hyperextend by tens of degrees.
+    The correlation of the two segments' angles (or rates) that this rule replaces is weak on real gait (rates: r
+    0.15-0.25 on the biomechZoo trial; angles: r ~0 on some legs of an independent simulator, which then read as
+    that sum). Squats, jumps or sit-to-stand never vote (``strides`` are gait strides). ``j1`` unchanged without
+    strides."""
+    dips = knee_dips_deg(g1 @ j1, g2 @ j2, strides, fs_hz)
+    if dips is None:
         return j1
-    a, b = a[keep], b[keep]
-    # every stride's samples at once (O(N), no loop over strides): the angle from the stride's start, less the line
-    # from its start to its end value
+    return -j1 if float(np.median(dips[1])) < float(np.median(dips[0])) else j1
+
+
+def knee_dips_deg(w1_rps: np.ndarray, w2_rps: np.ndarray, strides: list[tuple[int, int, int]], fs_hz: float
+                  ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per whole stride ``(hs, to, hs_next)`` (no non-finite rate inside), how far below its mid-stance value
+    (half-way from heel strike to toe-off) the knee angle ``th1 - th2`` falls over the stride, and the same for
+    ``-th1 - th2`` (the other sign of the thigh's axis): two (strides,) arrays [deg]. ``th`` is each segment's
+    rate about its axis (N,) [rad/s, sampled at ``fs_hz``] integrated over the stride, its drift removed as the
+    angle returns after a stride. None without a whole stride. Every stride's samples at once (O(N), no loop over
+    strides)."""
+    arr = np.asarray(strides, dtype=np.int64).reshape(-1, 3)
+    ok = np.isfinite(w1_rps) & np.isfinite(w2_rps)
+    bad = np.concatenate(([0], np.cumsum(~ok)))
+    a, t, b = arr[:, 0], arr[:, 1], arr[:, 2]
+    keep = (b - a >= 2) & (bad[b + 1] == bad[a]) & (t > a) & (t < b)
+    if not keep.any():
+        return None
+    a, t, b = a[keep], t[keep], b[keep]
     size = b - a + 1
+    first = np.cumsum(size) - size
     sid = np.repeat(np.arange(a.size), size)
-    k = np.arange(size.sum()) - np.repeat(np.cumsum(size) - size, size) + a[sid]
+    k = np.arange(size.sum()) - np.repeat(first, size) + a[sid]
     ramp = (k - a[sid]) / (b - a)[sid]
     th = []
-    for w in (w1, w2):
-        c = np.cumsum(np.where(ok, w, 0.0))
-        t = c[k] - c[a][sid] - ramp * (c[b] - c[a])[sid]
-        th.append(t - (np.bincount(sid, t) / size)[sid])
-    return -j1 if float(np.dot(th[0], th[1])) < 0 else j1
+    for w in (w1_rps, w2_rps):
+        c = np.cumsum(np.where(ok, w, 0.0)) / fs_hz
+        th.append(np.degrees(c[k] - c[a][sid] - ramp * (c[b] - c[a])[sid]))
+    mst = first + ((a + t) // 2 - a)
+    out = []
+    for sign in (1.0, -1.0):
+        knee = sign * th[0] - th[1]
+        out.append(knee[mst] - np.minimum.reduceat(knee, first))
+    return out[0], out[1]
 
 
 def hinge_rates(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -342,7 +342,7 @@ def _leg_stride_drift(prep: PreparedLeg, axes: JointAxes, params: PipelineParams
     thigh's sagittal rate, the axis's sign taken from gait. ``fit_gyr``: :func:`fit_gyros` of ``prep`` if known."""
     g1, g2 = fit_gyros(prep, params.axes.fit_cutoff_hz) if fit_gyr is None else fit_gyr
     _, ev = gait_events(prep, axes, params)
-    j1 = orient_thigh_on_gait(axes.j1, axes.j2, g1, g2, list(ev.strides))
+    j1 = orient_thigh_on_gait(axes.j1, axes.j2, g1, g2, list(ev.strides), prep.fs_hz)
     thigh_sag = np.rad2deg(prep.gyr_thigh_rps @ j1)
     thigh_sag[~prep.valid] = np.nan
     return stride_timing_drift(prep.t_s, thigh_sag, ev.ms[(ev.ms >= 0) & (ev.bout >= 0)], prep.fs_hz, params.sync)

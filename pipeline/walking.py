@@ -81,7 +81,7 @@ def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: Joi
     # and squats in a row look like strides of one leg; only the other leg's anti-phase swing tells gait from them,
     # so they never vote (pipeline.bilateral)
     gait = gait_strides(prep.t_s, ev.strides, ev.ms, other)
-    j1 = orient_thigh_on_gait(axes.j1, axes.j2, g1, g2, gait)
+    j1 = orient_thigh_on_gait(axes.j1, axes.j2, g1, g2, gait, fs)
     if j1 is not axes.j1:
         axes = dataclasses.replace(axes, j1=j1)
         rate = np.rad2deg(prep.gyr_thigh_rps @ axes.j1 - prep.gyr_shank_rps @ axes.j2)

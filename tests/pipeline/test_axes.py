@@ -18,6 +18,7 @@ from pipeline.axes import (
     fit_joint_axes,
     fit_joint_centres,
     gamma_matrices,
+    knee_dips_deg,
     observable_bias_basis,
     orient_axes,
     orient_thigh_on_gait,
@@ -86,7 +87,7 @@ def test_thigh_sign_on_gait_ignores_counter_rotating_movements() -> None:
     strides = [(n // 2 + 10, n // 2 + 50, n - 10)]
     _, j2 = orient_axes(j1_true, j2_true, g1[~squat], g2[~squat])
     for s1 in (1, -1):
-        j1 = orient_thigh_on_gait(s1 * j1_true, j2, g1, g2, strides)
+        j1 = orient_thigh_on_gait(s1 * j1_true, j2, g1, g2, strides, 100.0)
         gait = ~squat
         assert np.corrcoef(g1[gait] @ j1, g2[gait] @ j2)[0, 1] > 0
     # the whole-session rule is fooled by the squat
@@ -320,5 +321,26 @@ def test_thigh_sign_follows_the_segments_angles_not_their_rates() -> None:
     g1, g2 = np.outer(np.radians(w1), j), np.outer(np.radians(w2), j)
     hs = np.arange(0, n, int(fs * stride_s))
     strides = [(int(a), int(a) + 60, int(b)) for a, b in zip(hs[:-1], hs[1:], strict=True)]
-    assert np.array_equal(orient_thigh_on_gait(j, j, g1, g2, strides), j)
-    assert np.array_equal(orient_thigh_on_gait(-j, j, g1, g2, strides), j)
+    assert np.array_equal(orient_thigh_on_gait(j, j, g1, g2, strides, fs), j)
+    assert np.array_equal(orient_thigh_on_gait(-j, j, g1, g2, strides, fs), j)
+
+
+def test_thigh_sign_holds_with_a_stiff_hip() -> None:
+    """A hip that moves +-10 deg, its flexion late (hip osteoarthritis, a walker): the thigh's and the shank's angles
+    then co-vary NEGATIVELY, so a rule that asks them to co-vary flipped the thigh (a knee read as the sum of the
+    segments' angles, 20 deg below its mid-stance value at heel strike). The knee's dip below mid-stance decides."""
+    fs, stride_s = 100.0, 1.1
+    n = int(fs * stride_s * 20)
+    t = np.arange(n) / fs
+    phase = (t / stride_s) % 1.0
+    thigh = 10 * np.cos(2 * np.pi * (phase - 0.8))
+    knee = 60 * np.exp(-(((phase - 0.72) / 0.09) ** 2)) + 15 * np.exp(-(((phase - 0.15) / 0.07) ** 2))
+    assert np.corrcoef(thigh, thigh - knee)[0, 1] < -0.05
+    j = np.array([0.0, 1.0, 0.0])
+    g1, g2 = np.outer(np.radians(np.gradient(thigh) * fs), j), np.outer(np.radians(np.gradient(thigh - knee) * fs), j)
+    hs = np.arange(0, n, int(fs * stride_s))
+    strides = [(int(a), int(a) + 66, int(b)) for a, b in zip(hs[:-1], hs[1:], strict=True)]
+    for start in (j, -j):
+        assert np.array_equal(orient_thigh_on_gait(start, j, g1, g2, strides, fs), j)
+    right, wrong = knee_dips_deg(g1 @ j, g2 @ j, strides, fs)
+    assert np.median(right) < 5.0 < 15.0 < np.median(wrong)
