@@ -113,7 +113,8 @@ AXES: dict[str, Axis] = {
         _v("gait curve -3 / +3 deg (L/R)", knee_shift_deg=(-3.0, 3.0)),
         _v("gait excursion x0.85 / x1.15", knee_scale=(0.85, 1.15)),
         _v("contracture: stand 12, gait +8 deg", stand_knee_deg=12.0, knee_shift_deg=(8.0, 8.0)),
-        _v("stand L 4 / R 10 deg", stand_knee_deg=4.0, stand_knee_right_extra_deg=6.0))),
+        _v("stand L 4 / R 10 deg", stand_knee_deg=4.0, stand_knee_right_extra_deg=6.0),
+        _v("stiff hip: excursion x0.5", hip_scale=0.5), _v("stiff hip: excursion x0.3", hip_scale=0.3))),
     "impact": Axis("Heel-strike shock at the shank (walking), peak g", (
         _v("0 g", impact_g=0.0), _v("1 g", impact_g=1.0), _v("2 g", impact_g=2.0), _v("5 g", impact_g=5.0),
         _v("10 g", impact_g=10.0))),

@@ -198,6 +198,7 @@ class SimConfig:
     # p^1.5 and the segments' angular velocities with p^1.5 too: 0.5 turns brisk walking into a rehabilitation
     # shuffle (shank swing peaks ~460 -> ~160 deg/s on "fast") in the same session
     bout_pace: tuple[float, ...] = ()
+    hip_scale: float = 1.0  # the gait hip curve's excursion about its cycle mean (0.5: a stiff, osteoarthritic hip)
 
 
 @dataclass(frozen=True)
@@ -894,6 +895,9 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
         leg_stand = stand_knee + cfg.stand_knee_right_extra_deg if leg == "right" else stand_knee
         gait_hip = subj_hip * tl.pace * _eval_fourier(hip_c, phase % 1.0) * (
             1 + _per_stride_signal(rng, phase, 0.03 * var))
+        if cfg.hip_scale != 1.0:
+            hip_mean = subj_hip * tl.pace * float(hip_c[0].real)
+            gait_hip = hip_mean + cfg.hip_scale * (gait_hip - hip_mean)
         sway_k = _smooth_noise(rng, t, 0.7, 1.5)
         sway_h = _smooth_noise(rng, t, 0.7, 1.5)
         post_knee = (1 - tl.sit) * (leg_stand + sway_k) + tl.sit * (cfg.sit_knee_deg + sway_k)
