@@ -232,8 +232,9 @@ def thigh_axis_sign(j1: np.ndarray, j2: np.ndarray, g1_rps: np.ndarray, g2_rps: 
 
     Eq. 2 fixes each axis only up to sign. With ``j2`` oriented (shank swing positive), the wrong ``j1`` turns the
     knee angle ``theta_thigh - theta_shank`` into ``-(theta_thigh + theta_shank)``, which peaks at toe-off (~40 %,
-    both segments furthest back) instead of mid-swing (~70 %). The walking rule (thigh and shank rates correlated)
-    is unreliable in running, where the shank whips forward while the thigh is already braking."""
+    both segments furthest back) instead of mid-swing (~70 %). The walking rule
+    (:func:`pipeline.axes.orient_thigh_on_gait`) rests on walking's gait events; this one on the foot-strike cycles
+    that running is processed by."""
     if len(cycles) < 3:
         return j1
     best, best_dist = j1, np.inf
