@@ -158,9 +158,6 @@ class SyncParams:
     (:func:`pipeline.sync.stride_clock_runaway`): it leads by ~0.12 s in simulated walking."""
     stride_cue_min_strides: int = 20
     """Fewest strides the stride-timing check of the clock runs on."""
-    stride_cue_max_strides: int = 400
-    """Most strides, spread evenly over the recording, that check runs on (Theil-Sen compares every pair: 80,000
-    pairs; a 30-minute chunk holds ~1600 strides, whose 1.3 million pairs would add time, not information)."""
     stride_cue_min_span_s: float = 30.0
     """Shortest span [s] of those strides: over less, 500 ppm moves the stride timing by less than its noise."""
     max_lag_s: float = 0.06
