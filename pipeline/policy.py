@@ -168,29 +168,51 @@ def running_auto(leg: LegInput) -> PolicyResult:
     base = rp.no_reference_quality if ref is None else 1.0
     choice = StrideChoice(estimator=name, quality=min(base, stride_quality(reasons, leg.params.quality)),
                           reasons=reasons, fallback=False)
-    return PolicyResult(angle_deg=angle, estimator=labels, choices=tuple(choice for _ in leg.events.strides),
+    wandering = (*reasons, "level_wander")
+    wander = StrideChoice(estimator=name, quality=min(base, stride_quality(wandering, leg.params.quality)),
+                          reasons=wandering, fallback=False)
+    wandered = _wandering(go_offsets(leg, angle), rp.level_wander_deg) if leg.events.strides else []
+    return PolicyResult(angle_deg=angle, estimator=labels,
+                        choices=tuple(wander if w else choice for w in wandered),
                         absolute_reference=_reference(ref), standing_ref_deg=None if ref is None else round(ref, 2),
                         tuning=_tuning(diag), bridge_check_deg=None if check is None else round(check, 2),
                         level_bridged=bridged_level)
 
 
-def go_levelled(leg: LegInput, angle: np.ndarray) -> np.ndarray | None:
-    """``angle`` (N,) [deg] shifted per stride to the level of GO (Allseits et al. 2018: zero at the knee-angle
-    minimum before swing), by the mean of (GO - angle) over each stride, smoothed over neighbouring strides
-    (``FusionParams.offset_smooth``) and interpolated between stride centres; held outside the strides. None
-    without a stride with both estimates."""
-    strides = leg.events.strides
-    if not strides:
-        return None
+def _wandering(offsets: np.ndarray, limit_deg: float) -> list[bool]:
+    """Per stride, whether its level against GO (:func:`go_offsets`) lies more than ``limit_deg`` from the leg's
+    median (a stride without both estimates does not wander)."""
+    finite = np.isfinite(offsets)
+    if not finite.any():
+        return [False] * offsets.size
+    with np.errstate(invalid="ignore"):
+        return (np.abs(offsets - np.median(offsets[finite])) > limit_deg).tolist()
+
+
+def go_offsets(leg: LegInput, angle: np.ndarray) -> np.ndarray:
+    """Per stride of ``leg.events.strides`` the mean of (GO - ``angle``) over it [deg] (NaN without both estimates
+    in it): ``angle``'s level against GO's (Allseits et al. 2018: zero at the knee-angle minimum before swing)."""
     go_rel, _ = go_relative(leg)
-    arr = np.asarray(strides)
+    arr = np.asarray(leg.events.strides, dtype=int).reshape(-1, 3)
     lo, hi = arr[:, 0], arr[:, 2] + 1
     d = go_rel - angle
     ok = np.isfinite(d)
     n_ok = segment_sums(ok, lo, hi)
     with np.errstate(invalid="ignore", divide="ignore"):
-        offs = segment_sums(np.where(ok, d, 0.0), lo, hi) / n_ok
-    finite = n_ok > 0
+        return np.where(n_ok > 0, segment_sums(np.where(ok, d, 0.0), lo, hi) / np.maximum(n_ok, 1), np.nan)
+
+
+def go_levelled(leg: LegInput, angle: np.ndarray) -> np.ndarray | None:
+    """``angle`` (N,) [deg] shifted per stride to the level of GO (:func:`go_offsets`), smoothed over neighbouring
+    strides (``FusionParams.offset_smooth``) and interpolated between stride centres; held outside the strides.
+    None without a stride with both estimates."""
+    strides = leg.events.strides
+    if not strides:
+        return None
+    arr = np.asarray(strides)
+    lo, hi = arr[:, 0], arr[:, 2] + 1
+    offs = go_offsets(leg, angle)
+    finite = np.isfinite(offs)
     if not finite.any():
         return None
     level = float(np.median(offs[finite]))

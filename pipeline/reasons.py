@@ -15,6 +15,9 @@ REASONS: dict[str, str] = {
     "no_zero_crossing": "no zero-velocity point in the stride to reset the gyroscope's drift",
     "drift": "the gyroscope-only estimate drifted beyond its limit",
     "saturation": "a sensor reading hit its full-scale limit",
+    "level_wander": "running: the filter's level against the gyroscope-only estimate's strays from the leg's usual "
+                    "one in this stride (RunningParams.level_wander_deg): the accelerometer updates dragged it "
+                    "(out of trends)",
     "go_cf_mismatch": "the gyroscope-only and complementary-filter estimates disagree in shape (out of trends)",
     "cf_fallback": "the complementary filter was used instead of the gyroscope-only estimate",
     "bridged_gap": "a short data gap inside the stride was bridged",

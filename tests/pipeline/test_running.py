@@ -261,3 +261,34 @@ def test_holes_filled_from_neighbouring_strides_do_not_move_the_filters_level() 
         assert err.size > 40
         assert err.std() < 2.5, (leg, err.std())
         assert np.abs(err - np.median(err)).max() < 8.0, (leg, np.abs(err - np.median(err)).max())
+
+
+def test_a_running_filter_dragged_off_its_level_leaves_the_trends(running_sim: SimSession,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """From 60 % of the run on the filter's angle drifts towards extension at 4 deg/s (its accelerometer updates
+    dragging it, as on an independent simulator). GO's zero comes back every stride, so the filter's level against
+    GO strays: those strides go out of trends (``level_wander``); the strides before, and every stride of the run
+    without the drift, stay."""
+    import pipeline.policy as policy
+    from pipeline.types import KneeCalibration
+
+    cal = {"left": KneeCalibration(standing_knee_deg=running_sim.truth["left"].stand_knee_deg)}
+    clean = process_session(running_sim.streams, activity="running", calibration=cal).legs["left"]
+    assert clean.strides and not any("level_wander" in s.quality_reasons for s in clean.strides)
+    t_drift = clean.t_s[0] + 0.6 * (clean.t_s[-1] - clean.t_s[0])
+    real = policy.get_estimator
+
+    def dragged(name: str):  # noqa: ANN202
+        estimate = real(name)
+
+        def run(leg):  # noqa: ANN001, ANN202
+            angle, diag = estimate(leg)
+            return angle - 4.0 * np.clip(leg.prep.t_s - t_drift, 0.0, None), diag
+        return run
+
+    monkeypatch.setattr(policy, "get_estimator", dragged)
+    strides = process_session(running_sim.streams, activity="running", calibration=cal).legs["left"].strides
+    late = [s for s in strides if s.t_start_s > t_drift + 3.0]
+    early = [s for s in strides if s.t_end_s < t_drift]
+    assert late and all("level_wander" in s.quality_reasons and s.quality < 0.5 for s in late)
+    assert early and not any("level_wander" in s.quality_reasons for s in early)
