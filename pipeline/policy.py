@@ -124,7 +124,7 @@ def single_estimator(leg: LegInput, name: str) -> PolicyResult:
     angle, diag = get_estimator(name)(leg)
     angle = np.asarray(angle, dtype=float)
     ref = diag.standing_ref_deg
-    levelled = go_levelled(leg, angle) if ref is None and name != "go" else None
+    levelled = go_levelled(leg, angle, go_relative(leg)[0]) if ref is None and name != "go" else None
     reasons = _level_reasons(leg)
     if levelled is not None:
         angle = levelled
@@ -148,7 +148,9 @@ def running_auto(leg: LegInput) -> PolicyResult:
     name = rp.auto_estimator
     angle, diag = get_estimator(name)(leg)
     ref = diag.standing_ref_deg
-    levelled = go_levelled(leg, angle) if ref is None else None
+    # GO's curve: the level without a standing zero, and what the filter's level is checked against per stride
+    go_rel = go_relative(leg)[0] if leg.events.strides else None
+    levelled = go_levelled(leg, angle, go_rel) if ref is None and go_rel is not None else None
     if levelled is not None:
         angle = levelled
     check, bridged_level = None, False
@@ -171,7 +173,7 @@ def running_auto(leg: LegInput) -> PolicyResult:
     wandering = (*reasons, "level_wander")
     wander = StrideChoice(estimator=name, quality=min(base, stride_quality(wandering, leg.params.quality)),
                           reasons=wandering, fallback=False)
-    wandered = _wandering(go_offsets(leg, angle), rp.level_wander_deg) if leg.events.strides else []
+    wandered = [] if go_rel is None else _wandering(go_offsets(leg, angle, go_rel), rp.level_wander_deg)
     return PolicyResult(angle_deg=angle, estimator=labels,
                         choices=tuple(wander if w else choice for w in wandered),
                         absolute_reference=_reference(ref), standing_ref_deg=None if ref is None else round(ref, 2),
@@ -189,10 +191,10 @@ def _wandering(offsets: np.ndarray, limit_deg: float) -> list[bool]:
         return (np.abs(offsets - np.median(offsets[finite])) > limit_deg).tolist()
 
 
-def go_offsets(leg: LegInput, angle: np.ndarray) -> np.ndarray:
+def go_offsets(leg: LegInput, angle: np.ndarray, go_rel: np.ndarray) -> np.ndarray:
     """Per stride of ``leg.events.strides`` the mean of (GO - ``angle``) over it [deg] (NaN without both estimates
-    in it): ``angle``'s level against GO's (Allseits et al. 2018: zero at the knee-angle minimum before swing)."""
-    go_rel, _ = go_relative(leg)
+    in it): ``angle``'s level against GO's (``go_rel``, :func:`pipeline.estimators.go.go_relative`; Allseits et al.
+    2018: zero at the knee-angle minimum before swing)."""
     arr = np.asarray(leg.events.strides, dtype=int).reshape(-1, 3)
     lo, hi = arr[:, 0], arr[:, 2] + 1
     d = go_rel - angle
@@ -202,7 +204,7 @@ def go_offsets(leg: LegInput, angle: np.ndarray) -> np.ndarray:
         return np.where(n_ok > 0, segment_sums(np.where(ok, d, 0.0), lo, hi) / np.maximum(n_ok, 1), np.nan)
 
 
-def go_levelled(leg: LegInput, angle: np.ndarray) -> np.ndarray | None:
+def go_levelled(leg: LegInput, angle: np.ndarray, go_rel: np.ndarray) -> np.ndarray | None:
     """``angle`` (N,) [deg] shifted per stride to the level of GO (:func:`go_offsets`), smoothed over neighbouring
     strides (``FusionParams.offset_smooth``) and interpolated between stride centres; held outside the strides.
     None without a stride with both estimates."""
@@ -211,7 +213,7 @@ def go_levelled(leg: LegInput, angle: np.ndarray) -> np.ndarray | None:
         return None
     arr = np.asarray(strides)
     lo, hi = arr[:, 0], arr[:, 2] + 1
-    offs = go_offsets(leg, angle)
+    offs = go_offsets(leg, angle, go_rel)
     finite = np.isfinite(offs)
     if not finite.any():
         return None

@@ -303,23 +303,31 @@ def test_the_centre_fit_samples_span_the_same_stretch_of_gait_at_any_rate() -> N
     assert len(np.unique(np.round(t[dense], 1))) < 0.8 * spans[100.0]
 
 
+def _walk_angles(thigh_amp_deg: float, thigh_peak_phase: float
+                 ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """20 strides of 1.1 s at 100 Hz: ``fs``, time (N,) [s], the thigh's angle (a cosine of ``thigh_amp_deg`` peaking
+    at ``thigh_peak_phase`` of the cycle) and the knee's (a loading bump and a 60 deg swing peak at 72 %) [deg], and
+    the heel-strike indices."""
+    fs, stride_s = 100.0, 1.1
+    t = np.arange(int(fs * stride_s * 20)) / fs
+    phase = (t / stride_s) % 1.0
+    thigh = thigh_amp_deg * np.cos(2 * np.pi * (phase - thigh_peak_phase))
+    knee = 60 * np.exp(-(((phase - 0.72) / 0.09) ** 2)) + 15 * np.exp(-(((phase - 0.15) / 0.07) ** 2))
+    return fs, t, thigh, knee, np.arange(0, t.size, int(fs * stride_s))
+
+
 def test_thigh_sign_follows_the_segments_angles_not_their_rates() -> None:
     """Thigh and shank ANGLES co-vary in gait (both most forward at heel strike): the thigh's sign follows them even
     when opposed high-frequency motion (soft tissue, ringing after heel strike) makes the RATES anti-correlated, which
     flipped the thigh of some legs on an independent simulator (a knee read as the sum of the segments' angles)."""
-    fs, stride_s = 100.0, 1.1
-    n = int(fs * stride_s * 20)
-    t = np.arange(n) / fs
-    phase = (t / stride_s) % 1.0
-    thigh = 20 * np.cos(2 * np.pi * (phase - 0.87))
-    knee = 60 * np.exp(-(((phase - 0.72) / 0.09) ** 2)) + 15 * np.exp(-(((phase - 0.15) / 0.07) ** 2))
+    fs, t, thigh, knee, hs = _walk_angles(20.0, 0.87)
+    phase = (t / 1.1) % 1.0
     ring = 600 * np.sin(2 * np.pi * 12 * t) * np.exp(-phase / 0.1)
     w1 = np.gradient(thigh) * fs + ring
     w2 = np.gradient(thigh - knee) * fs - ring
     assert np.corrcoef(w1, w2)[0, 1] < 0  # the rates alone would flip the thigh
     j = np.array([0.0, 0.0, 1.0])
     g1, g2 = np.outer(np.radians(w1), j), np.outer(np.radians(w2), j)
-    hs = np.arange(0, n, int(fs * stride_s))
     strides = [(int(a), int(a) + 60, int(b)) for a, b in zip(hs[:-1], hs[1:], strict=True)]
     assert np.array_equal(orient_thigh_on_gait(j, j, g1, g2, strides, fs), j)
     assert np.array_equal(orient_thigh_on_gait(-j, j, g1, g2, strides, fs), j)
@@ -329,16 +337,10 @@ def test_thigh_sign_holds_with_a_stiff_hip() -> None:
     """A hip that moves +-10 deg, its flexion late (hip osteoarthritis, a walker): the thigh's and the shank's angles
     then co-vary NEGATIVELY, so a rule that asks them to co-vary flipped the thigh (a knee read as the sum of the
     segments' angles, 20 deg below its mid-stance value at heel strike). The knee's dip below mid-stance decides."""
-    fs, stride_s = 100.0, 1.1
-    n = int(fs * stride_s * 20)
-    t = np.arange(n) / fs
-    phase = (t / stride_s) % 1.0
-    thigh = 10 * np.cos(2 * np.pi * (phase - 0.8))
-    knee = 60 * np.exp(-(((phase - 0.72) / 0.09) ** 2)) + 15 * np.exp(-(((phase - 0.15) / 0.07) ** 2))
+    fs, _, thigh, knee, hs = _walk_angles(10.0, 0.8)
     assert np.corrcoef(thigh, thigh - knee)[0, 1] < -0.05
     j = np.array([0.0, 1.0, 0.0])
     g1, g2 = np.outer(np.radians(np.gradient(thigh) * fs), j), np.outer(np.radians(np.gradient(thigh - knee) * fs), j)
-    hs = np.arange(0, n, int(fs * stride_s))
     strides = [(int(a), int(a) + 66, int(b)) for a, b in zip(hs[:-1], hs[1:], strict=True)]
     for start in (j, -j):
         assert np.array_equal(orient_thigh_on_gait(start, j, g1, g2, strides, fs), j)
