@@ -186,7 +186,12 @@ AXES: dict[str, Axis] = {
         _v("3 vertical jumps", activities=("jump",)), _v("3 step-ups onto a stair", activities=("stairs",)),
         _v("jumps, stairs, sit-to-stand", activities=("jump", "stairs", "sit_to_stand")),
         _v("8 rhythmic jumps in a row", activities=("jump",), move_reps=8, jump_rest_s=0.0),
-        _v("8 step-ups in a row", activities=("stairs",), move_reps=8))),
+        _v("8 step-ups in a row", activities=("stairs",), move_reps=8),
+        _v("stair flights: 10 steps up, 10 down", activities=("stair_flight",)),
+        _v("stair flights, knee and hip 3-D x1", activities=("stair_flight",), hip_3d=1.0, knee_3d=1.0),
+        _v("a step test: 10 step-ups without rest", activities=("step_test",), move_reps=10)),
+        note="Stair flights are step-over-step stair gait (Riener et al. 2002): alternating, stride-like, but the "
+             "knee is loaded while flexed."),
     "labels": Axis("Wrongly labelled sensors (scored against the labelled leg; see 'pipeline did')", (
         _v("legs swapped (all four)", label_swap="legs"),
         _v("legs swapped (all four), pelvis and hip 3-D x1", label_swap="legs", hip_3d=1.0),

@@ -26,10 +26,11 @@ Robustness options (``SimConfig`` fields after ``acc_unit``; each default reprod
 and each new random effect draws from its own ``default_rng([seed, k])`` stream): the standing and seated knee
 angle, per-leg scaled or shifted knee curves, an absolute heel-strike shock in g, larger and off-axis lever arms,
 bursty packet loss (Gilbert-Elliott two-state channel per sensor), sharper and more frequent turns, non-gait
-movements between bouts (vertical jumps, step-ups onto a stair, sit-to-stand repetitions: never strides in the
-truth), wrongly labelled sensors (legs or thigh/shank swapped), per-axis sensitivity (gain) errors, and 3-D joint
-motion (``knee_3d``, ``hip_3d``, ``knee_varus_deg``; the thigh sensor's skin turning about the femur with flexion,
-``thigh_sta_deg``): each segment is then the end of a chain of rotations, pelvis
+movements between bouts (vertical jumps, step-ups onto a stair, a step test of step-ups without rest, stair
+flights up and down step over step, sit-to-stand repetitions: never strides in the truth), wrongly labelled
+sensors (legs or thigh/shank swapped), per-axis sensitivity (gain) errors, and 3-D joint motion (``knee_3d``,
+``hip_3d``, ``knee_varus_deg``; the thigh sensor's skin turning about the femur with flexion, ``thigh_sta_deg``):
+each segment is then the end of a chain of rotations, pelvis
 ``Rz(heading + rotation) Rx(obliquity)``, hip and knee each ``Ry(flexion) Rx(ab/adduction) Rz(axial rotation)`` in
 the order of the joint coordinate system (Grood and Suntay 1983), whose flexion is the true knee angle.
 
@@ -199,6 +200,7 @@ class SimConfig:
     # shuffle (shank swing peaks ~460 -> ~160 deg/s on "fast") in the same session
     bout_pace: tuple[float, ...] = ()
     hip_scale: float = 1.0  # the gait hip curve's excursion about its cycle mean (0.5: a stiff, osteoarthritic hip)
+    stair_steps: int = 10  # steps of each flight in a "stair_flight" activity (up, a pause, down)
 
 
 @dataclass(frozen=True)
@@ -318,6 +320,17 @@ _STEP = np.array([(0.0, 0, 0, 0, 0, 0.0), (0.5, 90, 65, 0, 0, 0.0), (0.8, 65, 50
                   (1.5, 5, 5, 60, 30, 0.17), (2.0, 0, 0, 0, 0, 0.17), (2.6, 25, -5, 45, 30, 0.05),
                   (3.0, 5, 0, 50, 35, -0.02), (3.4, 5, 0, 40, 25, 0.0), (3.9, 0, 0, 0, 0, 0.0)])
 _MOVE_REPS = 3
+# Step-over-step stair gait, 0 % = foot contact on the next step (cycle %, deg): knee and hip flexion of stair
+# ascent and descent after Riener et al. 2002 and Protopapadaki et al. 2007 (ascent: contact at ~60 deg of knee
+# flexion, extension under load to ~10 deg, swing peak ~90 deg; descent: contact at ~10 deg, flexion under load to
+# ~75 deg before toe-off, swing peak ~95 deg), with their stride times (two steps) and a 17 cm step.
+_STAIR_UP = (((0, 62), (10, 58), (25, 35), (40, 15), (55, 10), (63, 18), (72, 60), (82, 92), (92, 84)),
+             ((0, 60), (20, 45), (40, 20), (55, 8), (65, 15), (80, 55), (90, 65)), 1.40)
+_STAIR_DOWN = (((0, 8), (10, 18), (25, 25), (40, 40), (55, 75), (65, 92), (75, 97), (87, 55), (95, 15)),
+               ((0, 22), (15, 18), (35, 12), (55, 20), (70, 35), (85, 38), (95, 28)), 1.30)
+_STAIR_RISE_M = 0.17
+_STAIR_TOP_S = 1.5  # standing on the landing between the flight up and the flight down
+_STEP_TEST_REP_S = 2.4  # a step test's up-up-down-down at 100 steps/min (the step-up keyframes, compressed)
 _IMPACT_FREQ_HZ, _IMPACT_TAU_S = 28.0, 0.012  # heel-strike shock: damped sine on the accelerometers
 # With an absolute impact_g, the shank sensor's transient rotation grows with the shock up to running's default.
 _IMPACT_ROT_MAX_DEG = 3.0
@@ -342,11 +355,18 @@ def _keyframes(grid: np.ndarray, t0: float, frames: np.ndarray) -> np.ndarray:
     return out
 
 
+_MOVES = ("jump", "stairs", "stair_flight", "step_test")  # between-bout movements made by _add_moves
+
+
 def _move_duration_s(kind: str, reps: int = _MOVE_REPS, jump_rest_s: float = 1.0) -> float:
     if kind == "jump":
         return reps * (_JUMP[-1, 0] + jump_rest_s)
     if kind == "stairs":
         return reps * (_STEP[-1, 0] + 0.8)
+    if kind == "stair_flight":
+        return 0.5 * reps * (_STAIR_UP[2] + _STAIR_DOWN[2]) + _STAIR_TOP_S + 0.5 * (_STAIR_UP[2] + _STAIR_DOWN[2])
+    if kind == "step_test":
+        return reps * _STEP_TEST_REP_S
     return reps * (1.5 + 2.5 + 1.5 + 2.0)  # sit_to_stand: down, seated, up, standing
 
 
@@ -382,8 +402,9 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
         kind = cfg.activities[k % len(cfg.activities)] if cfg.activities else "standing"
         sit_s = rng.uniform(8, 15)
         brk = {"sitting": 5.5 + sit_s, "turn": 5.0}.get(kind, rng.uniform(4, 8))
-        if kind in ("jump", "stairs", "sit_to_stand"):
-            brk = _move_duration_s(kind, cfg.move_reps, cfg.jump_rest_s) + 3.0
+        reps = cfg.stair_steps if kind == "stair_flight" else cfg.move_reps
+        if kind in _MOVES or kind == "sit_to_stand":
+            brk = _move_duration_s(kind, reps, cfg.jump_rest_s) + 3.0
         if cfg.duration_s is not None and t + brk + 3 * stride_s + 3 > cfg.duration_s:
             break
         if kind == "sitting":
@@ -395,9 +416,9 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
             for r in range(cfg.move_reps):
                 t_r = t + 1.0 + r * rep_s
                 events.append(("sit", t_r, t_r + 1.5 + 2.5 + 1.5, {"ramp": 1.5}))
-        elif kind in ("jump", "stairs"):
-            events.append((kind, t + 1.0, t + 1.0 + _move_duration_s(kind, cfg.move_reps, cfg.jump_rest_s),
-                           {"lead": k % 2}))
+        elif kind in _MOVES:
+            events.append((kind, t + 1.0, t + 1.0 + _move_duration_s(kind, reps, cfg.jump_rest_s),
+                           {"lead": k % 2, "reps": reps}))
         t += brk
         k += 1
     t_end = max(t + 2.5, cfg.duration_s or 0.0) if cfg.standing_s is None else t + cfg.standing_s
@@ -439,8 +460,8 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
             up = _smoothstep((grid - (t1 - ramp)) / ramp)
             sit += down - up
             moves.non_gait_s.append(("sit", t0, t1))
-        elif kind in ("jump", "stairs"):
-            _add_moves(moves, grid, kind, t0, p["lead"], cfg.legs, cfg.move_reps, cfg.jump_rest_s)
+        elif kind in _MOVES:
+            _add_moves(moves, grid, kind, t0, p["lead"], cfg.legs, p["reps"], cfg.jump_rest_s)
         elif kind == "turn":
             heading += p["angle"] * _smoothstep((grid - t0) / (t1 - t0))
     phase = np.concatenate([[0.0], np.cumsum(0.5 * (freq[1:] + freq[:-1]) / _GRID_HZ)])
@@ -462,7 +483,13 @@ def _add_moves(mv: _Moves, grid: np.ndarray, kind: str, t0: float, lead: int, le
         for leg in legs:
             mv.knee[leg] = np.zeros_like(grid)
             mv.hip[leg] = np.zeros_like(grid)
+    if kind == "stair_flight":
+        _add_stair_flight(mv, grid, t0, lead, legs, reps)
+        return
     rep_s = _move_duration_s(kind, reps, jump_rest_s) / reps
+    frames = _STEP
+    if kind == "step_test":  # no rest between repetitions: the keyframes' own rests only
+        frames = _STEP * np.array([_STEP_TEST_REP_S / _STEP[-1, 0], 1, 1, 1, 1, 1])
     for r in range(reps):
         t_r = t0 + r * rep_s
         if kind == "jump":
@@ -473,7 +500,7 @@ def _add_moves(mv: _Moves, grid: np.ndarray, kind: str, t0: float, lead: int, le
             mv.height += kf[:, 2]
             mv.landings_s = np.append(mv.landings_s, t_r + _JUMP_LANDING_S)
         else:
-            kf = _keyframes(grid, t_r, _STEP)
+            kf = _keyframes(grid, t_r, frames)
             lead_leg = ("left", "right")[(lead + r) % 2]  # alternate the lead leg
             for leg in legs:
                 c = 0 if leg == lead_leg else 2
@@ -481,6 +508,33 @@ def _add_moves(mv: _Moves, grid: np.ndarray, kind: str, t0: float, lead: int, le
                 mv.hip[leg] += kf[:, c + 1]
             mv.height += kf[:, 4]
     mv.non_gait_s.append((kind, t0, t0 + _move_duration_s(kind, reps, jump_rest_s)))
+
+
+def _add_stair_flight(mv: _Moves, grid: np.ndarray, t0: float, lead: int, legs: tuple[str, ...], steps: int
+                      ) -> None:
+    """A flight of ``steps`` stairs up, a pause on the landing, and the same flight down (step over step, the legs
+    in anti-phase), from t0; the foot contacts shock like heel strikes."""
+    t = t0
+    for (knee_pts, hip_pts, stride_s), sign in ((_STAIR_UP, 1.0), (_STAIR_DOWN, -1.0)):
+        dur = 0.5 * (steps + 1) * stride_s  # one extra step: the envelope's ramps
+        env = np.minimum(_smoothstep((grid - t) / (0.5 * stride_s)), _smoothstep((t + dur - grid) / (0.5 * stride_s)))
+        env[(grid < t) | (grid > t + dur)] = 0.0
+        knee_c, hip_c = _fourier_coefs(knee_pts), _fourier_coefs(hip_pts)
+        for leg in legs:
+            first = leg == ("left", "right")[lead % 2]
+            phase = ((grid - t) / stride_s + (0.0 if first else 0.5)) % 1.0
+            mv.knee[leg] += env * _eval_fourier(knee_c, phase)
+            mv.hip[leg] += env * _eval_fourier(hip_c, phase)
+            n_contacts = int(dur / stride_s) + 1
+            contacts = t + (np.arange(n_contacts) + (0.0 if first else 0.5)) * stride_s
+            mv.landings_s = np.append(mv.landings_s, contacts[(contacts > t + 0.5 * stride_s)
+                                                              & (contacts < t + dur - 0.5 * stride_s)])
+        rise = np.cumsum(env)
+        rise = steps * _STAIR_RISE_M * rise / max(rise[-1], 1e-9)
+        mv.height += sign * rise
+        mv.non_gait_s.append(("stairs_up" if sign > 0 else "stairs_down", t, t + dur))
+        t += dur + (_STAIR_TOP_S if sign > 0 else 0.0)
+    mv.landings_s = np.sort(mv.landings_s)
 
 
 def _smooth_noise(rng: np.random.Generator, t: np.ndarray, sd: float, corr_s: float) -> np.ndarray:
