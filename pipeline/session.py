@@ -26,8 +26,17 @@ from pipeline.bilateral import OtherLeg, mid_swings_s, non_alternating
 from pipeline.constants import G_MPS2
 from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
+from pipeline.level_walking import not_level_walking
 from pipeline.metrics import stride_values_many
-from pipeline.params import RUNNING, AssignmentParams, PipelineParams, PostureParams, QualityParams, preset
+from pipeline.params import (
+    RUNNING,
+    AssignmentParams,
+    PhaseParams,
+    PipelineParams,
+    PostureParams,
+    QualityParams,
+    preset,
+)
 from pipeline.phases import GaitEvents
 from pipeline.policy import PolicyResult, auto, single_estimator
 from pipeline.prepare import SI, to_si
@@ -102,6 +111,7 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
     legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
                                         warnings, others)
     legs = _alternating_strides(legs, swings, warnings)
+    legs = _level_strides(legs, (params if params is not None else preset(activity)).phases, warnings)
     legs = _check_sides(legs, ap, (params if params is not None else preset(activity)).quality, warnings)
     warnings += [f"{leg} leg: its thigh and shank clocks run apart faster than crystal clocks can; the knee angle's "
                  "timing is unknown and its strides are kept out of trends (clock_disagreement)"
@@ -213,18 +223,38 @@ def _alternating_strides(legs: dict[str, LegResult], swings: dict[str, np.ndarra
         t0, to, t1 = np.array([(s.t_start_s, s.t_toe_off_s, s.t_end_s) for s in lr.strides]).T
         spans = np.column_stack([t0, mid_swings_s(np.sort(swings[leg]), to, t1), t1])
         drop = set(non_alternating(spans, swings[other], legs[other].gaps_s))
-        if not drop:
-            continue
-        kept = [dataclasses.replace(s, index=i) for i, s in enumerate(x for k, x in enumerate(lr.strides)
-                                                                        if k not in drop)]
-        diag = lr.diagnostics
-        if diag is not None:
-            diag = dataclasses.replace(diag, n_strides=len(kept), n_fallback=sum(1 for s in kept if s.fallback))
-        out[leg] = dataclasses.replace(lr, strides=kept, walking_s=float(sum(s.duration_s for s in kept)),
-                                       diagnostics=diag)
-        warnings.append(f"{leg} leg: {len(drop)} stride(s) dropped: the other leg did not swing in anti-phase "
-                        "(not gait)")
+        if drop:
+            out[leg] = _without(lr, drop)
+            warnings.append(f"{leg} leg: {len(drop)} stride(s) dropped: the other leg did not swing in anti-phase "
+                            "(not gait)")
     return out
+
+
+def _level_strides(legs: dict[str, LegResult], params: PhaseParams, warnings: list[str]) -> dict[str, LegResult]:
+    """Each walking leg without the strides whose knee stays near extension for too little of the stride (stairs,
+    step-ups: :mod:`pipeline.level_walking`); a running leg is not judged, nor is one whose shank clock is unknown
+    (its angle's shape is)."""
+    out = dict(legs)
+    for leg, lr in legs.items():
+        if lr.activity != "walking" or not lr.strides or _clock_unknown(lr):
+            continue
+        spans = np.array([(s.t_start_s, s.t_end_s) for s in lr.strides])
+        drop = set(not_level_walking(lr.angle_deg, lr.t_s, spans, params.level_band_deg, params.level_min_share))
+        if drop:
+            out[leg] = _without(lr, drop)
+            warnings.append(f"{leg} leg: {len(drop)} stride(s) dropped: the knee stayed near extension for less "
+                            f"than {params.level_min_share:.0%} of the stride (stairs or step-ups, not level gait)")
+    return out
+
+
+def _without(lr: LegResult, drop: set[int]) -> LegResult:
+    """The leg without the strides at the indices ``drop``, the rest renumbered and its counts updated."""
+    kept = [dataclasses.replace(s, index=i) for i, s in enumerate(x for k, x in enumerate(lr.strides)
+                                                                    if k not in drop)]
+    diag = lr.diagnostics
+    if diag is not None:
+        diag = dataclasses.replace(diag, n_strides=len(kept), n_fallback=sum(1 for s in kept if s.fallback))
+    return dataclasses.replace(lr, strides=kept, walking_s=float(sum(s.duration_s for s in kept)), diagnostics=diag)
 
 
 def _check_sides(legs: dict[str, LegResult], ap: AssignmentParams, qp: QualityParams, warnings: list[str]

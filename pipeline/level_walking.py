@@ -1,0 +1,40 @@
+"""Level walking keeps the knee near extension through stance: a stair step does not.
+
+From initial contact to terminal stance a level-walking knee stays within ~20 deg of its straightest: it flexes
+10-25 deg in loading response and extends again (Perry and Burnfield 2010, Ch. 4; the loading flexion grows with
+speed, Lelas et al. 2003), and it is near extension again in terminal swing; only pre-swing and swing take it far
+from there. Stair gait loads a flexed knee: ascent makes contact at 50-60 deg and extends under load, descent makes
+contact near extension and flexes under load to ~75 deg before toe-off (Riener et al. 2002, Protopapadaki et al.
+2007). So the share of a stride spent within ``PhaseParams.level_band_deg`` of its own minimum separates the two
+without any absolute level: 0.59-0.70 on the real biomechZoo trial, 0.61-0.80 over the simulator's walking patterns
+(fast to stiff-knee and crouch, 3-D knees, 50 Hz, turns, loss); 0.29-0.41 in its stair flights. Running never
+stays near extension (a running leg is not judged).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def near_extension_share(angle_deg: np.ndarray, t_s: np.ndarray, spans_s: np.ndarray, band_deg: float
+                         ) -> np.ndarray:
+    """Per stride ``[t_start, t_end)`` (rows of ``spans_s`` [s]), the share of its finite samples of
+    ``angle_deg`` (N,) on the grid ``t_s`` (N,) [s] that lie within ``band_deg`` of the stride's own minimum; NaN
+    for a stride without finite samples. Linear in the strides' total length."""
+    spans = np.asarray(spans_s, dtype=float).reshape(-1, 2)
+    lo, hi = np.searchsorted(t_s, spans[:, 0]), np.searchsorted(t_s, spans[:, 1])
+    out = np.full(spans.shape[0], np.nan)
+    for k, (a, b) in enumerate(zip(lo, hi, strict=True)):
+        seg = angle_deg[a:b]
+        seg = seg[np.isfinite(seg)]
+        if seg.size:
+            out[k] = np.count_nonzero(seg < seg.min() + band_deg) / seg.size
+    return out
+
+
+def not_level_walking(angle_deg: np.ndarray, t_s: np.ndarray, spans_s: np.ndarray, band_deg: float,
+                      min_share: float) -> list[int]:
+    """Indices of the strides (rows ``[t_start, t_end)`` of ``spans_s`` [s]) whose knee stays near extension for
+    less than ``min_share`` of the stride (:func:`near_extension_share`): stair or step-like, not level gait."""
+    share = near_extension_share(angle_deg, t_s, spans_s, band_deg)
+    return np.flatnonzero(share < min_share).tolist()

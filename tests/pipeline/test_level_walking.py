@@ -1,0 +1,53 @@
+"""pipeline.level_walking and the session's level-gait check: a stair flight is not level walking."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bench.matching import match_strides
+from pipeline.level_walking import near_extension_share, not_level_walking
+from pipeline.params import PhaseParams
+from pipeline.session import process_session
+from pipeline.simulate import SimConfig, simulate_session
+
+
+def _stride(points: list[tuple[float, float]], n: int = 200) -> np.ndarray:
+    x = np.array([p for p, _ in points]) / 100.0
+    return np.interp(np.arange(n) / n, x, [v for _, v in points])
+
+
+def test_stair_gait_is_far_from_extension_and_walking_is_not() -> None:
+    """Perry's level-walking knee (contact ~5 deg, loading flexion ~18 deg, swing ~60 deg) spends most of its
+    stride near extension; stair ascent (contact at ~60 deg, extension under load) and descent (flexion under load
+    to ~75 deg before toe-off) do not."""
+    walk = _stride([(0, 5), (12, 18), (40, 5), (60, 38), (72, 60), (100, 5)])
+    up = _stride([(0, 62), (25, 35), (40, 15), (55, 10), (82, 92), (100, 62)])
+    down = _stride([(0, 8), (25, 25), (55, 75), (75, 97), (95, 15), (100, 8)])
+    t_s = np.arange(600) * 0.01
+    angle = np.concatenate([walk, up, down])
+    spans = np.array([(0.0, 2.0), (2.0, 4.0), (4.0, 6.0)])
+    share = near_extension_share(angle, t_s, spans, PhaseParams().level_band_deg)
+    assert share[0] > 0.6 and share[1] < 0.45 and share[2] < 0.4, share
+    p = PhaseParams()
+    assert not_level_walking(angle, t_s, spans, p.level_band_deg, p.level_min_share) == [1, 2]
+    masked = angle.copy()
+    masked[200:400] = np.nan  # a stride without an angle is not judged
+    assert not_level_walking(masked, t_s, spans, p.level_band_deg, p.level_min_share) == [2]
+
+
+def test_a_stair_flight_gives_no_strides_and_keeps_the_walk() -> None:
+    """Ten steps up and ten down, step over step between two walking bouts: the legs alternate like gait and the
+    strides used to enter trends with ~100 deg of swing flexion; now none lies inside the flight, and the walking
+    strides are all kept."""
+    sim = simulate_session(SimConfig(pattern="normal", seed=1, duration_s=60.0, bout_strides=10,
+                                     activities=("stair_flight",)))
+    stairs = [(a, b) for kind, a, b in sim.info["non_gait_s"] if kind.startswith("stairs")]
+    assert stairs
+    res = process_session(sim.streams)
+    inside = [s for lr in res.legs.values() for s in lr.strides
+              if any(a < s.t_end_s and s.t_start_s < b for a, b in stairs)]
+    assert not inside, [(s.leg, s.t_start_s, s.peak_swing_flexion_deg) for s in inside]
+    assert any("stairs or step-ups" in w for w in res.warnings)
+    for leg, lr in res.legs.items():
+        steady = [t for t in sim.truth[leg].strides if t.steady]
+        assert len(match_strides(lr.strides, steady)) >= 0.95 * len(steady), leg
