@@ -277,15 +277,22 @@ def _cue_time(prep: PreparedLeg, w: slice, weight: np.ndarray | None) -> float:
 
 @dataclass(frozen=True)
 class StrideDrift:
-    """The shank's clock drift against the thigh's [s/s] that the stride timing shows and its 95 % interval."""
+    """The shank's clock drift against the thigh's [s/s] that the stride timing shows and its 95 % interval, and
+    the 95 % interval of the same slope within each walking run alone (``within_low``, ``within_high``)."""
 
     drift: float
     low: float
     high: float
+    within_low: float = -np.inf
+    within_high: float = np.inf
 
     def beyond(self, limit: float) -> bool:
-        """Whether the whole interval lies beyond ``+-limit`` [s/s]."""
-        return self.low > limit or self.high < -limit
+        """Whether each interval lies wholly beyond ``+-limit`` [s/s]: a clock drifts within every walking run as
+        well, while a change of gait between runs (another pace, pivoting steps, a thigh whose swing peak moves
+        with the style of walking) shifts a run's lead as a whole (an independent simulator: 110 ms from one bout
+        to the next, read as 900 ppm over the session, 22 of 80 legs flagged). Their signs may differ: a lead that
+        runs past the search window around each mid-swing wraps the session's slope (5000 ppm read as -835)."""
+        return (self.low > limit or self.high < -limit) and (self.within_low > limit or self.within_high < -limit)
 
 
 def stride_timing_drift(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndarray, fs_hz: float,
@@ -326,19 +333,27 @@ def stride_timing_drift(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndarr
     frac = np.where(inner, 0.5 * (y0 - y2) / np.where(inner, curv, -1.0), 0.0)
     lead = (before - (k + frac)) / fs_hz
     # a lead read to a sample has the uniform quantisation error's SD at least (1 / fs / sqrt 12)
-    return _drift_beside_pace(lead, t, period, 1.0 / (fs_hz * np.sqrt(12.0)))
+    floor = 1.0 / (fs_hz * np.sqrt(12.0))
+    # walking runs: a pause longer than half a stride more than the stride's own period starts a new one
+    run = np.concatenate(([0], np.cumsum(np.diff(t) > 1.5 * period[:-1])))
+    whole = _drift_beside_pace(lead, t, period, np.zeros_like(run), floor)
+    within = _drift_beside_pace(lead, t, period, run, floor)
+    return StrideDrift(whole.drift, whole.low, whole.high, within.low, within.high)
 
 
-def _drift_beside_pace(lead_s: np.ndarray, t_s: np.ndarray, period_s: np.ndarray, floor_s: float) -> StrideDrift:
+def _drift_beside_pace(lead_s: np.ndarray, t_s: np.ndarray, period_s: np.ndarray, run: np.ndarray, floor_s: float
+                       ) -> StrideDrift:
     """The drift [s/s] of the thigh's lead over the session, with the stride period as a second regressor: the thigh
     leads the shank by a share of the stride, so a slow bout after a brisk one lengthens the lead by tens of ms
     (brisk 1.5 m/s then 0.4 m/s: 1000-1200 ppm read as a drift on an independent simulator, both legs flagged), while
     a clock drift adds to it in proportion to time whatever the pace. Huber's M-estimator (k = 1.345, scale the
     residuals' MAD) by iteratively reweighted least squares, and the 95 % interval of the drift from its weighted
     covariance. Where the pace changes steadily over the session the two regressors overlap and the interval
-    widens: no drift is then claimed. ``floor_s``: the smallest residual scale (a lead read to a fraction of a
-    sample is no more exact than that, whatever the residuals' MAD says)."""
-    x = np.column_stack([np.ones_like(t_s), period_s - period_s.mean(), t_s - t_s.mean()])
+    widens: no drift is then claimed. ``run`` (one label per stride): each run gets an intercept of its own, so only
+    the slopes within runs measure the drift (all one label: the session's slope). ``floor_s``: the smallest residual
+    scale (a lead read to a fraction of a sample is no more exact than that, whatever the residuals' MAD says)."""
+    x = np.column_stack([run[:, None] == np.unique(run)[None, :], period_s - period_s.mean(), t_s - t_s.mean()]
+                        ).astype(float)
     w = np.ones_like(t_s)
     scale = 0.0
     for _ in range(20):
@@ -351,8 +366,8 @@ def _drift_beside_pace(lead_s: np.ndarray, t_s: np.ndarray, period_s: np.ndarray
             break
         w = w_new
     xtwx = (x * w[:, None]).T @ x
-    se = scale * float(np.sqrt(max(np.linalg.pinv(xtwx)[2, 2], 0.0)))
-    drift = float(beta[2])
+    se = scale * float(np.sqrt(max(np.linalg.pinv(xtwx)[-1, -1], 0.0)))
+    drift = float(beta[-1])
     return StrideDrift(drift, drift - 1.96 * se, drift + 1.96 * se)
 
 

@@ -27,6 +27,7 @@ from pipeline.sync import (
     clock_model,
     shock_mask,
     stride_clock_runaway,
+    stride_timing_drift,
     synchronised_leg,
 )
 from pipeline.walking import fit_gyros
@@ -446,6 +447,29 @@ def test_a_slow_bout_after_a_brisk_one_is_no_clock_drift() -> None:
 
     assert not stride_clock_runaway(t, thigh(0.0), ms, fs, WALKING.sync)
     assert stride_clock_runaway(t, thigh(1500e-6), ms, fs, WALKING.sync)
+
+
+def test_a_change_of_gait_between_bouts_is_no_clock_drift() -> None:
+    """Four bouts of 20 strides at one pace; in the last two the thigh's swing peak leads the shank's by 110 ms more
+    (another style of walking: pivoting steps, a thigh peak that moved). The session's slope reads that as ~1000 ppm,
+    but within each bout the lead holds still: no drift. A real 1500 ppm drift moves it within the bouts too."""
+    fs = 100.0
+    starts = 200 + np.arange(4) * 2600
+    ms = np.concatenate([s + np.arange(20) * 107 for s in starts])
+    t = np.arange(ms[-1] + 200) / fs
+    step = np.repeat([0.0, 0.0, 0.11, 0.11], 20)
+    rng = np.random.default_rng(1)
+
+    def thigh(drift: float) -> np.ndarray:
+        lead = 0.18 + step + 0.004 * rng.standard_normal(ms.size) - drift * t[ms]
+        out = np.zeros(t.size)
+        out[ms - np.round(lead * fs).astype(int)] = 1.0
+        return out
+
+    seen = stride_timing_drift(t, thigh(0.0), ms, fs, WALKING.sync)
+    assert seen is not None and seen.low > WALKING.sync.crystal_drift  # the session's slope alone would claim it
+    assert not stride_clock_runaway(t, thigh(0.0), ms, fs, WALKING.sync, limit=WALKING.sync.crystal_drift)
+    assert stride_clock_runaway(t, thigh(-1500e-6), ms, fs, WALKING.sync, limit=WALKING.sync.crystal_drift)
 
 
 def test_one_scattered_window_is_noise_not_a_runaway_clock() -> None:
