@@ -261,8 +261,10 @@ def _check_sides(legs: dict[str, LegResult], ap: AssignmentParams, qp: QualityPa
                  ) -> dict[str, LegResult]:
     """Both legs with every stride ``side_in_doubt`` (out of trends) when their thighs' weight shifts say the left
     and right labels are swapped (:func:`pipeline.assignment.side_verdict`); unchanged otherwise. Never corrected on
-    this cue alone: a wrong exchange would put each knee's strides into the other's trend."""
-    if set(legs) != {"left", "right"}:
+    this cue alone: a wrong exchange would put each knee's strides into the other's trend. Judged only where both
+    legs keep ``shift_min_strides`` gait strides after the drops (a session of stair flights has none: its weight
+    shifts are not gait's)."""
+    if set(legs) != {"left", "right"} or min(len(lr.strides) for lr in legs.values()) < ap.shift_min_strides:
         return legs
     shift = {leg: None if lr.diagnostics is None else lr.diagnostics.weight_shift_dps for leg, lr in legs.items()}
     if side_verdict(shift["left"], shift["right"], ap) != "swapped":

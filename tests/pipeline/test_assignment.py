@@ -70,6 +70,24 @@ def test_left_right_labels_swapped_keep_every_stride_out_of_trends() -> None:
     assert all("side_in_doubt" in s.quality_reasons and s.quality < 0.5 for s in strides)
 
 
+def test_legs_without_gait_strides_are_not_judged_by_their_weight_shift() -> None:
+    """The weight-shift cue is a property of gait strides: where the drops left a leg fewer than
+    ``shift_min_strides`` of them (a session of stair flights), mirrored shifts say nothing about the labels."""
+    import dataclasses
+
+    from pipeline.params import WALKING
+    from pipeline.session import _check_sides
+
+    res = process_session(_sim_3d("legs").streams)
+    few = WALKING.assignment.shift_min_strides - 1
+    legs = {leg: dataclasses.replace(lr, strides=lr.strides[:few]) for leg, lr in res.legs.items()}
+    warnings: list[str] = []
+    assert _check_sides(legs, WALKING.assignment, WALKING.quality, warnings) == legs and not warnings
+    legs = {leg: dataclasses.replace(lr, strides=lr.strides[:few + 1]) for leg, lr in res.legs.items()}
+    flagged = _check_sides(legs, WALKING.assignment, WALKING.quality, warnings)
+    assert warnings and all("side_in_doubt" in s.quality_reasons for lr in flagged.values() for s in lr.strides)
+
+
 @pytest.mark.parametrize("cfg", [
     SimConfig(pattern="normal", seed=5, n_strides=20, bout_strides=10, activities=("standing",)),
     SimConfig(pattern="normal", seed=5, n_strides=20, bout_strides=10, activities=("standing",), thigh_sta_deg=-10.0),
