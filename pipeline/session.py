@@ -108,6 +108,10 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
                                                   events.get(leg))
         except ValueError as exc:
             warnings.append(f"{leg} leg skipped: {exc}")
+    for leg in [leg for leg, how in assigned.items() if how == "thigh_shank_exchanged" and leg in legs
+                and not legs[leg].strides]:
+        _keep_labels(leg, streams, activity, estimator, params, (calibration or {}).get(leg), others.get(leg),
+                     legs, swings, by_leg, assigned, warnings)
     legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
                                         warnings, others)
     legs = _alternating_strides(legs, swings, warnings)
@@ -167,6 +171,29 @@ def _check_labels(leg: str, segs: dict[str, RawSensorStream], params: Assignment
         warnings.append(f"{leg} leg: the sensor labelled thigh moves like a shank ({ratios}); "
                         "thigh and shank labels exchanged")
     return si["thigh"], si["shank"]
+
+
+def _keep_labels(leg: str, streams: Sequence[RawSensorStream], activity: str, estimator: str,
+                 params: PipelineParams | None, calibration: KneeCalibration | None, other: OtherLeg | None,
+                 legs: dict[str, LegResult], swings: dict[str, np.ndarray],
+                 by_leg: dict[str, dict[str, RawSensorStream]], assigned: dict[str, str], warnings: list[str]) -> None:
+    """Process ``leg`` again with its thigh and shank as labelled (in place) after an exchange that left it without
+    a gait stride. The swing-rate rule (:func:`pipeline.assignment.check_segments`) reads gait: a step test, jumps
+    or sit-to-stand alone move the thigh faster than the shank (rate ratio 0.03-0.56 on the simulators), and every
+    exercise-only session of an independent simulator had its labels exchanged. Without gait nothing confirms the
+    exchange, so the labels stand."""
+    segs = _streams_by_leg(streams, [])[leg]
+    try:
+        synced = _synced(leg, segs["thigh"], segs["shank"], activity, params)
+        legs[leg], swings[leg] = _process_leg(leg, segs["thigh"], segs["shank"], activity, estimator, params,
+                                              calibration, synced, other)
+    except ValueError:
+        return
+    by_leg[leg] = segs
+    del assigned[leg]
+    warnings[:] = [w for w in warnings if not w.startswith(f"{leg} leg: the sensor labelled thigh moves like a shank")]
+    warnings.append(f"{leg} leg: thigh and shank labels kept as given: the swing rates alone read them as exchanged, "
+                    "but the leg has no gait stride to confirm it")
 
 
 def _centre_residuals(legs: dict[str, LegResult]) -> tuple[float, float] | None:

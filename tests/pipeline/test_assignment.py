@@ -70,6 +70,31 @@ def test_left_right_labels_swapped_keep_every_stride_out_of_trends() -> None:
     assert all("side_in_doubt" in s.quality_reasons and s.quality < 0.5 for s in strides)
 
 
+def test_an_exercise_without_gait_keeps_its_labels() -> None:
+    """A step test alone (no walking) moves the thigh faster than the shank: the swing-rate rule reads the labels as
+    exchanged, but no gait stride confirms it, so they stand (warned). Exchanged, the knee trace was ~26 deg off on
+    the leg that has a level (here: within a few degrees)."""
+    import dataclasses
+
+    sim = simulate_session(SimConfig(seed=1, n_strides=12, bout_strides=6, activities=("step_test",), move_reps=10))
+    _, t0, t1 = sim.info["non_gait_s"][0]
+
+    def cut(s):  # noqa: ANN001, ANN202
+        m = (s.t_s >= t0 - 3) & (s.t_s < t1 + 1)
+        return dataclasses.replace(s, t_s=s.t_s[m] - (t0 - 3), gyr=s.gyr[m], acc=s.acc[m])
+
+    streams = [cut(s) for s in sim.streams]
+    by_leg = {leg: {s.segment: s for s in streams if s.leg == leg} for leg in ("left", "right")}
+    assert all(check_segments(d["thigh"], d["shank"]).verdict == "swapped" for d in by_leg.values())
+    res = process_session(streams)
+    assert all(lr.diagnostics.assignment == "as_labelled" for lr in res.legs.values())
+    assert not any("labels exchanged" in w for w in res.warnings)
+    assert sum("labels kept as given" in w for w in res.warnings) == 2
+    left = res.legs["left"]
+    err = left.angle_deg - sim.truth["left"].angle_at(left.t_s + t0 - 3)
+    assert np.sqrt(np.nanmean(err ** 2)) < 5.0
+
+
 def test_legs_without_gait_strides_are_not_judged_by_their_weight_shift() -> None:
     """The weight-shift cue is a property of gait strides: where the drops left a leg fewer than
     ``shift_min_strides`` of them (a session of stair flights), mirrored shifts say nothing about the labels."""
