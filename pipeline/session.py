@@ -181,7 +181,9 @@ def _keep_labels(leg: str, streams: Sequence[RawSensorStream], activity: str, es
     a gait stride. The swing-rate rule (:func:`pipeline.assignment.check_segments`) reads gait: a step test, jumps
     or sit-to-stand alone move the thigh faster than the shank (rate ratio 0.03-0.56 on the simulators), and every
     exercise-only session of an independent simulator had its labels exchanged. Without gait nothing confirms the
-    exchange, so the labels stand."""
+    exchange, so the labels stand; but a shank that swings slower than its thigh is not walking either (in gait it
+    swings 2-3 x faster), so whatever strides the labelled order shows are dropped (a step test alone gave 227
+    strides of trend quality there, peaks ~20 deg against a true 70)."""
     segs = _streams_by_leg(streams, [])[leg]
     try:
         synced = _synced(leg, segs["thigh"], segs["shank"], activity, params)
@@ -191,9 +193,12 @@ def _keep_labels(leg: str, streams: Sequence[RawSensorStream], activity: str, es
         return
     by_leg[leg] = segs
     del assigned[leg]
+    dropped = len(legs[leg].strides)
+    legs[leg] = _without(legs[leg], set(range(dropped)))
     warnings[:] = [w for w in warnings if not w.startswith(f"{leg} leg: the sensor labelled thigh moves like a shank")]
-    warnings.append(f"{leg} leg: thigh and shank labels kept as given: the swing rates alone read them as exchanged, "
-                    "but the leg has no gait stride to confirm it")
+    warnings.append(f"{leg} leg: thigh and shank labels kept as given: the swing rates read them as exchanged, but "
+                    f"the leg has no gait stride either way (the shank swings slower than the thigh: not walking; "
+                    f"{dropped} stride(s) dropped)")
 
 
 def _centre_residuals(legs: dict[str, LegResult]) -> tuple[float, float] | None:

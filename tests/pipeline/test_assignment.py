@@ -73,7 +73,7 @@ def test_left_right_labels_swapped_keep_every_stride_out_of_trends() -> None:
 def test_an_exercise_without_gait_keeps_its_labels() -> None:
     """A step test alone (no walking) moves the thigh faster than the shank: the swing-rate rule reads the labels as
     exchanged, but no gait stride confirms it, so they stand (warned). Exchanged, the knee trace was ~26 deg off on
-    the leg that has a level (here: within a few degrees)."""
+    the leg that has a level (here: within a few degrees). Nor is it gait as labelled: no stride is kept."""
     import dataclasses
 
     sim = simulate_session(SimConfig(seed=1, n_strides=12, bout_strides=6, activities=("step_test",), move_reps=10))
@@ -87,7 +87,7 @@ def test_an_exercise_without_gait_keeps_its_labels() -> None:
     by_leg = {leg: {s.segment: s for s in streams if s.leg == leg} for leg in ("left", "right")}
     assert all(check_segments(d["thigh"], d["shank"]).verdict == "swapped" for d in by_leg.values())
     res = process_session(streams)
-    assert all(lr.diagnostics.assignment == "as_labelled" for lr in res.legs.values())
+    assert all(lr.diagnostics.assignment == "as_labelled" and not lr.strides for lr in res.legs.values())
     assert not any("labels exchanged" in w for w in res.warnings)
     assert sum("labels kept as given" in w for w in res.warnings) == 2
     left = res.legs["left"]
