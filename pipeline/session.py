@@ -108,14 +108,14 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
                                                   events.get(leg))
         except ValueError as exc:
             warnings.append(f"{leg} leg skipped: {exc}")
-    for leg in [leg for leg, how in assigned.items() if how == "thigh_shank_exchanged" and leg in legs
-                and not legs[leg].strides]:
-        _keep_labels(leg, streams, activity, estimator, params, (calibration or {}).get(leg), others.get(leg),
-                     legs, swings, by_leg, assigned, warnings)
     legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
                                         warnings, others)
     legs = _alternating_strides(legs, swings, warnings)
     legs = _level_strides(legs, (params if params is not None else preset(activity)).phases, warnings)
+    for leg in [leg for leg, how in assigned.items() if how == "thigh_shank_exchanged" and leg in legs
+                and not legs[leg].strides]:
+        _keep_labels(leg, streams, activity, estimator, params, (calibration or {}).get(leg), others.get(leg),
+                     legs, swings, by_leg, assigned, warnings)
     legs = _check_sides(legs, ap, (params if params is not None else preset(activity)).quality, warnings)
     warnings += [f"{leg} leg: its thigh and shank clocks run apart faster than crystal clocks can; the knee angle's "
                  "timing is unknown and its strides are kept out of trends (clock_disagreement)"
@@ -178,9 +178,10 @@ def _keep_labels(leg: str, streams: Sequence[RawSensorStream], activity: str, es
                  legs: dict[str, LegResult], swings: dict[str, np.ndarray],
                  by_leg: dict[str, dict[str, RawSensorStream]], assigned: dict[str, str], warnings: list[str]) -> None:
     """Process ``leg`` again with its thigh and shank as labelled (in place) after an exchange that left it without
-    a gait stride. The swing-rate rule (:func:`pipeline.assignment.check_segments`) reads gait: a step test, jumps
-    or sit-to-stand alone move the thigh faster than the shank (rate ratio 0.03-0.56 on the simulators), and every
-    exercise-only session of an independent simulator had its labels exchanged. Without gait nothing confirms the
+    a gait stride (after the alternation and level-walking drops). The swing-rate rule
+    (:func:`pipeline.assignment.check_segments`) reads gait: a step test, jumps, squats or sit-to-stand alone move the
+    thigh faster than the shank (rate ratio 0.03-0.56 on the simulators), and every exercise-only session of an
+    independent simulator had its labels exchanged. Without gait nothing confirms the
     exchange, so the labels stand; but a shank that swings slower than its thigh is not walking either (in gait it
     swings 2-3 x faster), so whatever strides the labelled order shows are dropped (a step test alone gave 227
     strides of trend quality there, peaks ~20 deg against a true 70)."""
