@@ -181,10 +181,10 @@ def _keep_labels(leg: str, streams: Sequence[RawSensorStream], activity: str, es
     a gait stride (after the alternation and level-walking drops). The swing-rate rule
     (:func:`pipeline.assignment.check_segments`) reads gait: a step test, jumps, squats or sit-to-stand alone move the
     thigh faster than the shank (rate ratio 0.03-0.56 on the simulators), and every exercise-only session of an
-    independent simulator had its labels exchanged. Without gait nothing confirms the
-    exchange, so the labels stand; but a shank that swings slower than its thigh is not walking either (in gait it
-    swings 2-3 x faster), so whatever strides the labelled order shows are dropped (a step test alone gave 227
-    strides of trend quality there, peaks ~20 deg against a true 70)."""
+    independent simulator had its labels exchanged. Without gait nothing confirms the exchange, so the labels stand;
+    but a shank that swings slower than its thigh is not walking either (in gait it swings 2-3 x faster), so
+    whatever strides the labelled order shows are dropped (a step test alone gave 227 strides of trend quality
+    there, peaks ~20 deg against a true 70)."""
     segs = _streams_by_leg(streams, [])[leg]
     try:
         synced = _synced(leg, segs["thigh"], segs["shank"], activity, params)
