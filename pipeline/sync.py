@@ -352,19 +352,27 @@ def _drift_beside_pace(lead_s: np.ndarray, t_s: np.ndarray, period_s: np.ndarray
     widens: no drift is then claimed. ``run`` (one label per stride): each run gets an intercept of its own, so only
     the slopes within runs measure the drift (all one label: the session's slope). ``floor_s``: the smallest residual
     scale (a lead read to a fraction of a sample is no more exact than that, whatever the residuals' MAD says)."""
-    x = np.column_stack([run[:, None] == np.unique(run)[None, :], period_s - period_s.mean(), t_s - t_s.mean()]
-                        ).astype(float)
+    group = np.unique(run, return_inverse=True)[1]
+
+    def within(v: np.ndarray, w: np.ndarray) -> np.ndarray:
+        # each run's weighted mean removed: the runs' intercepts profiled out (Frisch-Waugh-Lovell), so the cost
+        # stays linear in the strides however many runs there are
+        return v - (np.bincount(group, w * v) / np.bincount(group, w))[group]
+
     w = np.ones_like(t_s)
     scale = 0.0
     for _ in range(20):
-        beta = np.linalg.lstsq(x * np.sqrt(w)[:, None], lead_s * np.sqrt(w), rcond=None)[0]
-        r = lead_s - x @ beta
+        x = np.column_stack([within(period_s, w), within(t_s, w)])
+        y = within(lead_s, w)
+        beta = np.linalg.lstsq(x * np.sqrt(w)[:, None], y * np.sqrt(w), rcond=None)[0]
+        r = y - x @ beta
         scale = max(float(median_abs_deviation(r, scale="normal")), floor_s)
         u = np.abs(r) / (1.345 * scale)
         w_new = np.where(u <= 1.0, 1.0, 1.0 / np.maximum(u, 1e-12))
         if np.allclose(w_new, w, atol=1e-6):
             break
         w = w_new
+    x = np.column_stack([within(period_s, w), within(t_s, w)])
     xtwx = (x * w[:, None]).T @ x
     se = scale * float(np.sqrt(max(np.linalg.pinv(xtwx)[-1, -1], 0.0)))
     drift = float(beta[-1])
