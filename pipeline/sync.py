@@ -337,6 +337,8 @@ def stride_timing_drift(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndarr
     # walking runs: a pause longer than half a stride more than the stride's own period starts a new one
     run = np.concatenate(([0], np.cumsum(np.diff(t) > 1.5 * period[:-1])))
     whole = _drift_beside_pace(lead, t, period, np.zeros_like(run), floor)
+    if not (whole.low > params.crystal_drift or whole.high < -params.crystal_drift):
+        return whole  # beyond no limit the checks use (crystal_drift the least): the runs' slopes cannot add a claim
     within = _drift_beside_pace(lead, t, period, run, floor)
     return StrideDrift(whole.drift, whole.low, whole.high, within.low, within.high)
 
