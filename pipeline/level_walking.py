@@ -6,9 +6,9 @@ speed, Lelas et al. 2003), and it is near extension again in terminal swing; onl
 from there. Stair gait loads a flexed knee: ascent makes contact at 50-60 deg and extends under load, descent makes
 contact near extension and flexes under load to ~75 deg before toe-off (Riener et al. 2002, Protopapadaki et al.
 2007). So the share of a stride spent within ``PhaseParams.level_band_deg`` of its own minimum separates the two
-without any absolute level: 0.59-0.70 on the real biomechZoo trial, 0.61-0.80 over the simulator's walking patterns
-(fast to stiff-knee and crouch, 3-D knees, 50 Hz, turns, loss); 0.29-0.41 in its stair flights. Running never
-stays near extension (a running leg is not judged).
+without any absolute level: 0.59-0.68 on the real biomechZoo trial (its Vicon angles 0.68-0.71), 0.61-0.80 over
+the simulator's walking patterns (fast to stiff-knee and crouch, 3-D knees, 50 Hz, turns, loss); 0.29-0.41 in its
+stair flights. Running never stays near extension (a running leg is not judged).
 """
 
 from __future__ import annotations

@@ -252,7 +252,7 @@ class PhaseParams:
     """Knee flexion above the stride's minimum [deg] still counted as near extension (:mod:`pipeline.level_walking`):
     the loading-response flexion of level walking, 10-25 deg from slow to fast (Lelas et al. 2003)."""
     level_min_share: float = 0.5
-    """Least share of a walking stride near extension for it to be level gait: real walking 0.59-0.70, the
+    """Least share of a walking stride near extension for it to be level gait: real walking 0.59-0.68, the
     simulator's walking patterns 0.61-0.80, its stair flights 0.29-0.41 (:mod:`pipeline.level_walking`)."""
     gap_guard_s: float = 0.15
     """No stride whose heel strikes lie closer than this [s] to a masked sample: an event searched up to a hole
