@@ -75,7 +75,8 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
         raise ValueError("the session has no samples")
     warnings: list[str] = []
     by_leg = _streams_by_leg(streams, warnings)
-    ap = (params if params is not None else preset(activity)).assignment
+    session_params = params if params is not None else preset(activity)  # a leg's own preset may differ
+    ap = session_params.assignment
     assigned: dict[str, str] = {}
     legs: dict[str, LegResult] = {}
     swings: dict[str, np.ndarray] = {}
@@ -97,7 +98,7 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
             leg_warnings.append(f"{leg} leg skipped: {exc}")
         del si
     warnings += label_warnings + leg_warnings
-    warnings += _offset_warnings(synced, by_leg, (params if params is not None else preset(activity)).posture)
+    warnings += _offset_warnings(synced, by_leg, session_params.posture)
     events = _leg_events(synced, activity, params)
     others = _other_legs(synced, events)
     for leg in sorted(synced):
@@ -111,12 +112,12 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
     legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
                                         warnings, others)
     legs = _alternating_strides(legs, swings, warnings)
-    legs = _level_strides(legs, (params if params is not None else preset(activity)).phases, warnings)
+    legs = _level_strides(legs, session_params.phases, warnings)
     for leg in [leg for leg, how in assigned.items() if how == "thigh_shank_exchanged" and leg in legs
                 and not legs[leg].strides]:
         _keep_labels(leg, streams, activity, estimator, params, (calibration or {}).get(leg), others.get(leg),
                      legs, swings, by_leg, assigned, warnings)
-    legs = _check_sides(legs, ap, (params if params is not None else preset(activity)).quality, warnings)
+    legs = _check_sides(legs, ap, session_params.quality, warnings)
     warnings += [f"{leg} leg: its thigh and shank clocks run apart faster than crystal clocks can; the knee angle's "
                  "timing is unknown and its strides are kept out of trends (clock_disagreement)"
                  for leg in sorted(legs) if _clock_unknown(legs[leg])]
