@@ -192,6 +192,19 @@ AXES: dict[str, Axis] = {
         _v("a step test: 10 step-ups without rest", activities=("step_test",), move_reps=10)),
         note="Stair flights are step-over-step stair gait (Riener et al. 2002): alternating, stride-like, but the "
              "knee is loaded while flexed."),
+    "exercise": Axis("Exercise sessions without walking (no stride in the truth; quiet standing at both ends)", (
+        _v("seated knee extensions, 6 per leg", walking=False, activities=("seated_extension",), move_reps=12),
+        _v("seated knee extensions from 70 deg", walking=False, activities=("seated_extension",), move_reps=12,
+           sit_knee_deg=70.0),
+        _v("sitting, then 6 sit-to-stand", walking=False, activities=("sitting", "sit_to_stand"), move_reps=6),
+        _v("6 vertical jumps", walking=False, activities=("jump",), move_reps=6),
+        _v("a step test: 10 step-ups", walking=False, activities=("step_test",), move_reps=10),
+        _v("a stair flight up and down", walking=False, activities=("stair_flight",)),
+        _v("all of them, knee and hip 3-D x1", walking=False, hip_3d=1.0, knee_3d=1.0, move_reps=6,
+           activities=("sitting", "seated_extension", "sit_to_stand", "jump", "step_test", "stair_flight"))),
+        note="A home exercise programme recorded alone. Nothing but gait anchors the knee axes and the angle's zero "
+             "(pipeline.session._withhold_unanchored): a leg without a gait stride shows no trace. 'Traces shown': "
+             "legs whose trace was shown, and its RMSE against the truth (✗ above 5 deg: a wrong angle shown)."),
     "labels": Axis("Wrongly labelled sensors (scored against the labelled leg; see 'pipeline did')", (
         _v("legs swapped (all four)", label_swap="legs"),
         _v("legs swapped (all four), pelvis and hip 3-D x1", label_swap="legs", hip_3d=1.0),
@@ -267,6 +280,8 @@ class CaseResult:
     case: Case
     score: LegScore
     swap: dict = field(default_factory=dict)  # labels axis: what the pipeline did
+    traces: list[float] = field(default_factory=list)  # per leg with a shown trace: its RMSE [deg] (exercise axis)
+    legs: int = 0  # legs processed
     seconds: float = 0.0
     error: str = ""
 
@@ -351,6 +366,11 @@ def run_case(case: Case) -> CaseResult:
         total.add(score_leg(legs.get(leg), truth, data_gaps(sim, leg), non_gait))
     if sim.config.label_swap != "none":
         out.swap = _swap_report(sim, legs, warnings)
+    out.legs = len(legs)
+    for leg, lr in legs.items():
+        ok = np.isfinite(lr.angle_deg)
+        if ok.any():
+            out.traces.append(float(np.sqrt(np.mean((lr.angle_deg[ok] - sim.truth[leg].angle_at(lr.t_s[ok])) ** 2))))
     out.seconds = time.perf_counter() - t0
     return out
 
@@ -382,6 +402,15 @@ def _swap_cell(reports: list[dict]) -> str:
     return (f"{verdict}: {legs_out}/{legs_in} legs out, {strides} strides, {warns} warnings, "
             f"r with the shank's knee {_f(float(np.median(corr)) if corr else math.nan, '{:+.2f}')}, "
             f"RMSE {_f(float(np.median(rmse)) if rmse else math.nan)} deg")
+
+
+def _shown_cell(rows: list[CaseResult]) -> str:
+    """Legs whose trace was shown out of those processed, and the shown traces' RMSE range."""
+    rmse = [e for r in rows for e in r.traces]
+    cell = f"{len(rmse)}/{sum(r.legs for r in rows)}"
+    if rmse:
+        cell += f", {min(rmse):.1f} .. {max(rmse):.1f}"
+    return _miss(cell, any(e > 5.0 for e in rmse))
 
 
 def _trend_cell(s: dict[str, float]) -> str:
@@ -421,7 +450,9 @@ def axis_table(name: str, results: list[CaseResult]) -> list[str]:
     """The Markdown table of one axis from all its case results."""
     axis = AXES[name]
     swap = name == "labels"
-    header = ["value", *HEADER, *(["pipeline did"] if swap else [])]
+    shown = name == "exercise"
+    header = ["value", *HEADER, *(["pipeline did"] if swap else []), *(["traces shown: legs, RMSE (deg)"] if shown
+                                                                      else [])]
     lines = [f"### {axis.title} (`{name}`)", ""]
     if axis.note:
         lines += [axis.note, ""]
@@ -437,6 +468,8 @@ def axis_table(name: str, results: list[CaseResult]) -> list[str]:
         if swap:
             reps = [{**r.swap, "legs_only": value.overrides.get("label_swap") == "legs"} for r in rows if r.swap]
             extra = [_swap_cell(reps)]
+        if shown:
+            extra = [_shown_cell(rows)]
         label = value.label + (" (crashed: " + "; ".join({r.error for r in rows if r.error}) + ")"
                                if any(r.error for r in rows) else "")
         lines.append(format_row(label, summarise(pooled), value.targets, extra))

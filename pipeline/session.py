@@ -44,6 +44,7 @@ from pipeline.quality import edge_reasons, gap_reasons, stride_quality
 from pipeline.running import build_running_leg_input, detect_running
 from pipeline.sync import SyncedLeg, stride_clock_runaway, synchronised_leg
 from pipeline.types import (
+    TRACE_WITHHELD_NO_GAIT,
     KneeCalibration,
     LegDiagnostics,
     LegResult,
@@ -111,12 +112,16 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
             warnings.append(f"{leg} leg skipped: {exc}")
     legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
                                         warnings, others)
+    unjudged = {leg for leg, lr in legs.items() if not lr.strides and _detected(lr)}  # e.g. every stride masked
     legs = _alternating_strides(legs, swings, warnings)
+    gait_legs = unjudged | {leg for leg, lr in legs.items() if lr.strides}  # stair gait anchors the axes too
     legs = _level_strides(legs, session_params.phases, warnings)
     for leg in [leg for leg, how in assigned.items() if how == "thigh_shank_exchanged" and leg in legs
                 and not legs[leg].strides]:
         _keep_labels(leg, streams, activity, estimator, params, (calibration or {}).get(leg), others.get(leg),
                      legs, swings, by_leg, assigned, warnings)
+        gait_legs.discard(leg)
+    legs = _withhold_unanchored(legs, gait_legs, warnings)
     legs = _check_sides(legs, ap, session_params.quality, warnings)
     warnings += [f"{leg} leg: its thigh and shank clocks run apart faster than crystal clocks can; the knee angle's "
                  "timing is unknown and its strides are kept out of trends (clock_disagreement)"
@@ -278,6 +283,36 @@ def _level_strides(legs: dict[str, LegResult], params: PhaseParams, warnings: li
             out[leg] = _without(lr, drop)
             warnings.append(f"{leg} leg: {len(drop)} stride(s) dropped: the knee stayed near extension for less "
                             f"than {params.level_min_share:.0%} of the stride (stairs or step-ups, not level gait)")
+    return out
+
+
+def _detected(lr: LegResult) -> bool:
+    return lr.diagnostics is not None and lr.diagnostics.detected_strides > 0
+
+
+def _withhold_unanchored(legs: dict[str, LegResult], gait_legs: set[str], warnings: list[str]
+                         ) -> dict[str, LegResult]:
+    """Each leg without a gait stride loses its knee-angle trace (every sample NaN, ``trace_withheld``): no stride
+    delimited by its gait events, or every stride dropped as no gait (the other leg not in anti-phase, or a label
+    exchange undone); ``gait_legs`` are the others.
+
+    The knee axes (Seel et al. 2014 Eq. 2 orients them by the swing), the upright directions that tell standing from
+    sitting, and so the absolute zero (:mod:`pipeline.posture`) are all learned from gait. Without it they are
+    unanchored: seated knee extensions keep the thigh still (its axis is unobservable), and on exercise-only
+    sessions of two simulators (sitting, seated extensions, sit-to-stand, jumps, a step test; no walking) the trace
+    was 10-100 deg off, with the seated knee read near 0 deg. A gait stride dropped later as stair gait still counts:
+    it turns the knee about the same axis (stair-only sessions: trace RMSE 0.7-1.7 deg)."""
+    out = dict(legs)
+    for leg in sorted(set(legs) - gait_legs):
+        lr = legs[leg]
+        diag = lr.diagnostics
+        if diag is not None:
+            diag = dataclasses.replace(diag, trace_withheld=TRACE_WITHHELD_NO_GAIT)
+        out[leg] = dataclasses.replace(lr, angle_deg=np.full_like(lr.angle_deg, np.nan),
+                                       estimator=np.full(lr.estimator.shape, "", dtype=lr.estimator.dtype),
+                                       diagnostics=diag)
+        warnings.append(f"{leg} leg: no knee angle: no gait stride in the session to learn the knee axes and the "
+                        "angle's zero from (exercises or sitting alone); the trace is withheld (trace_withheld)")
     return out
 
 
@@ -471,6 +506,7 @@ def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, stride
         absolute_reference=result.absolute_reference, standing_ref_deg=result.standing_ref_deg,
         bouts=int(events.bout.max() + 1) if events.bout.size else 0, bridged_gaps=data.prep.bridged_gaps,
         n_strides=len(strides), n_fallback=sum(1 for s in strides if s.fallback),
+        detected_strides=len(data.filter_strides),
         j1=tuple(np.round(axes.j1, 4).tolist()), j2=tuple(np.round(axes.j2, 4).tolist()),
         o1_m=tuple(np.round(centres.o1, 4).tolist()), o2_m=tuple(np.round(centres.o2, 4).tolist()),
         cf_shift_deg=result.cf_shift_deg, offset_median_deg=result.offset_median_deg,

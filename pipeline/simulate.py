@@ -27,7 +27,8 @@ and each new random effect draws from its own ``default_rng([seed, k])`` stream)
 angle, per-leg scaled or shifted knee curves, an absolute heel-strike shock in g, larger and off-axis lever arms,
 bursty packet loss (Gilbert-Elliott two-state channel per sensor), sharper and more frequent turns, non-gait
 movements between bouts (vertical jumps, step-ups onto a stair, a step test of step-ups without rest, stair
-flights up and down step over step, sit-to-stand repetitions: never strides in the truth), wrongly labelled
+flights up and down step over step, sit-to-stand repetitions, seated knee extensions: never strides in the truth;
+``walking=False`` makes an exercise session of them alone), wrongly labelled
 sensors (legs or thigh/shank swapped), per-axis sensitivity (gain) errors, and 3-D joint motion (``knee_3d``,
 ``hip_3d``, ``knee_varus_deg``; the thigh sensor's skin turning about the femur with flexion, ``thigh_sta_deg``):
 each segment is then the end of a chain of rotations, pelvis
@@ -201,6 +202,8 @@ class SimConfig:
     bout_pace: tuple[float, ...] = ()
     hip_scale: float = 1.0  # the gait hip curve's excursion about its cycle mean (0.5: a stiff, osteoarthritic hip)
     stair_steps: int = 10  # steps of each flight in a "stair_flight" activity (up, a pause, down)
+    # False: an exercise session without walking: each of ``activities`` once, in order, between quiet standing
+    walking: bool = True
 
 
 @dataclass(frozen=True)
@@ -331,6 +334,10 @@ _STAIR_DOWN = (((0, 8), (10, 18), (25, 25), (40, 40), (55, 75), (65, 92), (75, 9
 _STAIR_RISE_M = 0.17
 _STAIR_TOP_S = 1.5  # standing on the landing between the flight up and the flight down
 _STEP_TEST_REP_S = 2.4  # a step test's up-up-down-down at 100 steps/min (the step-up keyframes, compressed)
+# Seated knee extension (long-arc quadriceps exercise): (time s, knee extension from the seated angle as a share of
+# the way to _EXTENSION_KNEE_DEG): lift over 1.5 s, hold 2 s, lower over 1.5 s, rest 1.5 s.
+_EXTENSION = np.array([(0.0, 0.0), (1.5, 1.0), (3.5, 1.0), (5.0, 0.0), (6.5, 0.0)])
+_EXTENSION_KNEE_DEG = 10.0  # the knee's angle at the top of the lift (a knee after surgery rarely straightens fully)
 _IMPACT_FREQ_HZ, _IMPACT_TAU_S = 28.0, 0.012  # heel-strike shock: damped sine on the accelerometers
 # With an absolute impact_g, the shank sensor's transient rotation grows with the shock up to running's default.
 _IMPACT_ROT_MAX_DEG = 3.0
@@ -367,7 +374,44 @@ def _move_duration_s(kind: str, reps: int = _MOVE_REPS, jump_rest_s: float = 1.0
         return 0.5 * reps * (_STAIR_UP[2] + _STAIR_DOWN[2]) + _STAIR_TOP_S + 0.5 * (_STAIR_UP[2] + _STAIR_DOWN[2])
     if kind == "step_test":
         return reps * _STEP_TEST_REP_S
+    if kind == "seated_extension":
+        return reps * _EXTENSION[-1, 0]
     return reps * (1.5 + 2.5 + 1.5 + 2.0)  # sit_to_stand: down, seated, up, standing
+
+
+def _break_duration(cfg: SimConfig, kind: str, rng: np.random.Generator) -> tuple[float, float]:
+    """A break's duration [s] with activity ``kind``, and how long it sits [s] if it is ``sitting``."""
+    sit_s = rng.uniform(8, 15)
+    brk = {"sitting": 5.5 + sit_s, "turn": 5.0}.get(kind, rng.uniform(4, 8))
+    reps = cfg.stair_steps if kind == "stair_flight" else cfg.move_reps
+    if kind in _MOVES or kind == "sit_to_stand":
+        brk = _move_duration_s(kind, reps, cfg.jump_rest_s) + 3.0
+    if kind == "seated_extension":
+        brk = 2.0 + 1.0 + _move_duration_s(kind, reps) + 1.0 + 2.0 + 2.0
+    return brk, sit_s
+
+
+def _break_events(cfg: SimConfig, kind: str, t: float, k: int, sit_s: float, rng: np.random.Generator
+                  ) -> list[tuple[str, float, float, dict]]:
+    """The events (kind, t0, t1, params) of the ``k``-th break, activity ``kind``, from ``t`` (_break_duration)."""
+    reps = cfg.stair_steps if kind == "stair_flight" else cfg.move_reps
+    if kind == "sitting":
+        return [("sit", t + 1.0, t + 1.0 + 2.0 + sit_s + 2.0, {})]
+    if kind == "turn":
+        return [("turn", t + 1.0, t + 3.5, {"angle": np.pi * rng.choice([-1, 1]) * rng.uniform(0.5, 1)})]
+    if kind == "sit_to_stand":
+        rep_s = _move_duration_s(kind, cfg.move_reps) / cfg.move_reps
+        return [("sit", t_r, t_r + 1.5 + 2.5 + 1.5, {"ramp": 1.5})
+                for t_r in t + 1.0 + rep_s * np.arange(cfg.move_reps)]
+    if kind == "seated_extension":  # seated, then each knee in turn extends and lowers, the thigh on the chair
+        dur = 2.0 + 1.0 + _move_duration_s(kind, reps) + 1.0 + 2.0
+        return [("sit", t + 1.0, t + 1.0 + dur, {}),
+                (kind, t + 4.0, t + 4.0 + _move_duration_s(kind, reps),
+                 {"lead": k % 2, "reps": reps, "extend_deg": cfg.sit_knee_deg - _EXTENSION_KNEE_DEG})]
+    if kind in _MOVES:
+        return [(kind, t + 1.0, t + 1.0 + _move_duration_s(kind, reps, cfg.jump_rest_s),
+                 {"lead": k % 2, "reps": reps})]
+    return []
 
 
 def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator) -> _Timeline:  # noqa: C901 - one pass over the bout/break plan keeps the random draws in a fixed order (seeded outputs stay reproducible)
@@ -381,7 +425,12 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
         t = tail_s = cfg.standing_s
     done = 0
     k = 0
-    while True:
+    if not cfg.walking:
+        for k, kind in enumerate(cfg.activities):
+            brk, sit_s = _break_duration(cfg, kind, rng)
+            events += _break_events(cfg, kind, t, k, sit_s, rng)
+            t += brk
+    while cfg.walking:
         pace = cfg.bout_pace[k % len(cfg.bout_pace)] if cfg.bout_pace else 1.0
         bout_stride_s = stride_s / np.sqrt(pace)
         if total_strides is not None:
@@ -400,25 +449,10 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
         if cfg.duration_s is not None and t > cfg.duration_s - 6:
             break
         kind = cfg.activities[k % len(cfg.activities)] if cfg.activities else "standing"
-        sit_s = rng.uniform(8, 15)
-        brk = {"sitting": 5.5 + sit_s, "turn": 5.0}.get(kind, rng.uniform(4, 8))
-        reps = cfg.stair_steps if kind == "stair_flight" else cfg.move_reps
-        if kind in _MOVES or kind == "sit_to_stand":
-            brk = _move_duration_s(kind, reps, cfg.jump_rest_s) + 3.0
+        brk, sit_s = _break_duration(cfg, kind, rng)
         if cfg.duration_s is not None and t + brk + 3 * stride_s + 3 > cfg.duration_s:
             break
-        if kind == "sitting":
-            events.append(("sit", t + 1.0, t + 1.0 + 2.0 + sit_s + 2.0, {}))
-        elif kind == "turn":
-            events.append(("turn", t + 1.0, t + 3.5, {"angle": np.pi * rng.choice([-1, 1]) * rng.uniform(0.5, 1)}))
-        elif kind == "sit_to_stand":
-            rep_s = _move_duration_s(kind, cfg.move_reps) / cfg.move_reps
-            for r in range(cfg.move_reps):
-                t_r = t + 1.0 + r * rep_s
-                events.append(("sit", t_r, t_r + 1.5 + 2.5 + 1.5, {"ramp": 1.5}))
-        elif kind in _MOVES:
-            events.append((kind, t + 1.0, t + 1.0 + _move_duration_s(kind, reps, cfg.jump_rest_s),
-                           {"lead": k % 2, "reps": reps}))
+        events += _break_events(cfg, kind, t, k, sit_s, rng)
         t += brk
         k += 1
     t_end = max(t + 2.5, cfg.duration_s or 0.0) if cfg.standing_s is None else t + cfg.standing_s
@@ -462,6 +496,8 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
             moves.non_gait_s.append(("sit", t0, t1))
         elif kind in _MOVES:
             _add_moves(moves, grid, kind, t0, p["lead"], cfg.legs, p["reps"], cfg.jump_rest_s)
+        elif kind == "seated_extension":
+            _add_seated_extensions(moves, grid, t0, p["lead"], cfg.legs, p["reps"], p["extend_deg"])
         elif kind == "turn":
             heading += p["angle"] * _smoothstep((grid - t0) / (t1 - t0))
     phase = np.concatenate([[0.0], np.cumsum(0.5 * (freq[1:] + freq[:-1]) / _GRID_HZ)])
@@ -478,11 +514,7 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
 def _add_moves(mv: _Moves, grid: np.ndarray, kind: str, t0: float, lead: int, legs: tuple[str, ...],
                reps: int = _MOVE_REPS, jump_rest_s: float = 1.0) -> None:
     """Add ``reps`` jumps or step-ups starting at t0 to the movement layers ``mv``."""
-    if mv.height is None:
-        mv.height = np.zeros_like(grid)
-        for leg in legs:
-            mv.knee[leg] = np.zeros_like(grid)
-            mv.hip[leg] = np.zeros_like(grid)
+    _start_layers(mv, grid, legs)
     if kind == "stair_flight":
         _add_stair_flight(mv, grid, t0, lead, legs, reps)
         return
@@ -508,6 +540,27 @@ def _add_moves(mv: _Moves, grid: np.ndarray, kind: str, t0: float, lead: int, le
                 mv.hip[leg] += kf[:, c + 1]
             mv.height += kf[:, 4]
     mv.non_gait_s.append((kind, t0, t0 + _move_duration_s(kind, reps, jump_rest_s)))
+
+
+def _add_seated_extensions(mv: _Moves, grid: np.ndarray, t0: float, lead: int, legs: tuple[str, ...], reps: int,
+                           extend_deg: float) -> None:
+    """``reps`` seated knee extensions from t0, the legs in turn (the lead leg first), each ``extend_deg`` up from
+    the seated knee angle; the thigh stays on the chair."""
+    _start_layers(mv, grid, legs)
+    rep_s = _EXTENSION[-1, 0]
+    for r in range(reps):
+        leg = ("left", "right")[(lead + r) % 2]
+        if leg in legs:
+            mv.knee[leg] -= extend_deg * _keyframes(grid, t0 + r * rep_s, _EXTENSION)[:, 0]
+    mv.non_gait_s.append(("seated_extension", t0, t0 + reps * rep_s))
+
+
+def _start_layers(mv: _Moves, grid: np.ndarray, legs: tuple[str, ...]) -> None:
+    if mv.height is None:
+        mv.height = np.zeros_like(grid)
+        for leg in legs:
+            mv.knee[leg] = np.zeros_like(grid)
+            mv.hip[leg] = np.zeros_like(grid)
 
 
 def _add_stair_flight(mv: _Moves, grid: np.ndarray, t0: float, lead: int, legs: tuple[str, ...], steps: int

@@ -101,6 +101,10 @@ class KneeCalibration:
     calibration_id: str | None = None  # the caller's identifier, echoed in the leg's diagnostics
 
 
+TRACE_WITHHELD_NO_GAIT = "no_gait"
+"""``LegDiagnostics.trace_withheld``: the leg has no gait stride to learn its knee axes and zero from."""
+
+
 @dataclass(frozen=True)
 class LegDiagnostics:
     """How one leg was processed: fit residuals, clock correction, absolute reference, stride counts.
@@ -158,6 +162,9 @@ class LegDiagnostics:
     # the thigh's weight-shift rotation in early stance [deg/s], as measured and less the stride's mean rate,
     # positive on a left leg (pipeline.assignment.weight_shift_dps); None for running legs or too few strides
     weight_shift_dps: tuple[float, float] | None = None
+    # why the leg's knee-angle trace was withheld (every sample NaN), None when it was not: TRACE_WITHHELD_NO_GAIT
+    trace_withheld: str | None = None
+    detected_strides: int = 0  # strides the gait events delimit (running: foot-strike cycles), before any check
 
 
 @dataclass

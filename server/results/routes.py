@@ -84,7 +84,15 @@ def get_knee_angle(session_id: str, db: Db, caller: Caller,
         t_s=np.round(w.t_s, 4).tolist(),
         angle_deg=[float(a) if f else None for a, f in zip(angles.tolist(), finite.tolist(), strict=True)],
         estimator=[str(e) if (e and f) else None for e, f in zip(w.estimator.tolist(), finite.tolist(), strict=True)],
+        withheld=_withheld(session.summary, w.leg),
     )
+
+
+def _withheld(summary: dict | None, leg: str) -> str | None:
+    """The leg's ``trace_withheld`` diagnostic (pipeline.types.LegDiagnostics) from the session's stored summary."""
+    diag = ((summary or {}).get("legs") or {}).get(leg, {}).get("diagnostics") or {}
+    value = diag.get("trace_withheld")
+    return value if isinstance(value, str) else None
 
 
 @router.get("/{session_id}/compare", response_model=CompareOut,

@@ -60,6 +60,10 @@ class KneeAngleOut(BaseModel):
     t_s: list[float]
     angle_deg: list[float | None]
     estimator: list[str | None]
+    withheld: str | None = Field(
+        None, description="Why every angle of this leg is null, when it is: `no_gait` = the session has no gait "
+                          "stride on this leg to learn the knee axes and the angle's zero from (exercises or sitting "
+                          "alone), so no angle is shown rather than a wrong one")
 
 
 class MetricSummary(BaseModel):

@@ -139,6 +139,33 @@ def test_standing_only_session_has_no_strides() -> None:
     assert first_hs > 2.5
     res = process_session(cut)
     assert res.legs and all(len(lr.strides) == 0 for lr in res.legs.values())
+    assert all(lr.diagnostics.trace_withheld == "no_gait" for lr in res.legs.values())
+
+
+@pytest.mark.parametrize("activities", [("seated_extension",), ("sitting", "sit_to_stand"), ("jump",)])
+def test_an_exercise_session_without_gait_withholds_the_trace(activities: tuple[str, ...]) -> None:
+    """Nothing anchors the knee axes and the zero without gait: the trace is withheld, not shown tens of degrees
+    off (the seated knee read near 0 deg before)."""
+    sim = simulate_session(SimConfig(seed=0, walking=False, activities=activities, move_reps=4))
+    assert all(not t.strides for t in sim.truth.values())
+    res = process_session(sim.streams)
+    for lr in res.legs.values():
+        assert not lr.strides and lr.diagnostics.trace_withheld == "no_gait"
+        assert np.isnan(lr.angle_deg).all() and not lr.estimator.astype(bool).any()
+    assert sum("no knee angle" in w for w in res.warnings) == 2
+
+
+def test_a_stair_only_session_keeps_its_trace() -> None:
+    """Stair gait turns the knee about the same axis as walking: the trace stays, although no stride is kept (the
+    level-walking rule drops them)."""
+    sim = simulate_session(SimConfig(seed=1, walking=False, activities=("stair_flight",)))
+    res = process_session(sim.streams)
+    for leg, lr in res.legs.items():
+        assert not lr.strides and lr.diagnostics.trace_withheld is None
+        ok = np.isfinite(lr.angle_deg)
+        assert ok.mean() > 0.9
+        err = lr.angle_deg[ok] - sim.truth[leg].angle_at(lr.t_s[ok])
+        assert np.sqrt(np.mean(err ** 2)) < 3.0
 
 
 def test_missing_segment_and_empty_input() -> None:

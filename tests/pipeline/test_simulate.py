@@ -477,3 +477,16 @@ def test_thigh_skin_turns_about_the_femur_with_flexion() -> None:
     assert np.polyfit(flex_rate, extra_z, 1)[0] == pytest.approx(10.0 / 60.0, rel=0.05)
     assert np.array_equal(_stream(sta, "L-shank").gyr, _stream(bone, "L-shank").gyr)
     assert np.array_equal(sta.truth["left"].angle_deg, bone.truth["left"].angle_deg)
+
+
+def test_an_exercise_session_has_no_walking_and_seated_extensions_straighten_one_knee_at_a_time() -> None:
+    cfg = SimConfig(seed=2, walking=False, activities=("seated_extension",), move_reps=2, sit_knee_deg=85.0)
+    sim = simulate_session(cfg)
+    assert all(not t.strides and not t.bouts_s and not t.heel_strikes_s.size for t in sim.truth.values())
+    (kind, t0, t1), = [m for m in sim.info["non_gait_s"] if m[0] == "seated_extension"]
+    left, right = (sim.truth[leg] for leg in ("left", "right"))
+    first = (left.t_s > t0) & (left.t_s < t0 + 6.5)  # the first repetition: the left knee lifts, the right rests
+    assert left.angle_deg[first].min() == pytest.approx(10.0, abs=2.0)
+    assert right.angle_deg[first].min() > 80.0
+    assert right.angle_at(np.array([t0 + 6.5 + 2.5]))[0] == pytest.approx(10.0, abs=2.0)  # then the right's turn
+    assert sim.duration_s > t1

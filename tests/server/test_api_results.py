@@ -32,8 +32,8 @@ def test_minmax_downsampling_keeps_extremes_and_gaps() -> None:
     assert np.array_equal(minmax_indices(angle[:300], 400), np.arange(300))
 
 
-def _upload_simulated(api: Api, dev: str, patient_id: str) -> tuple[str, object]:
-    sim = simulate_session(SimConfig(n_strides=24, seed=3, legs=("left",)))
+def _upload_simulated(api: Api, dev: str, patient_id: str, cfg: SimConfig | None = None) -> tuple[str, object]:
+    sim = simulate_session(cfg or SimConfig(n_strides=24, seed=3, legs=("left",)))
     create, batches = session_to_requests(sim, batch_size=100, patient_id=patient_id, client_session_id="sim-1")
     sess = api.client.post("/v1/sessions", json=create, headers=bearer(dev))
     assert sess.status_code == 201, sess.text
@@ -108,3 +108,24 @@ def test_simulated_session_strides_and_knee_angle(api: Api) -> None:
     after = count_rows(api.engine)
     assert after.pop("clinicians") == 1 and after.pop("tokens") == 2  # admin + clinician; the device's is gone
     assert all(n == 0 for n in after.values()), after
+
+
+def test_an_exercise_session_without_gait_shows_no_knee_angle(api: Api) -> None:
+    """Seated knee extensions alone: the knee axes and zero have no gait to be learned from, so the trace is
+    withheld (every angle null, ``withheld`` says why) and the session's warnings say so, instead of a seated knee
+    read tens of degrees off."""
+    c = api.client
+    _, clin = api.clinician()
+    patient = api.patient(clin)
+    dev = api.device(clin, patient["id"])
+    cfg = SimConfig(seed=1, legs=("left",), walking=False, activities=("seated_extension",), move_reps=4)
+    sid, _ = _upload_simulated(api, dev, patient["id"], cfg)
+    assert c.post(f"/v1/sessions/{sid}/complete", headers=bearer(dev)).status_code == 202
+    assert run_queued(c.app.state.sessionmaker) == 1  # type: ignore[attr-defined]
+    sess = c.get(f"/v1/sessions/{sid}", headers=bearer(clin)).json()
+    assert sess["status"] == "done", sess["error"]
+    assert sess["summary"]["legs"]["left"]["n_strides"] == 0
+    assert any("no knee angle" in w for w in sess["summary"]["warnings"])
+    trace = c.get(f"/v1/sessions/{sid}/knee-angle?leg=left&max_points=500", headers=bearer(clin)).json()
+    assert trace["withheld"] == "no_gait" and trace["n_total"] > 1000
+    assert all(a is None for a in trace["angle_deg"]) and all(e is None for e in trace["estimator"])
