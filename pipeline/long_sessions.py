@@ -35,7 +35,14 @@ from pipeline import ALGORITHM_VERSION
 from pipeline.estimators import get_estimator
 from pipeline.params import LongSessionParams, PipelineParams, preset
 from pipeline.session import process_session
-from pipeline.types import KneeCalibration, LegResult, RawSensorStream, SessionResult, StrideMetrics
+from pipeline.types import (
+    KneeCalibration,
+    LegDiagnostics,
+    LegResult,
+    RawSensorStream,
+    SessionResult,
+    StrideMetrics,
+)
 
 
 @runtime_checkable
@@ -196,6 +203,21 @@ class _Leg:
     bridged: int = 0
     masked: int = 0
     clock_disagreement: bool = False  # in any chunk
+    gait_strides: int = 0
+    withheld: str | None = None  # the chunks' trace_withheld when every chunk withheld the leg's trace
+    shown: bool = False  # some chunk showed the leg's trace
+
+    def count(self, d: LegDiagnostics) -> None:
+        """Add one chunk's counts and flags."""
+        self.bouts += d.bouts
+        self.bridged += d.bridged_gaps
+        self.masked += d.masked_implausible_samples
+        self.clock_disagreement |= d.clock_disagreement
+        self.gait_strides += d.gait_strides
+        if d.trace_withheld is None:
+            self.shown = True
+        else:
+            self.withheld = d.trace_withheld
 
 
 class _Merged:
@@ -248,10 +270,7 @@ class _Merged:
                                                estimator=np.asarray(lr.estimator)[:0], strides=[])
                 leg.best_n = n_own
             if lr.diagnostics is not None:
-                leg.bouts += lr.diagnostics.bouts
-                leg.bridged += lr.diagnostics.bridged_gaps
-                leg.masked += lr.diagnostics.masked_implausible_samples
-                leg.clock_disagreement |= lr.diagnostics.clock_disagreement
+                leg.count(lr.diagnostics)
 
     def _warnings(self) -> list[str]:
         for lo, hi, legs in self.chunks:
@@ -277,7 +296,9 @@ class _Merged:
                 diag = dataclasses.replace(diag, n_strides=len(strides),
                                            n_fallback=sum(1 for s in strides if s.fallback), bouts=leg.bouts,
                                            bridged_gaps=leg.bridged, masked_implausible_samples=leg.masked,
-                                           clock_disagreement=leg.clock_disagreement)
+                                           clock_disagreement=leg.clock_disagreement,
+                                           gait_strides=leg.gait_strides,
+                                           trace_withheld=None if leg.shown else leg.withheld)
             legs[name] = dataclasses.replace(
                 leg.best, fs_hz=leg.trace.fs_hz, t_s=t_s, angle_deg=angle, estimator=est, strides=strides,
                 gaps_s=leg.gaps, walking_s=float(sum(s.duration_s for s in strides)),

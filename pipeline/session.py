@@ -22,7 +22,7 @@ from pipeline.assignment import (
     swapped_pairing_better,
     weight_shift_dps,
 )
-from pipeline.bilateral import OtherLeg, mid_swings_s, non_alternating
+from pipeline.bilateral import OtherLeg, gait_strides, mid_swings_s, non_alternating
 from pipeline.constants import G_MPS2
 from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
@@ -112,27 +112,39 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
             warnings.append(f"{leg} leg skipped: {exc}")
     legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
                                         warnings, others)
-    unjudged = {leg for leg, lr in legs.items() if not lr.strides and _detected(lr)}  # e.g. every stride masked
+    # a leg's own gait strides (the other leg's swings do not contradict them) anchor it even where every one of them
+    # failed a per-stride check (masked angles, holes); stair gait anchors it too
+    unreported = {leg for leg, lr in legs.items() if not lr.strides and _has_gait(lr)}
     legs = _alternating_strides(legs, swings, warnings)
-    gait_legs = unjudged | {leg for leg, lr in legs.items() if lr.strides}  # stair gait anchors the axes too
+    gait_legs = unreported | {leg for leg, lr in legs.items() if lr.strides}
     legs = _level_strides(legs, session_params.phases, warnings)
     for leg in [leg for leg, how in assigned.items() if how == "thigh_shank_exchanged" and leg in legs
                 and not legs[leg].strides]:
-        _keep_labels(leg, streams, activity, estimator, params, (calibration or {}).get(leg), others.get(leg),
-                     legs, swings, by_leg, assigned, warnings)
-        gait_legs.discard(leg)
+        if _keep_labels(leg, streams, activity, estimator, params, (calibration or {}).get(leg), others.get(leg),
+                        legs, swings, by_leg, assigned, warnings):
+            gait_legs.discard(leg)
     legs = _withhold_unanchored(legs, gait_legs, warnings)
     legs = _check_sides(legs, ap, session_params.quality, warnings)
-    warnings += [f"{leg} leg: its thigh and shank clocks run apart faster than crystal clocks can; the knee angle's "
-                 "timing is unknown and its strides are kept out of trends (clock_disagreement)"
-                 for leg in sorted(legs) if _clock_unknown(legs[leg])]
-    warnings += [_level_bridged_warning(leg, d) for leg in sorted(legs)
-                 if (d := legs[leg].diagnostics) is not None and d.level_bridged]
+    warnings += _angle_warnings(legs)
+    _note_assignment(legs, assigned)
+    return SessionResult(algorithm_version=ALGORITHM_VERSION, activity=activity, legs=legs, warnings=warnings)
+
+
+def _note_assignment(legs: dict[str, LegResult], assigned: dict[str, str]) -> None:
+    """Each leg's diagnostics say what the sensor-label checks did (in place)."""
     for leg, how in assigned.items():
         lr = legs.get(leg)
         if lr is not None and lr.diagnostics is not None:
             lr.diagnostics = dataclasses.replace(lr.diagnostics, assignment=how)
-    return SessionResult(algorithm_version=ALGORITHM_VERSION, activity=activity, legs=legs, warnings=warnings)
+
+
+def _angle_warnings(legs: dict[str, LegResult]) -> list[str]:
+    """The warnings about each shown knee angle: clocks that run apart, a level carried from standing."""
+    out = [f"{leg} leg: its thigh and shank clocks run apart faster than crystal clocks can; the knee angle's "
+           "timing is unknown and its strides are kept out of trends (clock_disagreement)"
+           for leg in sorted(legs) if _clock_unknown(legs[leg]) and not _withheld(legs[leg])]
+    return out + [_level_bridged_warning(leg, d) for leg in sorted(legs)
+                  if (d := legs[leg].diagnostics) is not None and d.level_bridged and d.trace_withheld is None]
 
 
 def _level_bridged_warning(leg: str, d: LegDiagnostics) -> str:
@@ -182,7 +194,7 @@ def _check_labels(leg: str, segs: dict[str, RawSensorStream], params: Assignment
 def _keep_labels(leg: str, streams: Sequence[RawSensorStream], activity: str, estimator: str,
                  params: PipelineParams | None, calibration: KneeCalibration | None, other: OtherLeg | None,
                  legs: dict[str, LegResult], swings: dict[str, np.ndarray],
-                 by_leg: dict[str, dict[str, RawSensorStream]], assigned: dict[str, str], warnings: list[str]) -> None:
+                 by_leg: dict[str, dict[str, RawSensorStream]], assigned: dict[str, str], warnings: list[str]) -> bool:
     """Process ``leg`` again with its thigh and shank as labelled (in place) after an exchange that left it without
     a gait stride (after the alternation and level-walking drops). The swing-rate rule
     (:func:`pipeline.assignment.check_segments`) reads gait: a step test, jumps, squats or sit-to-stand alone move the
@@ -190,14 +202,14 @@ def _keep_labels(leg: str, streams: Sequence[RawSensorStream], activity: str, es
     independent simulator had its labels exchanged. Without gait nothing confirms the exchange, so the labels stand;
     but a shank that swings slower than its thigh is not walking either (in gait it swings 2-3 x faster), so
     whatever strides the labelled order shows are dropped (a step test alone gave 227 strides of trend quality
-    there, peaks ~20 deg against a true 70)."""
+    there, peaks ~20 deg against a true 70). False when the leg could not be processed as labelled (left as it was)."""
     segs = _streams_by_leg(streams, [])[leg]
     try:
         synced = _synced(leg, segs["thigh"], segs["shank"], activity, params)
         legs[leg], swings[leg] = _process_leg(leg, segs["thigh"], segs["shank"], activity, estimator, params,
                                               calibration, synced, other)
     except ValueError:
-        return
+        return False
     by_leg[leg] = segs
     del assigned[leg]
     dropped = len(legs[leg].strides)
@@ -206,6 +218,7 @@ def _keep_labels(leg: str, streams: Sequence[RawSensorStream], activity: str, es
     warnings.append(f"{leg} leg: thigh and shank labels kept as given: the swing rates read them as exchanged, but "
                     f"the leg has no gait stride either way (the shank swings slower than the thigh: not walking; "
                     f"{dropped} stride(s) dropped)")
+    return True
 
 
 def _centre_residuals(legs: dict[str, LegResult]) -> tuple[float, float] | None:
@@ -286,15 +299,21 @@ def _level_strides(legs: dict[str, LegResult], params: PhaseParams, warnings: li
     return out
 
 
-def _detected(lr: LegResult) -> bool:
-    return lr.diagnostics is not None and lr.diagnostics.detected_strides > 0
+def _has_gait(lr: LegResult) -> bool:
+    """Whether the leg's gait events delimit strides that the other leg's swings do not contradict."""
+    return lr.diagnostics is not None and lr.diagnostics.gait_strides > 0
+
+
+def _withheld(lr: LegResult) -> bool:
+    return lr.diagnostics is not None and lr.diagnostics.trace_withheld is not None
 
 
 def _withhold_unanchored(legs: dict[str, LegResult], gait_legs: set[str], warnings: list[str]
                          ) -> dict[str, LegResult]:
-    """Each leg without a gait stride loses its knee-angle trace (every sample NaN, ``trace_withheld``): no stride
-    delimited by its gait events, or every stride dropped as no gait (the other leg not in anti-phase, or a label
-    exchange undone); ``gait_legs`` are the others.
+    """Each leg without a gait stride loses its knee-angle trace (every sample NaN, ``trace_withheld``): none of the
+    strides its gait events delimit survives the other leg's anti-phase check, or a label exchange was undone
+    (:func:`_keep_labels`); ``gait_legs`` are the others. A still other leg (its sensors not worn) contradicts
+    every stride too: such a leg loses its strides already (:func:`_alternating_strides`), and its trace with them.
 
     The knee axes (Seel et al. 2014 Eq. 2 orients them by the swing), the upright directions that tell standing from
     sitting, and so the absolute zero (:mod:`pipeline.posture`) are all learned from gait. Without it they are
@@ -312,7 +331,8 @@ def _withhold_unanchored(legs: dict[str, LegResult], gait_legs: set[str], warnin
                                        estimator=np.full(lr.estimator.shape, "", dtype=lr.estimator.dtype),
                                        diagnostics=diag)
         warnings.append(f"{leg} leg: no knee angle: no gait stride in the session to learn the knee axes and the "
-                        "angle's zero from (exercises or sitting alone); the trace is withheld (trace_withheld)")
+                        "angle's zero from (exercises or sitting alone, or strides the other leg's swings contradict: "
+                        "jumps, squats, or that leg's sensors not worn); the trace is withheld (trace_withheld)")
     return out
 
 
@@ -446,7 +466,9 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
         result = auto(data) if estimator == "auto" else single_estimator(data, estimator)
     clock_unknown = synced.clock_disagreement or _clock_runaway(data, corrected=synced.shank_drift_ppm is not None)
     strides = _strides(leg, data, result, ("clock_disagreement",) if clock_unknown else ())
-    diagnostics = _diagnostics(data, synced, result, strides, running, calibration, clock_unknown)
+    n_gait = len(data.running_cycles) if data.running_cycles else \
+        len(gait_strides(data.prep.t_s, data.events.strides, data.events.ms, other))
+    diagnostics = _diagnostics(data, synced, result, strides, running, calibration, clock_unknown, n_gait)
     return LegResult(leg=leg, fs_hz=data.fs_hz, t_s=data.prep.t_s, angle_deg=result.angle_deg,
                      estimator=result.estimator, strides=strides, gaps_s=list(data.prep.gaps_s),
                      walking_s=float(sum(s.duration_s for s in strides)), activity=data.activity,
@@ -497,7 +519,7 @@ def _clock_runaway(data: LegInput, corrected: bool) -> bool:
 
 def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, strides: list[StrideMetrics],
                  running: RunningDiagnostics | None, calibration: KneeCalibration | None,
-                 clock_unknown: bool) -> LegDiagnostics:
+                 clock_unknown: bool, n_gait: int) -> LegDiagnostics:
     axes, centres, events = data.axes, data.centres, data.events
     return LegDiagnostics(
         activity=data.activity, axis_rms_residual_dps=round(axes.rms_residual_dps, 2),
@@ -506,7 +528,7 @@ def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, stride
         absolute_reference=result.absolute_reference, standing_ref_deg=result.standing_ref_deg,
         bouts=int(events.bout.max() + 1) if events.bout.size else 0, bridged_gaps=data.prep.bridged_gaps,
         n_strides=len(strides), n_fallback=sum(1 for s in strides if s.fallback),
-        detected_strides=len(data.filter_strides),
+        gait_strides=n_gait,
         j1=tuple(np.round(axes.j1, 4).tolist()), j2=tuple(np.round(axes.j2, 4).tolist()),
         o1_m=tuple(np.round(centres.o1, 4).tolist()), o2_m=tuple(np.round(centres.o2, 4).tolist()),
         cf_shift_deg=result.cf_shift_deg, offset_median_deg=result.offset_median_deg,

@@ -337,6 +337,7 @@ _STEP_TEST_REP_S = 2.4  # a step test's up-up-down-down at 100 steps/min (the st
 # Seated knee extension (long-arc quadriceps exercise): (time s, knee extension from the seated angle as a share of
 # the way to _EXTENSION_KNEE_DEG): lift over 1.5 s, hold 2 s, lower over 1.5 s, rest 1.5 s.
 _EXTENSION = np.array([(0.0, 0.0), (1.5, 1.0), (3.5, 1.0), (5.0, 0.0), (6.5, 0.0)])
+_SIT_RAMP_S = 2.0  # sitting down and standing up, unless the activity says otherwise
 _EXTENSION_KNEE_DEG = 10.0  # the knee's angle at the top of the lift (a knee after surgery rarely straightens fully)
 _IMPACT_FREQ_HZ, _IMPACT_TAU_S = 28.0, 0.012  # heel-strike shock: damped sine on the accelerometers
 # With an absolute impact_g, the shank sensor's transient rotation grows with the shock up to running's default.
@@ -387,8 +388,13 @@ def _break_duration(cfg: SimConfig, kind: str, rng: np.random.Generator) -> tupl
     if kind in _MOVES or kind == "sit_to_stand":
         brk = _move_duration_s(kind, reps, cfg.jump_rest_s) + 3.0
     if kind == "seated_extension":
-        brk = 2.0 + 1.0 + _move_duration_s(kind, reps) + 1.0 + 2.0 + 2.0
+        brk = 1.0 + _seated_block_s(reps) + 1.0
     return brk, sit_s
+
+
+def _seated_block_s(reps: int) -> float:
+    """Sitting down, settling 1 s, ``reps`` seated knee extensions, 1 s, standing up [s]."""
+    return _SIT_RAMP_S + 1.0 + _move_duration_s("seated_extension", reps) + 1.0 + _SIT_RAMP_S
 
 
 def _break_events(cfg: SimConfig, kind: str, t: float, k: int, sit_s: float, rng: np.random.Generator
@@ -404,9 +410,9 @@ def _break_events(cfg: SimConfig, kind: str, t: float, k: int, sit_s: float, rng
         return [("sit", t_r, t_r + 1.5 + 2.5 + 1.5, {"ramp": 1.5})
                 for t_r in t + 1.0 + rep_s * np.arange(cfg.move_reps)]
     if kind == "seated_extension":  # seated, then each knee in turn extends and lowers, the thigh on the chair
-        dur = 2.0 + 1.0 + _move_duration_s(kind, reps) + 1.0 + 2.0
-        return [("sit", t + 1.0, t + 1.0 + dur, {}),
-                (kind, t + 4.0, t + 4.0 + _move_duration_s(kind, reps),
+        t_ext = t + 1.0 + _SIT_RAMP_S + 1.0
+        return [("sit", t + 1.0, t + 1.0 + _seated_block_s(reps), {}),
+                (kind, t_ext, t_ext + _move_duration_s(kind, reps),
                  {"lead": k % 2, "reps": reps, "extend_deg": cfg.sit_knee_deg - _EXTENSION_KNEE_DEG})]
     if kind in _MOVES:
         return [(kind, t + 1.0, t + 1.0 + _move_duration_s(kind, reps, cfg.jump_rest_s),
@@ -489,7 +495,7 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
                     heading += sign * np.pi * (cfg.turn_angle_deg / 180.0) * _smoothstep(
                         (grid - mid + 0.5 * ts * bout_stride_s) / (ts * bout_stride_s))
         elif kind == "sit":
-            ramp = p.get("ramp", 2.0)
+            ramp = p.get("ramp", _SIT_RAMP_S)
             down = _smoothstep((grid - t0) / ramp)
             up = _smoothstep((grid - (t1 - ramp)) / ramp)
             sit += down - up
@@ -556,6 +562,7 @@ def _add_seated_extensions(mv: _Moves, grid: np.ndarray, t0: float, lead: int, l
 
 
 def _start_layers(mv: _Moves, grid: np.ndarray, legs: tuple[str, ...]) -> None:
+    """Zero movement layers on ``grid`` for every leg, unless ``mv`` has them already."""
     if mv.height is None:
         mv.height = np.zeros_like(grid)
         for leg in legs:

@@ -162,9 +162,12 @@ class LegDiagnostics:
     # the thigh's weight-shift rotation in early stance [deg/s], as measured and less the stride's mean rate,
     # positive on a left leg (pipeline.assignment.weight_shift_dps); None for running legs or too few strides
     weight_shift_dps: tuple[float, float] | None = None
-    # why the leg's knee-angle trace was withheld (every sample NaN), None when it was not: TRACE_WITHHELD_NO_GAIT
+    # why the leg's knee-angle trace was withheld (every sample NaN; chunked sessions: in every chunk), None when it
+    # was not: TRACE_WITHHELD_NO_GAIT
     trace_withheld: str | None = None
-    detected_strides: int = 0  # strides the gait events delimit (running: foot-strike cycles), before any check
+    # strides the gait events delimit that the other leg's swings do not contradict (pipeline.bilateral.gait_strides;
+    # running: foot-strike cycles), before any per-stride check
+    gait_strides: int = 0
 
 
 @dataclass

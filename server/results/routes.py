@@ -90,8 +90,10 @@ def get_knee_angle(session_id: str, db: Db, caller: Caller,
 
 def _withheld(summary: dict | None, leg: str) -> str | None:
     """The leg's ``trace_withheld`` diagnostic (pipeline.types.LegDiagnostics) from the session's stored summary."""
-    diag = ((summary or {}).get("legs") or {}).get(leg, {}).get("diagnostics") or {}
-    value = diag.get("trace_withheld")
+    legs = summary.get("legs") if isinstance(summary, dict) else None
+    entry = legs.get(leg) if isinstance(legs, dict) else None
+    diag = entry.get("diagnostics") if isinstance(entry, dict) else None
+    value = diag.get("trace_withheld") if isinstance(diag, dict) else None
     return value if isinstance(value, str) else None
 
 

@@ -152,3 +152,24 @@ def test_chunk_without_usable_data_is_a_warning(sim: SimSession) -> None:
     assert right and not any(t0 + 215 < s.t_start_s < t0 + 505 for s in right)
     assert len(res.legs["left"].strides) > 500
     assert any(w.startswith("00:04:0") and "right leg: no result" in w for w in res.warnings), res.warnings
+
+
+def test_a_chunk_without_gait_withholds_only_its_part_of_the_trace(sim: SimSession) -> None:
+    """The sensors lie still through the middle chunk's whole window: that chunk has no gait to anchor its axes, so
+    its part of the trace is withheld; the leg, shown in the other chunks, is not marked withheld."""
+    t0, _ = ArraySource(sim.streams).span_s()
+    rng = np.random.default_rng(0)
+    still = []
+    for s in sim.streams:
+        m = (s.t_s >= t0 + 215) & (s.t_s < t0 + 505)
+        gyr, acc = s.gyr.copy(), s.acc.copy()
+        gyr[m] = 0.002 * rng.standard_normal((int(m.sum()), 3))
+        acc[m] = s.acc[0] + 0.02 * rng.standard_normal((int(m.sum()), 3))
+        still.append(dataclasses.replace(s, gyr=gyr, acc=acc))
+    res = process_source(ArraySource(still), chunking=CHUNKING)
+    assert sum("no knee angle" in w for w in res.warnings) == 2
+    for lr in res.legs.values():
+        assert lr.diagnostics.trace_withheld is None and lr.diagnostics.gait_strides > 0
+        middle = (lr.t_s > t0 + 250) & (lr.t_s < t0 + 470)
+        assert np.isnan(lr.angle_deg[middle]).all()
+        assert np.isfinite(lr.angle_deg[~middle]).mean() > 0.9

@@ -88,6 +88,7 @@ def test_simulated_session_strides_and_knee_angle(api: Api) -> None:
     window = c.get(f"/v1/sessions/{sid}/knee-angle?max_points=200000&start_s=5&end_s=10",
                    headers=bearer(dev)).json()
     assert window["t_s"][0] >= 5 and window["t_s"][-1] <= 10 and window["n_total"] == pytest.approx(500, abs=2)
+    assert full["withheld"] is None and window["withheld"] is None
     assert c.get(f"/v1/sessions/{sid}/knee-angle?leg=right", headers=bearer(dev)).status_code == 404
 
     # Reprocess: device may not; the clinician may; results are replaced, not duplicated.
