@@ -207,6 +207,16 @@ AXES: dict[str, Axis] = {
              "(pipeline.session._withhold_unanchored): a leg without a gait stride shows no trace. 'Traces shown': "
              "legs whose trace was shown, and its RMSE against the truth (✗ above "
              f"{SHOWN_TRACE_MAX_RMSE_DEG:g} deg: a wrong angle shown)."),
+    "remount": Axis("A sensor turned on the limb half-way through the session (a strap re-fastened; left leg)", (
+        _v("shank turned 15 deg about a random axis", remount_segment="shank", remount_deg=15.0),
+        _v("shank turned 30 deg about a random axis", remount_segment="shank", remount_deg=30.0),
+        _v("shank turned 90 deg about a random axis", remount_segment="shank", remount_deg=90.0),
+        _v("shank strap turned 30 deg about the leg", remount_segment="shank", remount_deg=30.0,
+           remount_axis="long"),
+        _v("thigh turned 30 deg about a random axis", remount_segment="thigh", remount_deg=30.0),
+        _v("thigh turned 60 deg about a random axis", remount_segment="thigh", remount_deg=60.0)),
+        note="One set of axes and one level per session cannot fit both mountings (pipeline.mounting): what matters "
+             "is what enters trends (the last column; both legs pooled, the right leg is untouched)."),
     "labels": Axis("Wrongly labelled sensors (scored against the labelled leg; see 'pipeline did')", (
         _v("legs swapped (all four)", label_swap="legs"),
         _v("legs swapped (all four), pelvis and hip 3-D x1", label_swap="legs", hip_3d=1.0),

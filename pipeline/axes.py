@@ -281,6 +281,15 @@ def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | N
                      leaning=True, lean_deg=lean)
 
 
+def refit_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, j1: np.ndarray, j2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Seel's Eq. 2 hinge on the samples given ((M, 3) gyros [rad/s], M >= 10), solved from ``j1``/``j2`` (a fit
+    of more data) without restarts: one Levenberg-Marquardt run, signs as they came (compare with ``|j . j'|``)."""
+    start = np.array([*_to_sph(j1), *_to_sph(j2)])
+    prob = _AxisProblem(g1_rps, g2_rps)
+    x = _lm(prob.residuals, prob.jacobian, start).x
+    return _sph(x[0], x[1]), _sph(x[2], x[3])
+
+
 def _lean_deg(j: np.ndarray, up: np.ndarray) -> float:
     """How far [deg] the unit axis ``j`` leans out of the plane perpendicular to the unit vector ``up``."""
     return float(np.degrees(np.arcsin(min(1.0, abs(float(j @ up))))))

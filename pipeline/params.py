@@ -297,6 +297,34 @@ class AssignmentParams:
 
 
 @dataclass(frozen=True)
+class MountingParams:
+    """Mounting-change check (:mod:`pipeline.mounting`): the hinge refitted per time window, before against after."""
+
+    window_s: float = 15.0
+    """Length of each window [s]: a walking bout or two, enough samples for a stable hinge (the session's own fit
+    takes at most ``AxesParams.max_fit_samples`` too)."""
+    moving_dps: float = 60.0
+    """A sample counts as moving when the shank turns faster than this [deg/s] (swing peaks: 150 when shuffling,
+    350-450 when walking)."""
+    min_moving_s: float = 3.0
+    """Moving time a window needs to be fitted [s]: about ten swings."""
+    max_fit_samples: int = 300
+    """Samples per window fit (the most dynamic, spread over ``fit_chunks`` parts of the window)."""
+    fit_chunks: int = 6
+    min_windows: int = 2
+    """Fitted windows needed on each side of a split point."""
+    thigh_deg: float = 35.0
+    """A change of the thigh's axis beyond this [deg] is a remount. The thigh's fitted hinge moves with the hip's 3-D
+    motion: on the simulator (tune seeds 0-3, sessions of 90 and 240 s) the before/after means moved by up to 12 deg
+    with typical 3-D hip and knee motion (walking, stairs, jumps), 19 at changing paces, 29 at twice the typical
+    motion with a varus knee; a thigh turned by 60 deg about a random axis moved them by 17-60 (8 of 12 caught)."""
+    shank_deg: float = 12.0
+    """A change of the shank's axis beyond this [deg] is a remount. The same sessions: up to 6.6 deg with typical
+    3-D motion, 10.9 at twice it; a shank turned by 30 deg about a random axis: 8-28 deg (7 of 12 caught in 90 s,
+    10 of 12 in 240 s)."""
+
+
+@dataclass(frozen=True)
 class MetricsParams:
     """Per-stride metrics (:mod:`pipeline.metrics`)."""
 
@@ -477,7 +505,7 @@ class QualityParams:
     default_penalty: float = 0.1
     """Quality lost for a reason not listed."""
     untrusted: tuple[str, ...] = ("peak_in_gap", "long_gap", "clock_disagreement", "side_in_doubt",
-                                   "level_wander")
+                                   "level_wander", "mounting_changed")
     """Reasons that leave the stride's metrics unobserved or unmeasurable: quality is capped below the trend
     threshold."""
     untrusted_cap: float = 0.3
@@ -635,6 +663,7 @@ class PipelineParams:
     quality: QualityParams = field(default_factory=QualityParams)
     running: RunningParams = field(default_factory=RunningParams)
     long_sessions: LongSessionParams = field(default_factory=LongSessionParams)
+    mounting: MountingParams = field(default_factory=MountingParams)
 
 
 WALKING = PipelineParams()

@@ -30,6 +30,9 @@ REASONS: dict[str, str] = {
     "side_in_doubt": "both thighs shift their weight in early stance the way the other leg's would: the left and "
                      "right labels of the four sensors (or of the two thighs) look swapped, so the stride may "
                      "belong to the other knee (out of trends)",
+    "mounting_changed": "a sensor's mounting changed during the session: the knee axis in its frame moved between "
+                        "the windows before a point in time and those after it (MountingParams), so one set of axes "
+                        "and one level do not fit the whole session (out of trends)",
     "clock_disagreement": "the thigh and shank clocks drift apart in a way no credible clock rate explains "
                           "(SyncParams.max_drift, max_line_drift): the timing between the two segments, and so the "
                           "angle, is unknown (out of trends)",

@@ -28,6 +28,7 @@ from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
 from pipeline.level_walking import not_level_walking
 from pipeline.metrics import stride_values_many
+from pipeline.mounting import check_mounting
 from pipeline.params import (
     RUNNING,
     AssignmentParams,
@@ -48,6 +49,7 @@ from pipeline.types import (
     KneeCalibration,
     LegDiagnostics,
     LegResult,
+    MountingCheck,
     RawSensorStream,
     RunningDiagnostics,
     SessionResult,
@@ -139,10 +141,17 @@ def _note_assignment(legs: dict[str, LegResult], assigned: dict[str, str]) -> No
 
 
 def _angle_warnings(legs: dict[str, LegResult]) -> list[str]:
-    """The warnings about each shown knee angle: clocks that run apart, a level carried from standing."""
+    """The warnings about each shown knee angle: clocks that run apart, a sensor remounted, a level carried from
+    standing."""
     out = [f"{leg} leg: its thigh and shank clocks run apart faster than crystal clocks can; the knee angle's "
            "timing is unknown and its strides are kept out of trends (clock_disagreement)"
            for leg in sorted(legs) if _clock_unknown(legs[leg]) and not _withheld(legs[leg])]
+    out += [f"{leg} leg: a sensor's mounting changed near {m.at_s:.0f} s (the knee axis moved {m.thigh_deg:.0f} deg "
+            f"in the thigh sensor's frame, {m.shank_deg:.0f} deg in the shank's): one set of axes does not fit the "
+            "whole session, so its strides are kept out of trends (mounting_changed); keep the straps in place, or "
+            "start a new session after re-fastening one"
+            for leg in sorted(legs) if (m := _mounting(legs[leg])) is not None and m.changed
+            and not _withheld(legs[leg])]
     return out + [_level_bridged_warning(leg, d) for leg in sorted(legs)
                   if (d := legs[leg].diagnostics) is not None and d.level_bridged and d.trace_withheld is None]
 
@@ -302,6 +311,10 @@ def _level_strides(legs: dict[str, LegResult], params: PhaseParams, warnings: li
 def _has_gait(lr: LegResult) -> bool:
     """Whether the leg's gait events delimit strides that the other leg's swings do not contradict."""
     return lr.diagnostics is not None and lr.diagnostics.gait_strides > 0
+
+
+def _mounting(lr: LegResult) -> MountingCheck | None:
+    return None if lr.diagnostics is None else lr.diagnostics.mounting
 
 
 def _withheld(lr: LegResult) -> bool:
@@ -465,10 +478,14 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
         data, running = _leg_input(synced, activity, params, calibration, other, events)
         result = auto(data) if estimator == "auto" else single_estimator(data, estimator)
     clock_unknown = synced.clock_disagreement or _clock_runaway(data, corrected=synced.shank_drift_ppm is not None)
-    strides = _strides(leg, data, result, ("clock_disagreement",) if clock_unknown else ())
+    mounting = check_mounting(synced.prep, synced.axes, data.params.mounting)
+    leg_reasons = (("clock_disagreement",) if clock_unknown else ()) + (("mounting_changed",) if mounting.changed
+                                                                         else ())
+    strides = _strides(leg, data, result, leg_reasons)
     n_gait = len(data.running_cycles) if data.running_cycles else \
         len(gait_strides(data.prep.t_s, data.events.strides, data.events.ms, other))
-    diagnostics = _diagnostics(data, synced, result, strides, running, calibration, clock_unknown, n_gait)
+    diagnostics = dataclasses.replace(_diagnostics(data, synced, result, strides, running, calibration,
+                                                   clock_unknown, n_gait), mounting=mounting)
     return LegResult(leg=leg, fs_hz=data.fs_hz, t_s=data.prep.t_s, angle_deg=result.angle_deg,
                      estimator=result.estimator, strides=strides, gaps_s=list(data.prep.gaps_s),
                      walking_s=float(sum(s.duration_s for s in strides)), activity=data.activity,

@@ -204,6 +204,11 @@ class SimConfig:
     stair_steps: int = 10  # steps of each flight in a "stair_flight" activity (up, a pause, down)
     # False: an exercise session without walking: each of ``activities`` once, in order, between quiet standing
     walking: bool = True
+    # the left leg's sensor of this segment is turned on the limb half-way through the session (a strap re-fastened)
+    # by ``remount_deg`` about a random axis of the segment (its own draws) or about the segment's long axis
+    remount_segment: Literal["none", "thigh", "shank"] = "none"
+    remount_deg: float = 0.0
+    remount_axis: Literal["random", "long"] = "random"
 
 
 @dataclass(frozen=True)
@@ -595,6 +600,24 @@ def _add_stair_flight(mv: _Moves, grid: np.ndarray, t0: float, lead: int, legs: 
         mv.non_gait_s.append(("stairs_up" if sign > 0 else "stairs_down", t, t + dur))
         t += dur + (_STAIR_TOP_S if sign > 0 else 0.0)
     mv.landings_s = np.sort(mv.landings_s)
+
+
+def _remounted(cfg: SimConfig, r_mount: np.ndarray, t_s: np.ndarray, at_s: float, gyr: np.ndarray, acc: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Readings (N, 3) of a sensor turned on its segment at ``at_s`` by ``cfg.remount_deg``: the mounting becomes
+    ``R_seg r_mount``, so each later reading is ``r_mount^T R_seg^T r_mount`` times the one it would have been."""
+    if cfg.remount_axis == "long":
+        axis = np.array([0.0, 0.0, 1.0])
+    else:
+        axis = np.random.default_rng([cfg.seed, 6]).standard_normal(3)
+        axis /= np.linalg.norm(axis)
+    r_seg = _axis_angle(axis, np.array([np.radians(cfg.remount_deg)]))[0]
+    m = r_mount.T @ r_seg.T @ r_mount
+    later = t_s > at_s
+    gyr, acc = gyr.copy(), acc.copy()
+    gyr[later] = gyr[later] @ m.T
+    acc[later] = acc[later] @ m.T
+    return gyr, acc
 
 
 def _smooth_noise(rng: np.random.Generator, t: np.ndarray, sd: float, corr_s: float) -> np.ndarray:
@@ -1086,6 +1109,8 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
             r_sensor = rot @ r_mount  # sensor-to-world
             gyr = np.einsum("nji,nj->ni", r_sensor, om)
             acc = np.einsum("nji,nj->ni", r_sensor, f_w)
+            if cfg.remount_segment == seg and leg == "left" and cfg.remount_deg:
+                gyr, acc = _remounted(cfg, r_mount, t_true, t[-1] / 2, gyr, acc)
 
             # Transient rotation about a sensor-frame axis: soft-tissue wobble (thigh) or impact (shank).
             # Its angle returns to zero, so the integrated gyro keeps the true orientation on average.

@@ -106,6 +106,18 @@ TRACE_WITHHELD_NO_GAIT = "no_gait"
 
 
 @dataclass(frozen=True)
+class MountingCheck:
+    """:func:`pipeline.mounting.check_mounting`: the largest change of each segment's knee axis [deg] between the
+    time windows before and after one point in time."""
+
+    thigh_deg: float
+    shank_deg: float
+    at_s: float  # the split point (start of the first window after it) [s]; NaN without enough windows
+    windows: int  # windows that moved enough to be fitted
+    changed: bool  # beyond MountingParams.thigh_deg or shank_deg
+
+
+@dataclass(frozen=True)
 class LegDiagnostics:
     """How one leg was processed: fit residuals, clock correction, absolute reference, stride counts.
     JSON-serialisable through :func:`dataclasses.asdict` (the enum is a ``str``)."""
@@ -168,6 +180,8 @@ class LegDiagnostics:
     # strides the gait events delimit that the other leg's swings do not contradict (pipeline.bilateral.gait_strides;
     # running: foot-strike cycles), before any per-stride check
     gait_strides: int = 0
+    # the mounting-change check (pipeline.mounting.MountingCheck); None where it did not run
+    mounting: MountingCheck | None = None
 
 
 @dataclass

@@ -37,6 +37,8 @@ REASONS = {
     "cf_fallback": "complementary filter used instead of the gyroscope-only estimator",
     "clock_disagreement": "the thigh and shank sensors' clocks ran apart: the angle's timing cannot be trusted",
     "side_in_doubt": "the left and right sensor labels look swapped: this stride may belong to the other knee",
+    "mounting_changed": "a sensor was turned or re-fastened on the leg during the session: the angle cannot be "
+                        "trusted",
 }
 
 ESTIMATORS = {

@@ -1,0 +1,65 @@
+"""Mounting changes (pipeline/mounting.py): a sensor turned on the limb mid-session keeps the leg out of trends."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.mounting import check_mounting
+from pipeline.params import WALKING
+from pipeline.session import process_session
+from pipeline.simulate import SimConfig, simulate_session
+from pipeline.sync import synchronised_leg
+
+
+def _leg_check(cfg: SimConfig, leg: str = "left"):  # noqa: ANN202
+    sim = simulate_session(cfg)
+    st = {(s.leg, s.segment): s for s in sim.streams}
+    synced = synchronised_leg(leg, st[(leg, "thigh")], st[(leg, "shank")], WALKING)
+    return check_mounting(synced.prep, synced.axes), sim
+
+
+def test_a_strap_turned_about_the_leg_is_a_mounting_change() -> None:
+    """The shank's strap turned 30 deg about the leg half-way: the knee axis in the sensor's frame turns with it."""
+    cfg = SimConfig(seed=1, duration_s=120.0, bout_strides=12, remount_segment="shank", remount_deg=30.0,
+                    remount_axis="long")
+    check, sim = _leg_check(cfg)
+    assert check.changed and check.shank_deg > 20.0 and abs(check.at_s - sim.duration_s / 2) < 20.0
+    assert not _leg_check(cfg, "right")[0].changed  # the other leg's sensors stayed put
+    res = process_session(sim.streams)
+    left, right = res.legs["left"], res.legs["right"]
+    assert left.strides and all("mounting_changed" in s.quality_reasons and s.quality < 0.5 for s in left.strides)
+    assert not any("mounting_changed" in s.quality_reasons for s in right.strides)
+    assert sum("mounting changed" in w for w in res.warnings) == 1
+    assert left.diagnostics.mounting is not None and left.diagnostics.mounting.changed
+
+
+@pytest.mark.parametrize("cfg", [
+    SimConfig(seed=2, duration_s=240.0, bout_strides=12, knee_3d=1.0, hip_3d=1.0,
+              activities=("stair_flight", "sit_to_stand", "jump", "step_test")),
+    SimConfig(seed=0, duration_s=90.0, bout_strides=12, pattern="fast", bout_pace=(1.0, 0.4), knee_3d=1.0, hip_3d=1.0),
+], ids=["3-D knee and hip, stairs, jumps", "pace changing"])
+def test_activities_and_a_knee_that_is_no_hinge_are_no_mounting_change(cfg: SimConfig) -> None:
+    """The fitted hinge moves with the activity when the knee is no hinge, but those windows interleave."""
+    for leg in ("left", "right"):
+        check, _ = _leg_check(cfg, leg)
+        assert check.windows >= 4 and not check.changed
+        assert check.thigh_deg < WALKING.mounting.thigh_deg / 2 and check.shank_deg < WALKING.mounting.shank_deg
+
+
+def test_the_simulated_remount_turns_only_the_later_readings() -> None:
+    base = SimConfig(seed=4, n_strides=16, bout_strides=8)
+    a = simulate_session(base)
+    b = simulate_session(SimConfig(**{**base.__dict__, "remount_segment": "thigh", "remount_deg": 40.0}))
+    for sa, sb in zip(a.streams, b.streams, strict=True):
+        later = sa.t_s > a.duration_s / 2 + 0.5  # reported stamps: the clock's offset moves the turn a little
+        before = sa.t_s < a.duration_s / 2 - 0.5
+        same = np.allclose(sa.gyr, sb.gyr) and np.allclose(sa.acc, sb.acc)
+        if (sa.leg, sa.segment) != ("left", "thigh"):
+            assert same
+            continue
+        assert np.allclose(sa.gyr[before], sb.gyr[before]) and not np.allclose(sa.gyr[later], sb.gyr[later])
+        # a rotation of the sensor: the specific force keeps its size (up to the sensor's noise and bias, and the
+        # heel-strike shocks, which keep their direction in the sensor)
+        d = np.linalg.norm(sa.acc[later], axis=1) - np.linalg.norm(sb.acc[later], axis=1)
+        assert np.median(np.abs(d)) < 0.3
