@@ -28,7 +28,8 @@ angle, per-leg scaled or shifted knee curves, an absolute heel-strike shock in g
 bursty packet loss (Gilbert-Elliott two-state channel per sensor), sharper and more frequent turns, non-gait
 movements between bouts (vertical jumps, step-ups onto a stair, a step test of step-ups without rest, stair
 flights up and down step over step, sit-to-stand repetitions, seated knee extensions: never strides in the truth;
-``walking=False`` makes an exercise session of them alone), wrongly labelled
+``walking=False`` makes an exercise session of them alone), a sensor turned on its segment half-way through
+(``remount_segment``), wrongly labelled
 sensors (legs or thigh/shank swapped), per-axis sensitivity (gain) errors, and 3-D joint motion (``knee_3d``,
 ``hip_3d``, ``knee_varus_deg``; the thigh sensor's skin turning about the femur with flexion, ``thigh_sta_deg``):
 each segment is then the end of a chain of rotations, pelvis
