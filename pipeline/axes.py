@@ -61,16 +61,17 @@ class _Fit:
     cost: float
 
 
-def _lm(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], np.ndarray], x0: np.ndarray) -> _Fit:
+def _lm(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
+        tol: float = 1e-8) -> _Fit:
     """MINPACK's Levenberg-Marquardt with an analytic Jacobian (lmder), called as
     ``least_squares(fun, x0, jac=jac, method="lm", max_nfev=200)`` calls it (same tolerances and limits, so the same
     iterates and solution) without that wrapper's per-call set-up and per-evaluation bookkeeping, which cost more
     than the residuals of a thousand samples. The same iterates since SciPy 1.16 (whose ``least_squares`` scales
     the variables as MINPACK does by default); raises ValueError like ``least_squares`` when ``fun(x0)`` is not
-    finite."""
+    finite. ``tol``: ftol, xtol and gtol alike."""
     if not np.isfinite(fun(x0)).all():
         raise ValueError("residuals are not finite at the initial point")
-    x, _, info, _, _ = leastsq(fun, x0, Dfun=jac, full_output=True, ftol=1e-8, xtol=1e-8, gtol=1e-8, maxfev=200)
+    x, _, info, _, _ = leastsq(fun, x0, Dfun=jac, full_output=True, ftol=tol, xtol=tol, gtol=tol, maxfev=200)
     f = info["fvec"]
     return _Fit(x=x, cost=0.5 * float(np.dot(f, f)))
 
@@ -281,12 +282,13 @@ def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | N
                      leaning=True, lean_deg=lean)
 
 
-def refit_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, j1: np.ndarray, j2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Seel's Eq. 2 hinge on the samples given ((M, 3) gyros [rad/s], M >= 10), solved from ``j1``/``j2`` (a fit
-    of more data) without restarts: one Levenberg-Marquardt run, signs as they came (compare with ``|j . j'|``)."""
-    start = np.array([*_to_sph(j1), *_to_sph(j2)])
+def refit_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, j1: np.ndarray, j2: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Seel's Eq. 2 hinge on the samples given ((M, 3) gyros [rad/s], M >= 4), from ``j1``/``j2`` (a fit of more
+    data), without restarts and to a tolerance of 1e-4 (enough to compare axes to a tenth of a degree; the session
+    fit's 1e-8 took ~20 iterations), signs as they came (compare with ``|j . j'|``)."""
     prob = _AxisProblem(g1_rps, g2_rps)
-    x = _lm(prob.residuals, prob.jacobian, start).x
+    x = _lm(prob.residuals, prob.jacobian, np.array([*_to_sph(j1), *_to_sph(j2)]), tol=1e-4).x
     return _sph(x[0], x[1]), _sph(x[2], x[3])
 
 
