@@ -284,12 +284,22 @@ def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | N
 
 def refit_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, j1: np.ndarray, j2: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray]:
-    """Seel's Eq. 2 hinge on the samples given ((M, 3) gyros [rad/s], M >= 4), from ``j1``/``j2`` (a fit of more
+    """Seel's Eq. 2 hinge on the samples given ((M, 3) gyros [rad/s], M >= 10), from ``j1``/``j2`` (a fit of more
     data), without restarts and to a tolerance of 1e-4 (enough to compare axes to a tenth of a degree; the session
     fit's 1e-8 took ~20 iterations), signs as they came (compare with ``|j . j'|``)."""
     prob = _AxisProblem(g1_rps, g2_rps)
     x = _lm(prob.residuals, prob.jacobian, np.array([*_to_sph(j1), *_to_sph(j2)]), tol=1e-4).x
     return _sph(x[0], x[1]), _sph(x[2], x[3])
+
+
+def axis_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle [deg] between the lines of two axes (signs ignored: a hinge axis has no sign of its own)."""
+    return float(np.degrees(np.arccos(min(1.0, abs(float(a @ b)) / (np.linalg.norm(a) * np.linalg.norm(b))))))
+
+
+def mean_axis(axes: np.ndarray) -> np.ndarray:
+    """The line through several unit axes (K, 3) whatever their signs: the principal eigenvector of sum j j^T."""
+    return np.linalg.eigh(axes.T @ axes)[1][:, -1]
 
 
 def _lean_deg(j: np.ndarray, up: np.ndarray) -> float:

@@ -39,6 +39,7 @@ from pipeline.types import (
     KneeCalibration,
     LegDiagnostics,
     LegResult,
+    MountingCheck,
     RawSensorStream,
     SessionResult,
     StrideMetrics,
@@ -206,6 +207,7 @@ class _Leg:
     gait_strides: int = 0
     withheld: str | None = None  # the chunks' trace_withheld when every chunk withheld the leg's trace
     shown: bool = False  # some chunk showed the leg's trace
+    mounting: MountingCheck | None = None  # the first chunk's check that found a mounting change
 
     def count(self, d: LegDiagnostics) -> None:
         """Add one chunk's counts and flags."""
@@ -218,6 +220,8 @@ class _Leg:
             self.shown = True
         else:
             self.withheld = d.trace_withheld
+        if d.mounting is not None and d.mounting.changed and (self.mounting is None or not self.mounting.changed):
+            self.mounting = d.mounting  # a chunk whose sensor was turned speaks for the leg
 
 
 class _Merged:
@@ -298,7 +302,8 @@ class _Merged:
                                            bridged_gaps=leg.bridged, masked_implausible_samples=leg.masked,
                                            clock_disagreement=leg.clock_disagreement,
                                            gait_strides=leg.gait_strides,
-                                           trace_withheld=None if leg.shown else leg.withheld)
+                                           trace_withheld=None if leg.shown else leg.withheld,
+                                           mounting=leg.mounting if leg.mounting is not None else diag.mounting)
             legs[name] = dataclasses.replace(
                 leg.best, fs_hz=leg.trace.fs_hz, t_s=t_s, angle_deg=angle, estimator=est, strides=strides,
                 gaps_s=leg.gaps, walking_s=float(sum(s.duration_s for s in strides)),

@@ -18,38 +18,32 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.axes import JointAxes, refit_axes, select_fit_samples
+from pipeline.axes import JointAxes, axis_angle_deg, fit_margin_mask, mean_axis, refit_axes, select_fit_samples
 from pipeline.params import WALKING, AxesParams, MountingParams
 from pipeline.prepare import PreparedLeg
 from pipeline.signal_utils import row_norm
 from pipeline.types import MountingCheck
 
 
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(min(1.0, abs(float(a @ b)) / (np.linalg.norm(a) * np.linalg.norm(b))))))
-
-
-def _mean_axis(axes: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Sign-aligned sum of unit axes (K, 3) (each turned towards ``ref``)."""
-    signs = np.where(axes @ ref < 0, -1.0, 1.0)
-    return (axes * signs[:, None]).sum(axis=0)
-
-
-def window_axes(prep: PreparedLeg, axes: JointAxes, params: MountingParams = WALKING.mounting
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def window_axes(prep: PreparedLeg, axes: JointAxes, fit_gyr: tuple[np.ndarray, np.ndarray],
+                params: MountingParams = WALKING.mounting) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per window of ``params.window_s`` whose shank turns faster than ``params.moving_dps`` for at least
-    ``params.min_moving_s``: its start [s] (K,), and the hinge axes refitted on it (K, 3) thigh and shank frame."""
+    ``params.min_moving_s``: its start [s] (K,), and the hinge axes refitted on it (K, 3) thigh and shank frame, on
+    the same low-passed gyros (``fit_gyr``, :func:`pipeline.walking.fit_gyros`) and measured samples away from gaps
+    as the session's fit."""
     fs = prep.fs_hz
-    w = max(int(round(params.window_s * fs)), 1)
-    g1, g2 = prep.gyr_thigh_rps, prep.gyr_shank_rps
-    moving = prep.valid & (row_norm(np.where(prep.valid[:, None], g2, 0.0)) > np.radians(params.moving_dps))
-    starts, j1s, j2s = [], [], []
+    win_n = max(int(round(params.window_s * fs)), 1)
+    g1, g2 = fit_gyr
+    usable = fit_margin_mask(prep.measured(), fs)
+    moving = usable & (row_norm(g2) > np.radians(params.moving_dps))
+    need = max(params.min_moving_s * fs, 10)
     bound = AxesParams(max_fit_samples=params.max_fit_samples, fit_chunks=params.fit_chunks)
-    for a in range(0, prep.n, w):
-        sel = moving[a:a + w]
-        if sel.sum() < params.min_moving_s * fs:
+    starts, j1s, j2s = [], [], []
+    for a in range(0, prep.n, win_n):
+        sel = moving[a:a + win_n]
+        if sel.sum() < need:
             continue
-        idx = a + select_fit_samples(g1[a:a + w], g2[a:a + w], sel, bound)
+        idx = a + select_fit_samples(g1[a:a + win_n], g2[a:a + win_n], sel, bound)
         j1, j2 = refit_axes(g1[idx], g2[idx], axes.j1, axes.j2)
         starts.append(prep.t_s[a])
         j1s.append(j1)
@@ -57,18 +51,22 @@ def window_axes(prep: PreparedLeg, axes: JointAxes, params: MountingParams = WAL
     return np.asarray(starts, dtype=float), np.reshape(j1s, (-1, 3)), np.reshape(j2s, (-1, 3))
 
 
-def check_mounting(prep: PreparedLeg, axes: JointAxes, params: MountingParams = WALKING.mounting) -> MountingCheck:
-    """:class:`MountingCheck` of one prepared leg, whose session fit is ``axes``. At least ``params.min_windows``
-    fitted windows on either side of a split point are needed to judge it."""
-    starts, j1s, j2s = window_axes(prep, axes, params)
+def check_mounting(prep: PreparedLeg, axes: JointAxes, fit_gyr: tuple[np.ndarray, np.ndarray],
+                   params: MountingParams = WALKING.mounting) -> MountingCheck:
+    """:class:`MountingCheck` of one prepared leg, whose session fit is ``axes`` on ``fit_gyr``. At least
+    ``params.min_windows`` fitted windows on either side of a split point are needed to judge it (else the changes
+    and the time are None). The axes on either side are lines (:func:`pipeline.axes.mean_axis`), so neither the
+    windows' signs nor a session fit spoilt by the two mountings sway them."""
+    starts, j1s, j2s = window_axes(prep, axes, fit_gyr, params)
     k_min = params.min_windows
-    best = (0.0, 0.0, float("nan"))
+    best: tuple[float, float, float] | None = None
     for k in range(k_min, starts.size - k_min + 1):
-        d1 = _angle_deg(_mean_axis(j1s[:k], axes.j1), _mean_axis(j1s[k:], axes.j1))
-        d2 = _angle_deg(_mean_axis(j2s[:k], axes.j2), _mean_axis(j2s[k:], axes.j2))
-        if max(d1 / params.thigh_deg, d2 / params.shank_deg) > max(best[0] / params.thigh_deg,
-                                                                       best[1] / params.shank_deg):
+        d1 = axis_angle_deg(mean_axis(j1s[:k]), mean_axis(j1s[k:]))
+        d2 = axis_angle_deg(mean_axis(j2s[:k]), mean_axis(j2s[k:]))
+        if best is None or max(d1 / params.thigh_deg, d2 / params.shank_deg) > max(best[0] / params.thigh_deg,
+                                                                                    best[1] / params.shank_deg):
             best = (d1, d2, float(starts[k]))
-    changed = best[0] > params.thigh_deg or best[1] > params.shank_deg
-    return MountingCheck(thigh_deg=round(best[0], 1), shank_deg=round(best[1], 1), at_s=best[2],
-                         windows=int(starts.size), changed=changed)
+    if best is None:
+        return MountingCheck(thigh_deg=None, shank_deg=None, at_s=None, windows=int(starts.size), changed=False)
+    return MountingCheck(thigh_deg=round(best[0], 1), shank_deg=round(best[1], 1), at_s=round(best[2], 2),
+                         windows=int(starts.size), changed=best[0] > params.thigh_deg or best[1] > params.shank_deg)

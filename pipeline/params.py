@@ -318,10 +318,10 @@ class MountingParams:
     motion: on the simulator (tune seeds 0-3, sessions of 90 and 240 s) the before/after means moved by up to 12 deg
     with typical 3-D hip and knee motion (walking, stairs, jumps), 19 at changing paces, 29 at twice the typical
     motion with a varus knee; a thigh turned by 60 deg about a random axis moved them by 17-60 (8 of 12 caught)."""
-    shank_deg: float = 12.0
+    shank_deg: float = 14.0
     """A change of the shank's axis beyond this [deg] is a remount. The same sessions: up to 6.6 deg with typical
-    3-D motion, 10.9 at twice it; a shank turned by 30 deg about a random axis: 8-28 deg (7 of 12 caught in 90 s,
-    10 of 12 in 240 s)."""
+    3-D motion, 12.5 at twice it with a varus knee; a shank turned by 30 deg about a random axis: 8-28 deg (6 of 12
+    caught in 90 s, more in longer sessions)."""
 
 
 @dataclass(frozen=True)

@@ -110,9 +110,9 @@ class MountingCheck:
     """:func:`pipeline.mounting.check_mounting`: the largest change of each segment's knee axis [deg] between the
     time windows before and after one point in time."""
 
-    thigh_deg: float
-    shank_deg: float
-    at_s: float  # the split point (start of the first window after it) [s]; NaN without enough windows
+    thigh_deg: float | None  # None: too few windows to judge
+    shank_deg: float | None
+    at_s: float | None  # the split point (start of the first window after it) [s]
     windows: int  # windows that moved enough to be fitted
     changed: bool  # beyond MountingParams.thigh_deg or shank_deg
 

@@ -4,19 +4,22 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from pipeline.mounting import check_mounting
 from pipeline.params import WALKING
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, simulate_session
 from pipeline.sync import synchronised_leg
+from pipeline.walking import fit_gyros
 
 
 def _leg_check(cfg: SimConfig, leg: str = "left"):  # noqa: ANN202
     sim = simulate_session(cfg)
     st = {(s.leg, s.segment): s for s in sim.streams}
     synced = synchronised_leg(leg, st[(leg, "thigh")], st[(leg, "shank")], WALKING)
-    return check_mounting(synced.prep, synced.axes), sim
+    fit_gyr = synced.fit_gyr or fit_gyros(synced.prep, WALKING.axes.fit_cutoff_hz)
+    return check_mounting(synced.prep, synced.axes, fit_gyr), sim
 
 
 def test_a_strap_turned_about_the_leg_is_a_mounting_change() -> None:
@@ -32,6 +35,20 @@ def test_a_strap_turned_about_the_leg_is_a_mounting_change() -> None:
     assert not any("mounting_changed" in s.quality_reasons for s in right.strides)
     assert sum("mounting changed" in w for w in res.warnings) == 1
     assert left.diagnostics.mounting is not None and left.diagnostics.mounting.changed
+
+
+def test_a_large_turn_names_the_sensor_that_turned() -> None:
+    """A shank turned by 90 deg spoils the session's own fit of both axes; the windows on either side still agree
+    on the thigh's axis (their lines, whatever the signs) and name the shank."""
+    cfg = SimConfig(seed=100, duration_s=90.0, bout_strides=12, remount_segment="shank", remount_deg=90.0)
+    check, sim = _leg_check(cfg)
+    assert check.changed and check.shank_deg > WALKING.mounting.shank_deg
+    assert check.thigh_deg < WALKING.mounting.thigh_deg and abs(check.at_s - sim.duration_s / 2) < 16.0
+
+
+def test_too_short_to_judge_says_so() -> None:
+    check, _ = _leg_check(SimConfig(seed=1, n_strides=8, bout_strides=8))
+    assert not check.changed and check.at_s is None and check.thigh_deg is None and check.windows < 4
 
 
 @pytest.mark.parametrize("cfg", [
@@ -59,7 +76,8 @@ def test_the_simulated_remount_turns_only_the_later_readings() -> None:
             assert same
             continue
         assert np.allclose(sa.gyr[before], sb.gyr[before]) and not np.allclose(sa.gyr[later], sb.gyr[later])
-        # a rotation of the sensor: the specific force keeps its size (up to the sensor's noise and bias, and the
-        # heel-strike shocks, which keep their direction in the sensor)
-        d = np.linalg.norm(sa.acc[later], axis=1) - np.linalg.norm(sb.acc[later], axis=1)
-        assert np.median(np.abs(d)) < 0.3
+        # the later readings are the earlier mounting's turned by one rotation of 40 deg, up to the gyro's own bias
+        # (1 deg/s, not turned) and noise (0.3 deg/s), far below its swing rates
+        fit, _ = Rotation.align_vectors(sb.gyr[later], sa.gyr[later])
+        assert np.degrees(fit.magnitude()) == pytest.approx(40.0, abs=1.0)
+        assert np.median(np.linalg.norm(sb.gyr[later] - fit.apply(sa.gyr[later]), axis=1)) < 2.0
