@@ -29,8 +29,8 @@ def window_axes(prep: PreparedLeg, axes: JointAxes, fit_gyr: tuple[np.ndarray, n
                 params: MountingParams = WALKING.mounting) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per window of ``params.window_s`` whose shank turns faster than ``params.moving_dps`` for at least
     ``params.min_moving_s``: its start [s] (K,), and the hinge axes refitted on it (K, 3) thigh and shank frame, on
-    the same low-passed gyros (``fit_gyr``, :func:`pipeline.walking.fit_gyros`) and measured samples away from gaps
-    as the session's fit."""
+    the gyros ``fit_gyr`` (thigh, shank (N, 3) [rad/s]: the session fit's low-passed ones,
+    :func:`pipeline.walking.fit_gyros`, or the raw ones) and the measured samples away from gaps."""
     fs = prep.fs_hz
     win_n = max(int(round(params.window_s * fs)), 1)
     g1, g2 = fit_gyr

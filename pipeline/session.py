@@ -55,7 +55,7 @@ from pipeline.types import (
     SessionResult,
     StrideMetrics,
 )
-from pipeline.walking import build_walking_leg_input, fit_gyros, gait_events
+from pipeline.walking import build_walking_leg_input, gait_events
 
 
 def process_session(streams: Sequence[RawSensorStream], activity: str = "walking", estimator: str = "auto",
@@ -478,7 +478,9 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
         data, running = _leg_input(synced, activity, params, calibration, other, events)
         result = auto(data) if estimator == "auto" else single_estimator(data, estimator)
     clock_unknown = synced.clock_disagreement or _clock_runaway(data, corrected=synced.shank_drift_ppm is not None)
-    fit_gyr = synced.fit_gyr or fit_gyros(synced.prep, data.params.axes.fit_cutoff_hz)
+    # the session fit's low-passed gyros when the synchronisation kept them; else the raw ones (filtering the session
+    # again cost as much as the check itself, and the windows' verdicts were the same on the tune seeds)
+    fit_gyr = synced.fit_gyr or (synced.prep.gyr_thigh_rps, synced.prep.gyr_shank_rps)
     mounting = check_mounting(synced.prep, synced.axes, fit_gyr, data.params.mounting)
     leg_reasons = (("clock_disagreement",) if clock_unknown else ()) + (("mounting_changed",) if mounting.changed
                                                                          else ())
