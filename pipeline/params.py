@@ -311,6 +311,7 @@ class MountingParams:
     max_fit_samples: int = 300
     """Samples per window fit (the most dynamic, spread over ``fit_chunks`` parts of the window)."""
     fit_chunks: int = 6
+    """Parts of each window the fit samples are spread over (:func:`pipeline.axes.select_fit_samples`)."""
     min_windows: int = 2
     """Fitted windows needed on each side of a split point."""
     thigh_deg: float = 35.0
