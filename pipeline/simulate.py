@@ -604,9 +604,10 @@ def _add_stair_flight(mv: _Moves, grid: np.ndarray, t0: float, lead: int, legs: 
 
 
 def _remounted(cfg: SimConfig, r_mount: np.ndarray, t_s: np.ndarray, at_s: float, gyr: np.ndarray, acc: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """Readings (N, 3) of a sensor turned on its segment at ``at_s`` by ``cfg.remount_deg``: the mounting becomes
-    ``R_seg r_mount``, so each later reading is ``r_mount^T R_seg^T r_mount`` times the one it would have been."""
+               ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Readings (N, 3) of a sensor turned on its segment at ``at_s`` (true time) by ``cfg.remount_deg``: the mounting
+    becomes ``R_seg r_mount``, so each later reading is ``r_mount^T R_seg^T r_mount`` times the one it would have
+    been; and the turn for the session's info (time, new mounting)."""
     if cfg.remount_axis == "long":
         axis = np.array([0.0, 0.0, 1.0])
     else:
@@ -618,7 +619,7 @@ def _remounted(cfg: SimConfig, r_mount: np.ndarray, t_s: np.ndarray, at_s: float
     gyr, acc = gyr.copy(), acc.copy()
     gyr[later] = gyr[later] @ m.T
     acc[later] = acc[later] @ m.T
-    return gyr, acc
+    return gyr, acc, {"at_s": at_s, "mounting": (r_seg @ r_mount).tolist()}
 
 
 def _smooth_noise(rng: np.random.Generator, t: np.ndarray, sd: float, corr_s: float) -> np.ndarray:
@@ -1110,8 +1111,9 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
             r_sensor = rot @ r_mount  # sensor-to-world
             gyr = np.einsum("nji,nj->ni", r_sensor, om)
             acc = np.einsum("nji,nj->ni", r_sensor, f_w)
+            remount: dict = {}
             if cfg.remount_segment == seg and leg == "left" and cfg.remount_deg:
-                gyr, acc = _remounted(cfg, r_mount, t_true, t[-1] / 2, gyr, acc)
+                gyr, acc, remount = _remounted(cfg, r_mount, t_true, t[-1] / 2, gyr, acc)
 
             # Transient rotation about a sensor-frame axis: soft-tissue wobble (thigh) or impact (shank).
             # Its angle returns to zero, so the integrated gyro keeps the true orientation on average.
@@ -1170,6 +1172,6 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
             info["sensors"][sid] = {"mounting": r_mount.tolist(), "lever_arm_m": lever.tolist(),
                                     "gyro_bias_dps": np.degrees(gbias).tolist(),
                                     "acc_bias_mps2": abias.tolist(), "dropped": int((~keep).sum()),
-                                    **clock}
+                                    **clock, **({"remount": remount} if remount else {})}
     activity = "running" if cfg.pattern == "running" else "walking"
     return SimSession(cfg, activity, float(t[-1]), streams, truth, info)

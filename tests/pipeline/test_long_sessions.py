@@ -173,3 +173,19 @@ def test_a_chunk_without_gait_withholds_only_its_part_of_the_trace(sim: SimSessi
         middle = (lr.t_s > t0 + 250) & (lr.t_s < t0 + 470)
         assert np.isnan(lr.angle_deg[middle]).all()
         assert np.isfinite(lr.angle_deg[~middle]).mean() > 0.9
+
+
+def test_a_mounting_change_in_one_chunk_speaks_for_the_leg() -> None:
+    """Each chunk fits its own axes: only the chunk holding the turn sees two mountings; its strides are out of
+    trends, the others' are not, and the leg's diagnostics report the change."""
+    sim = simulate_session(SimConfig(pattern="normal", fs_hz=100.0, seed=7, duration_s=720.0,
+                                     activities=("standing",), bout_strides=40, remount_segment="shank",
+                                     remount_deg=30.0, remount_axis="long"))
+    res = process_source(ArraySource(sim.streams), chunking=CHUNKING)
+    left = res.legs["left"]
+    assert left.diagnostics.mounting is not None and left.diagnostics.mounting.changed
+    flagged = [s for s in left.strides if "mounting_changed" in s.quality_reasons]
+    t0, _ = ArraySource(sim.streams).span_s()
+    assert flagged and all(t0 + 215 < s.t_start_s < t0 + 505 for s in flagged)  # the middle chunk's window
+    assert any("mounting_changed" not in s.quality_reasons and s.quality >= 0.5 for s in left.strides)
+    assert not any("mounting_changed" in s.quality_reasons for s in res.legs["right"].strides)

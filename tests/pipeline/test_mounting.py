@@ -80,4 +80,7 @@ def test_the_simulated_remount_turns_only_the_later_readings() -> None:
         # (1 deg/s, not turned) and noise (0.3 deg/s), far below its swing rates
         fit, _ = Rotation.align_vectors(sb.gyr[later], sa.gyr[later])
         assert np.degrees(fit.magnitude()) == pytest.approx(40.0, abs=1.0)
+        info = b.info["sensors"][sb.sensor_id]  # what the session's info says was done: the same turn
+        turn = Rotation.from_matrix(np.asarray(info["remount"]["mounting"]) @ np.asarray(info["mounting"]).T)
+        assert np.degrees(turn.magnitude()) == pytest.approx(40.0, abs=1e-6)
         assert np.median(np.linalg.norm(sb.gyr[later] - fit.apply(sa.gyr[later]), axis=1)) < 2.0
