@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.axes import level_directions
+from pipeline.axes import mean_up
 from pipeline.params import WALKING, AssignmentParams
 from pipeline.prepare import SI, to_si
 from pipeline.signal_utils import ranges_mask, row_norm, segment_sums
@@ -97,14 +97,18 @@ def swapped_pairing_better(labelled_mps2: tuple[float, float], swapped_mps2: tup
         and all(s < lab for s, lab in zip(swapped_mps2, labelled_mps2, strict=True))
 
 
-def weight_shift_dps(gyr_thigh_rps: np.ndarray, acc_thigh_mps2: np.ndarray, acc_shank_mps2: np.ndarray,
+def weight_shift_dps(gyr_thigh_rps: np.ndarray, acc_thigh_mps2: np.ndarray,
                      valid: np.ndarray, j1: np.ndarray, strides: list[tuple[int, int, int]],
                      params: AssignmentParams = WALKING.assignment) -> tuple[float, float] | None:
     """Two medians over whole strides [deg/s], positive for a left leg: the thigh's mean rotation rate about the
     walking direction over the first ``shift_window`` of each stride (heel strike on), and the same less the
-    stride's own mean rate (module docstring). ``gyr_thigh_rps``, ``acc_*_mps2``: (N, 3) on the leg's grid,
+    stride's own mean rate (module docstring). ``gyr_thigh_rps``, ``acc_thigh_mps2``: (N, 3) on the leg's grid,
     ``valid`` (N,); ``j1``: the oriented knee axis in the thigh frame (flexion rate ``g1.j1 - g2.j2``);
-    ``strides``: ``(hs, to, hs_next)``. The walking direction is ``j1`` x the thigh's mean specific force.
+    ``strides``: ``(hs, to, hs_next)``. The walking direction is ``j1`` x the thigh's mean specific force over the
+    strides: gravity at the thigh's mean orientation in gait (its acceleration averages out over whole cycles). The
+    session's mean would lean towards wherever the thigh rested: in a session mostly seated (the thigh horizontal)
+    it turned the walking direction towards the thigh's long axis, and an independent simulator's "sit, walk, sit"
+    sessions read as swapped sides in 8 of 8.
 
     A small error of ``j1`` leaks the large sagittal rate into that direction with a random sign per leg: removed
     by regressing the rate on ``g1.j1`` over the strides. The stride's mean rate is no rotation of the thigh (its
@@ -112,15 +116,18 @@ def weight_shift_dps(gyr_thigh_rps: np.ndarray, acc_thigh_mps2: np.ndarray, acc_
     flexing thigh that also turns about its long axis (hip rotation, a skin or strap turning with the knee; its
     sense follows how the skin moves, which no one measured). Only the second figure is free of it. None with
     fewer than ``shift_min_strides`` whole strides or no vertical."""
-    up = level_directions(acc_thigh_mps2, acc_shank_mps2, valid)
-    if up is None or len(strides) < params.shift_min_strides:
+    if len(strides) < params.shift_min_strides:
         return None
-    forward = np.cross(j1, up[0])
+    arr = np.asarray(strides)
+    in_strides = ranges_mask(valid.shape[0], arr[:, 0], arr[:, 2] + 1) & valid
+    up = mean_up(acc_thigh_mps2, in_strides)
+    if up is None:
+        return None
+    forward = np.cross(j1, up)
     forward /= np.linalg.norm(forward)
     w = np.rad2deg(gyr_thigh_rps @ forward)
     sagittal = np.rad2deg(gyr_thigh_rps @ j1)
-    arr = np.asarray(strides)
-    gait = ranges_mask(w.shape[0], arr[:, 0], arr[:, 2] + 1) & valid & np.isfinite(w) & np.isfinite(sagittal)
+    gait = in_strides & np.isfinite(w) & np.isfinite(sagittal)
     ss = float(np.dot(sagittal[gait], sagittal[gait]))
     if ss > 0:
         w = w - float(np.dot(w[gait], sagittal[gait])) / ss * sagittal

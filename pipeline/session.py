@@ -573,6 +573,6 @@ def _weight_shift(data: LegInput) -> tuple[float, float] | None:
     if data.activity != "walking":
         return None
     prep = data.prep
-    shift = weight_shift_dps(prep.gyr_thigh_rps, prep.acc_thigh_mps2, prep.acc_shank_mps2, prep.valid,
+    shift = weight_shift_dps(prep.gyr_thigh_rps, prep.acc_thigh_mps2, prep.valid,
                              data.axes.j1, data.events.strides, data.params.assignment)
     return None if shift is None else (round(shift[0], 2), round(shift[1], 2))
