@@ -148,3 +148,29 @@ def test_sensors_that_never_move_give_no_verdict_and_no_crash() -> None:
     assert check_segments(streams[0], streams[1]).verdict == "undecided"
     res = process_session(streams)
     assert all(not lr.strides for lr in res.legs.values())
+
+
+def test_the_weight_shift_does_not_lean_with_where_the_thigh_rests() -> None:
+    """The walking direction comes from gravity during the strides: a thigh resting horizontal outside them (sitting)
+    moves neither figure. The session's mean specific force leaned with it and read "sit, walk, sit" sessions of an
+    independent simulator as swapped sides."""
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.assignment import weight_shift_dps
+    from pipeline.session import _leg_input, _synced
+
+    sim = simulate_session(SimConfig(seed=3, n_strides=24, bout_strides=12, hip_3d=1.0, activities=("standing",)))
+    st = {s.segment: s for s in sim.streams if s.leg == "left"}
+    data, _ = _leg_input(_synced("left", st["thigh"], st["shank"], "walking", None), "walking", None)
+    prep, strides = data.prep, data.events.strides
+    args = (prep.valid, data.axes.j1, strides)
+    before = weight_shift_dps(prep.gyr_thigh_rps, prep.acc_thigh_mps2, *args)
+    outside = np.ones(prep.n, dtype=bool)
+    for a, _, b in strides:
+        outside[a:b + 1] = False
+    seated = prep.acc_thigh_mps2.copy()  # the thigh turned 90 deg forward about the knee axis wherever it rests
+    seated[outside] = Rotation.from_rotvec(np.pi / 2 * data.axes.j1).apply(seated[outside])
+    padded = np.concatenate([seated, np.tile(seated[outside][:1], (10 * prep.n, 1))])  # and a long sit after
+    pad = lambda x, v: np.concatenate([x, np.full((10 * prep.n, *x.shape[1:]), v, dtype=x.dtype)])  # noqa: E731
+    after = weight_shift_dps(pad(prep.gyr_thigh_rps, 0.0), padded, pad(prep.valid, True), data.axes.j1, strides)
+    assert before is not None and after == pytest.approx(before, abs=1e-9)
