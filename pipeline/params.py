@@ -287,7 +287,7 @@ class AssignmentParams:
     shift_min_dps: float = 2.0
     """Weight-shift rate [deg/s] each leg must show in both figures of :func:`pipeline.assignment.weight_shift_dps`,
     in the other leg's sense, before the sides are in doubt. The real biomechZoo trial: left +14 / +7.7, right -8.0 /
-    -3.9. The simulator (tune seeds 0-19): with typical pelvis and hip motion the first figure is mirrored on every
+    -3.8. The simulator (tune seeds 0-19): with typical pelvis and hip motion the first figure is mirrored on every
     session (2.5-15), the second on about half (-2 .. 8 on a left leg), so about half of the swaps are caught and no
     session with right labels was flagged on any tested configuration. A planar walker reads 0.0-0.4 in both; a
     thigh skin turning 10 deg with the knee, or a gyro bias of 10 deg/s that no rest removed, moves the first figure
