@@ -7,7 +7,7 @@ peak errors of 5-16 deg, 30 deg left 10-33 deg, and every stride scored for tren
 frame moves with the mounting by up to the turn's angle (not at all for a turn about the axis itself, which the
 gyroscope-only angle does not see either), so the hinge is fitted again in each window of ``window_s`` that moves
 enough, started from the session's fit (:func:`pipeline.axes.refit_axes`), and the windows before each split point
-are compared with those after it: the direction the axis takes before (a sign-aligned mean) against after. A real
+are compared with those after it: the line the axes take before (:func:`pipeline.axes.mean_axis`) against after. A real
 knee's fitted hinge also moves with the activity (3-D hip and knee: the thigh's by up to 22 deg between walking and
 stairs on the simulator's ``joint_3d`` chain, the shank's by up to 7), but those windows interleave over a session,
 so the two means stay close; a remount moves every later window. No paper gives these rules; the thresholds sit

@@ -314,10 +314,12 @@ def _has_gait(lr: LegResult) -> bool:
 
 
 def _mounting(lr: LegResult) -> MountingCheck | None:
+    """The leg's mounting-change check (:mod:`pipeline.mounting`), None where it did not run."""
     return None if lr.diagnostics is None else lr.diagnostics.mounting
 
 
 def _withheld(lr: LegResult) -> bool:
+    """Whether the leg's trace was withheld (:func:`_withhold_unanchored`)."""
     return lr.diagnostics is not None and lr.diagnostics.trace_withheld is not None
 
 
