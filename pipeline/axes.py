@@ -274,8 +274,10 @@ def fit_joint_axes(g1_rps: np.ndarray, g2_rps: np.ndarray, valid: np.ndarray | N
     rms = float(np.rad2deg(np.sqrt(2.0 * best.cost / idx.size)))
     if up is None:
         return JointAxes(j1=j1, j2=j2, rms_residual_dps=rms, n_samples=int(idx.size))
-    f1, f2 = (_level_axis(j, u, np.radians(params.level_lean_deg)) for j, u in ((j1, up[0]), (j2, up[1])))
     lean = (_lean_deg(j1, up[0]), _lean_deg(j2, up[1]))
+    if max(lean) > params.max_level_lean_deg:  # not the body's level (AxesParams.max_level_lean_deg)
+        return JointAxes(j1=j1, j2=j2, rms_residual_dps=rms, n_samples=int(idx.size), lean_deg=lean)
+    f1, f2 = (_level_axis(j, u, np.radians(params.level_lean_deg)) for j, u in ((j1, up[0]), (j2, up[1])))
     if f1 is j1 and f2 is j2:
         return JointAxes(j1=j1, j2=j2, rms_residual_dps=rms, n_samples=int(idx.size), lean_deg=lean)
     return JointAxes(j1=f1, j2=f2, rms_residual_dps=rms, n_samples=int(idx.size), hinge_j1=j1, hinge_j2=j2,

@@ -98,6 +98,12 @@ class AxesParams:
     axial rotation and is kept. Tune seeds: 0 deg made accelerometer offsets of 0.5 and 1 m/s^2 misses (peak LoA
     -3.3 .. 1.7 -> -3.5 .. 1.9, -4.0 .. 2.6 -> -5.9 .. 4.0) and shifted 5-10 g rows by 0.1-0.4 deg; 4 deg leaves
     them as they were and keeps the gains on 3-D knees."""
+    max_level_lean_deg: float = 40.0
+    """A hinge leaning further than this [deg] out of that plane is not a knee turning as it flexes (8-15 deg per
+    segment at typical coupling, 15-30 at twice it, on the simulator's ``joint_3d`` chain) but a plane that is not
+    the body's: sensors left lying off the body for part of a session move its mean specific force to wherever
+    they lay (an independent simulator: 48-75 deg, and levelling towards it put the strides' peaks 25 deg low). The
+    hinge axes are kept as fitted then."""
     n_centre_starts: int = 4
     """Seeded starts of the centre fit besides the near-zero one (Eq. 5 has mirrored minima)."""
     max_lever_m: float = 0.6
