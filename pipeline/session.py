@@ -153,7 +153,7 @@ def _angle_warnings(legs: dict[str, LegResult]) -> list[str]:
             for leg in sorted(legs) if (m := _mounting(legs[leg])) is not None and m.changed
             and not _withheld(legs[leg])]
     return out + [_level_bridged_warning(leg, d) for leg in sorted(legs)
-                  if (d := legs[leg].diagnostics) is not None and d.level_bridged and d.trace_withheld is None]
+                  if (d := legs[leg].diagnostics) is not None and d.level_bridged and not _withheld(legs[leg])]
 
 
 def _level_bridged_warning(leg: str, d: LegDiagnostics) -> str:

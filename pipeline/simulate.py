@@ -386,11 +386,16 @@ def _move_duration_s(kind: str, reps: int = _MOVE_REPS, jump_rest_s: float = 1.0
     return reps * (1.5 + 2.5 + 1.5 + 2.0)  # sit_to_stand: down, seated, up, standing
 
 
+def _break_reps(cfg: SimConfig, kind: str) -> int:
+    """Repetitions of a break's movement: steps of a stair flight, else ``move_reps``."""
+    return cfg.stair_steps if kind == "stair_flight" else cfg.move_reps
+
+
 def _break_duration(cfg: SimConfig, kind: str, rng: np.random.Generator) -> tuple[float, float]:
     """A break's duration [s] with activity ``kind``, and how long it sits [s] if it is ``sitting``."""
     sit_s = rng.uniform(8, 15)
     brk = {"sitting": 5.5 + sit_s, "turn": 5.0}.get(kind, rng.uniform(4, 8))
-    reps = cfg.stair_steps if kind == "stair_flight" else cfg.move_reps
+    reps = _break_reps(cfg, kind)
     if kind in _MOVES or kind == "sit_to_stand":
         brk = _move_duration_s(kind, reps, cfg.jump_rest_s) + 3.0
     if kind == "seated_extension":
@@ -406,7 +411,7 @@ def _seated_block_s(reps: int) -> float:
 def _break_events(cfg: SimConfig, kind: str, t: float, k: int, sit_s: float, rng: np.random.Generator
                   ) -> list[tuple[str, float, float, dict]]:
     """The events (kind, t0, t1, params) of the ``k``-th break, activity ``kind``, from ``t`` (_break_duration)."""
-    reps = cfg.stair_steps if kind == "stair_flight" else cfg.move_reps
+    reps = _break_reps(cfg, kind)
     if kind == "sitting":
         return [("sit", t + 1.0, t + 1.0 + 2.0 + sit_s + 2.0, {})]
     if kind == "turn":

@@ -12,6 +12,7 @@ import pytest
 from bench.matching import match_strides
 from pipeline.axes import (
     angular_acceleration,
+    axis_angle_deg,
     axis_up,
     estimate_sync_lag_s,
     fit_joint_axes,
@@ -40,10 +41,6 @@ def _true_axes(sim, leg: str) -> tuple[np.ndarray, np.ndarray]:
                  for seg in ("thigh", "shank"))
 
 
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(min(1.0, abs(float(a @ b))))))
-
-
 def _true_lag_ms(sim, leg: str) -> float:
     """How far the shank's stamps run behind the thigh's (the first sample always arrives: its stamp minus its true
     time is the sensor's offset)."""
@@ -68,11 +65,11 @@ def test_the_hinge_fit_leans_and_the_flexion_axis_is_levelled(rotating_tibia) ->
         assert up is not None
         axes = fit_joint_axes(g1, g2, prep.valid, WALKING.axes, up=up)
         (h1, h2), (y1, y2) = axes.hinge(), _true_axes(rotating_tibia, leg)
-        assert _angle_deg(h2, y2) > 10.0 and _angle_deg(h1, y1) > 10.0  # the free hinge leans
-        assert _angle_deg(axes.j2, y2) < 0.5 * _angle_deg(h2, y2)
+        assert axis_angle_deg(h2, y2) > 10.0 and axis_angle_deg(h1, y1) > 10.0  # the free hinge leans
+        assert axis_angle_deg(axes.j2, y2) < 0.5 * axis_angle_deg(h2, y2)
         # the thigh's hinge also leans forwards (towards the tibia's axis as the flexed knee carries it), which no
         # level tells: only its upward part goes
-        assert _angle_deg(axes.j1, y1) < _angle_deg(h1, y1) - 5.0
+        assert axis_angle_deg(axes.j1, y1) < axis_angle_deg(h1, y1) - 5.0
         for j, u in ((axes.j1, up[0]), (axes.j2, up[1])):
             assert abs(np.degrees(np.arcsin(abs(j @ u)))) <= WALKING.axes.level_lean_deg + 1e-6
         assert axes.leaning
@@ -108,8 +105,8 @@ def test_axes_fitted_with_the_lag_are_not_bent_by_it() -> None:
     y1, y2 = _true_axes(sim, "left")
     alone = fit_joint_axes(g1, g2, prep.valid, WALKING.axes)
     joint = fit_joint_axes(g1, g2, prep.valid, WALKING.axes, gd2_rps2=angular_acceleration(g2, prep.fs_hz))
-    assert max(_angle_deg(alone.j1, y1), _angle_deg(alone.j2, y2)) > 2.0
-    assert max(_angle_deg(joint.j1, y1), _angle_deg(joint.j2, y2)) < 1.0
+    assert max(axis_angle_deg(alone.j1, y1), axis_angle_deg(alone.j2, y2)) > 2.0
+    assert max(axis_angle_deg(joint.j1, y1), axis_angle_deg(joint.j2, y2)) < 1.0
     read = {name: 1000 * estimate_sync_lag_s(g1, g2, ax.j1, ax.j2, prep.valid, prep.fs_hz, max_lag_s=0.06)
             for name, ax in (("alone", alone), ("joint", joint))}
     assert abs(read["alone"] - lag_ms) > 8.0
