@@ -46,6 +46,7 @@ from typing import Literal
 
 import numpy as np
 from scipy.interpolate import BSpline, CubicSpline, make_interp_spline
+from scipy.spatial.transform import Rotation
 
 from pipeline.constants import G_MPS2 as GRAVITY_MS2
 from pipeline.types import RawSensorStream
@@ -210,6 +211,9 @@ class SimConfig:
     remount_segment: Literal["none", "thigh", "shank"] = "none"
     remount_deg: float = 0.0
     remount_axis: Literal["random", "long"] = "random"
+    # sensors taken off half-way through and left lying on a table (housing face down or up, any heading) while the
+    # person walks on: the left leg's two sensors or all four (the truth keeps the person's knees)
+    off_body: Literal["none", "left", "all"] = "none"
 
 
 @dataclass(frozen=True)
@@ -348,6 +352,7 @@ _EXTENSION_KNEE_DEG = 10.0  # the knee's angle at the top of the lift (a knee af
 _IMPACT_FREQ_HZ, _IMPACT_TAU_S = 28.0, 0.012  # heel-strike shock: damped sine on the accelerometers
 # With an absolute impact_g, the shank sensor's transient rotation grows with the shock up to running's default.
 _IMPACT_ROT_MAX_DEG = 3.0
+_OFF_BODY_MOVE_S = 2.0  # taking a sensor off its strap and laying it on a table
 
 
 def _damped_sine_peak(freq_hz: float, tau_s: float) -> float:
@@ -625,6 +630,33 @@ def _remounted(cfg: SimConfig, r_mount: np.ndarray, t_s: np.ndarray, at_s: float
     gyr[later] = gyr[later] @ m.T
     acc[later] = acc[later] @ m.T
     return gyr, acc, {"at_s": at_s, "mounting": (r_seg @ r_mount).tolist()}
+
+
+def _taken_off(cfg: SimConfig, leg: str, seg: str, r_sensor: np.ndarray, skin_normal: np.ndarray, t_s: np.ndarray,
+               at_s: float, gyr: np.ndarray, acc: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Readings (N, 3) of a sensor taken off its segment at ``at_s`` (true time) and laid on a table: turned over
+    ``_OFF_BODY_MOVE_S`` about one sensor-fixed axis (a smooth geodesic, so the gyro integrates to the new
+    orientation) into lying flat on its housing, the face that was on the skin (``skin_normal``, sensor frame,
+    pointing out of the skin) up or down, any heading (its own draws); then still, gravity only. The heel-strike
+    transients stop with it. ``r_sensor`` (N, 3, 3): sensor-to-world on the body."""
+    rng = np.random.default_rng([cfg.seed, 7, 0 if leg == "left" else 1, 0 if seg == "thigh" else 1])
+    up = np.array([0.0, 0.0, 1.0 if rng.random() < 0.5 else -1.0])
+    flat = Rotation.align_vectors(up[None, :], skin_normal[None, :])[0].as_matrix()
+    r_table = _rz(np.array([rng.uniform(0, 2 * np.pi)]))[0] @ flat
+    i0 = int(np.searchsorted(t_s, at_s))
+    if i0 >= len(t_s):
+        return gyr, acc, {}
+    r0 = r_sensor[i0]
+    rel = Rotation.from_matrix(r0.T @ r_table).as_rotvec()
+    theta = float(np.linalg.norm(rel))
+    u = rel / theta if theta > 0 else np.array([1.0, 0.0, 0.0])
+    s = np.clip((t_s[i0:] - at_s) / _OFF_BODY_MOVE_S, 0.0, 1.0)
+    rot = r0 @ _axis_angle(u, theta * _smoothstep(s))
+    gyr, acc = gyr.copy(), acc.copy()
+    rate = theta * 30.0 * s**2 * (1.0 - s) ** 2 / _OFF_BODY_MOVE_S  # d/dt of _smoothstep
+    gyr[i0:] = rate[:, None] * u
+    acc[i0:] = np.einsum("nji,j->ni", rot, np.array([0.0, 0.0, GRAVITY_MS2]))
+    return gyr, acc, {"at_s": at_s, "table": r_table.tolist()}
 
 
 def _smooth_noise(rng: np.random.Generator, t: np.ndarray, sd: float, corr_s: float) -> np.ndarray:
@@ -1152,6 +1184,11 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
                 d_seg = np.array([rng.uniform(0.1, 0.4), 0.0, 1.0])
                 d_sensor = r_mount.T @ (d_seg / np.linalg.norm(d_seg))
                 acc += _transient(t_true, hs, imp_g * GRAVITY_MS2, imp_freq, imp_tau)[:, None] * d_sensor
+            off: dict = {}
+            if cfg.off_body == "all" or cfg.off_body == leg:
+                # the sensors sit on the segment's lateral side (lever arms above)
+                skin_normal = r_mount.T @ np.array([0.0, side, 0.0])
+                gyr, acc, off = _taken_off(cfg, leg, seg, r_sensor, skin_normal, t_true, t[-1] / 2, gyr, acc)
 
             gbias = np.radians(cfg.gyro_bias_dps) * rng.standard_normal(3)
             gwalk = np.stack([_smooth_noise(rng, t_true, np.radians(cfg.gyro_bias_walk_dps), 20.0)
@@ -1177,6 +1214,7 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
             info["sensors"][sid] = {"mounting": r_mount.tolist(), "lever_arm_m": lever.tolist(),
                                     "gyro_bias_dps": np.degrees(gbias).tolist(),
                                     "acc_bias_mps2": abias.tolist(), "dropped": int((~keep).sum()),
-                                    **clock, **({"remount": remount} if remount else {})}
+                                    **clock, **({"remount": remount} if remount else {}),
+                                    **({"off_body": off} if off else {})}
     activity = "running" if cfg.pattern == "running" else "walking"
     return SimSession(cfg, activity, float(t[-1]), streams, truth, info)
