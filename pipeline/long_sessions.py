@@ -208,6 +208,7 @@ class _Leg:
     withheld: str | None = None  # the chunks' trace_withheld when every chunk withheld the leg's trace
     shown: bool = False  # some chunk showed the leg's trace
     mounting: MountingCheck | None = None  # the first chunk's check that found a mounting change
+    not_worn: list[tuple[float, float]] = dataclasses.field(default_factory=list)  # every chunk's, overlaps merged
 
     def count(self, d: LegDiagnostics) -> None:
         """Add one chunk's counts and flags."""
@@ -222,6 +223,13 @@ class _Leg:
             self.withheld = d.trace_withheld
         if d.mounting is not None and d.mounting.changed and (self.mounting is None or not self.mounting.changed):
             self.mounting = d.mounting  # a chunk whose sensor was turned speaks for the leg
+        merged: list[tuple[float, float]] = []
+        for t0, t1 in sorted([*self.not_worn, *d.not_worn_s]):
+            if merged and t0 <= merged[-1][1]:
+                merged[-1] = (merged[-1][0], max(merged[-1][1], t1))
+            else:
+                merged.append((t0, t1))
+        self.not_worn = merged
 
 
 class _Merged:
@@ -303,7 +311,8 @@ class _Merged:
                                            clock_disagreement=leg.clock_disagreement,
                                            gait_strides=leg.gait_strides,
                                            trace_withheld=None if leg.shown else leg.withheld,
-                                           mounting=leg.mounting if leg.mounting is not None else diag.mounting)
+                                           mounting=leg.mounting if leg.mounting is not None else diag.mounting,
+                                           not_worn_s=tuple(leg.not_worn))
             legs[name] = dataclasses.replace(
                 leg.best, fs_hz=leg.trace.fs_hz, t_s=t_s, angle_deg=angle, estimator=est, strides=strides,
                 gaps_s=leg.gaps, walking_s=float(sum(s.duration_s for s in strides)),

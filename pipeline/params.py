@@ -332,6 +332,22 @@ class MountingParams:
 
 
 @dataclass(frozen=True)
+class WornParams:
+    """Sensors not on the leg (:mod:`pipeline.worn`): a rest in a posture nobody walks in, while the other leg walks."""
+
+    min_rest_s: float = 5.0
+    """Shortest rest judged [s]: a few of the other leg's strides, longer than a pause between two steps."""
+    min_swings: int = 3
+    """Swings of the other leg's shank within the rest that make it a walk on one leg (two could be a turn on the
+    spot or shifting the weight)."""
+    reach_s: float = 10.0
+    """How far the stretch reaches back to the end of the leg's last stride and on to its next swing [s]: taking two
+    sensors off their straps and laying them down, or putting them back on."""
+    after_stride_s: float = 0.2
+    """Kept after that last stride's end [s]: its heel strike is found on the samples that follow it."""
+
+
+@dataclass(frozen=True)
 class MetricsParams:
     """Per-stride metrics (:mod:`pipeline.metrics`)."""
 
@@ -671,6 +687,7 @@ class PipelineParams:
     running: RunningParams = field(default_factory=RunningParams)
     long_sessions: LongSessionParams = field(default_factory=LongSessionParams)
     mounting: MountingParams = field(default_factory=MountingParams)
+    worn: WornParams = field(default_factory=WornParams)
 
 
 WALKING = PipelineParams()

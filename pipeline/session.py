@@ -56,6 +56,7 @@ from pipeline.types import (
     StrideMetrics,
 )
 from pipeline.walking import build_walking_leg_input, gait_events
+from pipeline.worn import not_worn_spans_s
 
 
 def process_session(streams: Sequence[RawSensorStream], activity: str = "walking", estimator: str = "auto",
@@ -114,10 +115,14 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
             warnings.append(f"{leg} leg skipped: {exc}")
     legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
                                         warnings, others)
+    # the other leg's strides are judged against this leg as it was recorded, still where its sensors were off
+    recorded_gaps = {leg: lr.gaps_s for leg, lr in legs.items()}
+    legs, swings = _without_not_worn(legs, swings, by_leg, activity, estimator, params, calibration, assigned,
+                                     others, warnings)
     # a leg's own gait strides (the other leg's swings do not contradict them) anchor it even where every one of them
     # failed a per-stride check (masked angles, holes); stair gait anchors it too
     unreported = {leg for leg, lr in legs.items() if not lr.strides and _has_gait(lr)}
-    legs = _alternating_strides(legs, swings, warnings)
+    legs = _alternating_strides(legs, swings, warnings, recorded_gaps)
     gait_legs = unreported | {leg for leg, lr in legs.items() if lr.strides}
     legs = _level_strides(legs, session_params.phases, warnings)
     for leg in [leg for leg, how in assigned.items() if how == "thigh_shank_exchanged" and leg in legs
@@ -269,11 +274,11 @@ def _check_thigh_pairing(legs: dict[str, LegResult], swings: dict[str, np.ndarra
     return legs, swings
 
 
-def _alternating_strides(legs: dict[str, LegResult], swings: dict[str, np.ndarray], warnings: list[str]
-                         ) -> dict[str, LegResult]:
+def _alternating_strides(legs: dict[str, LegResult], swings: dict[str, np.ndarray], warnings: list[str],
+                         gaps_s: Mapping[str, Sequence[tuple[float, float]]]) -> dict[str, LegResult]:
     """Each leg without the strides in which the other leg does not swing in anti-phase (jumps, squats,
     sit-to-stand: :mod:`pipeline.bilateral`); a leg alone is not judged, nor is a leg whose shank clock is unknown
-    or judged against one (its swings may lie anywhere)."""
+    or judged against one (its swings may lie anywhere). ``gaps_s``: per leg, where it has no data to judge by."""
     if set(legs) != {"left", "right"}:
         return legs
     out = dict(legs)
@@ -283,12 +288,58 @@ def _alternating_strides(legs: dict[str, LegResult], swings: dict[str, np.ndarra
             continue
         t0, to, t1 = np.array([(s.t_start_s, s.t_toe_off_s, s.t_end_s) for s in lr.strides]).T
         spans = np.column_stack([t0, mid_swings_s(np.sort(swings[leg]), to, t1), t1])
-        drop = set(non_alternating(spans, swings[other], legs[other].gaps_s))
+        drop = set(non_alternating(spans, swings[other], gaps_s[other]))
         if drop:
             out[leg] = _without(lr, drop)
             warnings.append(f"{leg} leg: {len(drop)} stride(s) dropped: the other leg did not swing in anti-phase "
                             "(not gait)")
     return out
+
+
+def _without_not_worn(legs: dict[str, LegResult], swings: dict[str, np.ndarray],
+                      by_leg: Mapping[str, Mapping[str, RawSensorStream]], activity: str, estimator: str,
+                      params: PipelineParams | None, calibration: Mapping[str, KneeCalibration] | None,
+                      assigned: Mapping[str, str], others: Mapping[str, OtherLeg], warnings: list[str]
+                      ) -> tuple[dict[str, LegResult], dict[str, np.ndarray]]:
+    """Each leg whose sensors were off the leg for a while (``LegDiagnostics.not_worn_s``, :mod:`pipeline.worn`)
+    processed again without those spans: a long hole, so nothing is estimated there and the hinge fit does not
+    take the sensors' removal for the knee."""
+    out, out_swings = dict(legs), dict(swings)
+    for leg, lr in legs.items():
+        spans = () if lr.diagnostics is None else lr.diagnostics.not_worn_s
+        if not spans:
+            continue
+        thigh_leg = {"left": "right", "right": "left"}[leg] \
+            if assigned.get(leg) == "thighs_exchanged_between_legs" else leg
+        try:
+            again, out_swings[leg] = _process_leg(
+                leg, _cut(by_leg[thigh_leg]["thigh"], spans), _cut(by_leg[leg]["shank"], spans), activity,
+                estimator, params, (calibration or {}).get(leg), other=others.get(leg))
+        except ValueError:  # too little left to process: the first result, blank over the spans
+            off = np.zeros(lr.t_s.size, dtype=bool)
+            for t0, t1 in spans:
+                off |= (lr.t_s >= t0) & (lr.t_s <= t1)
+            again = dataclasses.replace(lr, angle_deg=np.where(off, np.nan, lr.angle_deg),
+                                        estimator=np.where(off, "", lr.estimator),
+                                        strides=[s for s in lr.strides
+                                                 if not any(s.t_end_s > t0 and s.t_start_s < t1 for t0, t1 in spans)])
+        if again.diagnostics is not None:
+            again = dataclasses.replace(again, diagnostics=dataclasses.replace(again.diagnostics, not_worn_s=spans))
+        out[leg] = again
+        where = ", ".join(f"{t0:.0f}-{t1:.0f} s" for t0, t1 in spans)
+        warnings.append(f"{leg} leg: sensors not on the leg at {where} (at rest, not standing, while the other leg "
+                        "walked): no knee angle there (not_worn_s)")
+    return out, out_swings
+
+
+def _cut(stream: RawSensorStream, spans: Sequence[tuple[float, float]]) -> RawSensorStream:
+    """``stream`` without its samples inside ``spans`` [s]."""
+    t = np.asarray(stream.t_s)
+    keep = np.ones(t.size, dtype=bool)
+    for t0, t1 in spans:
+        keep &= (t < t0) | (t > t1)
+    return dataclasses.replace(stream, t_s=t[keep], gyr=np.asarray(stream.gyr)[keep],
+                               acc=np.asarray(stream.acc)[keep])
 
 
 def _level_strides(legs: dict[str, LegResult], params: PhaseParams, warnings: list[str]) -> dict[str, LegResult]:
@@ -484,13 +535,15 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
     # again cost as much as the check itself, and the windows' verdicts were the same on the tune seeds)
     fit_gyr = synced.fit_gyr or (synced.prep.gyr_thigh_rps, synced.prep.gyr_shank_rps)
     mounting = check_mounting(synced.prep, synced.axes, fit_gyr, data.params.mounting)
+    not_worn = not_worn_spans_s(data, other, data.params.worn) if data.activity == "walking" else []
     leg_reasons = (("clock_disagreement",) if clock_unknown else ()) + (("mounting_changed",) if mounting.changed
                                                                          else ())
     strides = _strides(leg, data, result, leg_reasons)
     n_gait = len(data.running_cycles) if data.running_cycles else \
         len(gait_strides(data.prep.t_s, data.events.strides, data.events.ms, other))
     diagnostics = dataclasses.replace(_diagnostics(data, synced, result, strides, running, calibration,
-                                                   clock_unknown, n_gait), mounting=mounting)
+                                                   clock_unknown, n_gait), mounting=mounting,
+                                      not_worn_s=tuple((round(a, 2), round(b, 2)) for a, b in not_worn))
     return LegResult(leg=leg, fs_hz=data.fs_hz, t_s=data.prep.t_s, angle_deg=result.angle_deg,
                      estimator=result.estimator, strides=strides, gaps_s=list(data.prep.gaps_s),
                      walking_s=float(sum(s.duration_s for s in strides)), activity=data.activity,

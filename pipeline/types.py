@@ -182,6 +182,8 @@ class LegDiagnostics:
     gait_strides: int = 0
     # the mounting-change check (pipeline.mounting.MountingCheck); None where it did not run
     mounting: MountingCheck | None = None
+    # time spans [s] in which the leg's sensors were not on the leg (pipeline.worn): nothing estimated there
+    not_worn_s: tuple[tuple[float, float], ...] = ()
 
 
 @dataclass

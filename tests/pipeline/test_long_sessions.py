@@ -189,3 +189,19 @@ def test_a_mounting_change_in_one_chunk_speaks_for_the_leg() -> None:
     assert flagged and all(t0 + 215 < s.t_start_s < t0 + 505 for s in flagged)  # the middle chunk's window
     assert any("mounting_changed" not in s.quality_reasons and s.quality >= 0.5 for s in left.strides)
     assert not any("mounting_changed" in s.quality_reasons for s in res.legs["right"].strides)
+
+
+def test_sensors_taken_off_are_one_span_over_the_chunks() -> None:
+    """The left leg's sensors lie on a table for the second half of a chunked session: every chunk after the
+    removal cuts its part, and the leg's diagnostics hold one span from the removal to the end (chunks overlap)."""
+    sim = simulate_session(SimConfig(pattern="normal", fs_hz=100.0, seed=7, duration_s=720.0,
+                                     activities=("standing",), bout_strides=40, off_body="left"))
+    res = process_source(ArraySource(sim.streams), chunking=CHUNKING)
+    left = res.legs["left"]
+    t0, _ = ArraySource(sim.streams).span_s()
+    off_s = t0 + sim.info["sensors"]["L-thigh"]["off_body"]["at_s"]
+    (a, b), = left.diagnostics.not_worn_s
+    assert off_s - 10.0 < a <= off_s + 0.5 and b > t0 + sim.duration_s - 1.0
+    assert not np.isfinite(left.angle_deg[left.t_s > off_s + 0.5]).any()
+    assert any(s.t_end_s < off_s for s in left.strides) and all(s.t_end_s < off_s + 0.5 for s in left.strides)
+    assert res.legs["right"].diagnostics.not_worn_s == ()
