@@ -85,16 +85,30 @@ def get_knee_angle(session_id: str, db: Db, caller: Caller,
         angle_deg=[float(a) if f else None for a, f in zip(angles.tolist(), finite.tolist(), strict=True)],
         estimator=[str(e) if (e and f) else None for e, f in zip(w.estimator.tolist(), finite.tolist(), strict=True)],
         withheld=_withheld(session.summary, w.leg),
+        not_worn_s=_not_worn(session.summary, w.leg),
     )
 
 
-def _withheld(summary: dict | None, leg: str) -> str | None:
-    """The leg's ``trace_withheld`` diagnostic (pipeline.types.LegDiagnostics) from the session's stored summary."""
+def _diagnostic(summary: dict | None, leg: str, key: str) -> object:
+    """One entry of the leg's diagnostics (pipeline.types.LegDiagnostics) in the session's stored summary."""
     legs = summary.get("legs") if isinstance(summary, dict) else None
     entry = legs.get(leg) if isinstance(legs, dict) else None
     diag = entry.get("diagnostics") if isinstance(entry, dict) else None
-    value = diag.get("trace_withheld") if isinstance(diag, dict) else None
+    return diag.get(key) if isinstance(diag, dict) else None
+
+
+def _withheld(summary: dict | None, leg: str) -> str | None:
+    """The leg's ``trace_withheld`` diagnostic, None for sessions stored before it."""
+    value = _diagnostic(summary, leg, "trace_withheld")
     return value if isinstance(value, str) else None
+
+
+def _not_worn(summary: dict | None, leg: str) -> list[tuple[float, float]]:
+    """The leg's ``not_worn_s`` diagnostic, empty for sessions stored before it."""
+    value = _diagnostic(summary, leg, "not_worn_s")
+    if not isinstance(value, list):
+        return []
+    return [(float(a), float(b)) for a, b in value if isinstance(a, int | float) and isinstance(b, int | float)]
 
 
 @router.get("/{session_id}/compare", response_model=CompareOut,

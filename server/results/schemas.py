@@ -64,6 +64,10 @@ class KneeAngleOut(BaseModel):
         None, description="Why every angle of this leg is null, when it is: `no_gait` = the session has no gait "
                           "stride on this leg to learn the knee axes and the angle's zero from (exercises or sitting "
                           "alone), so no angle is shown rather than a wrong one")
+    not_worn_s: list[tuple[float, float]] = Field(
+        default_factory=list, description="Time spans [s] in which this leg's sensors were not on the leg (at rest "
+                                          "in a posture other than standing while the other leg walked: taken off, "
+                                          "left lying somewhere): their angles are null")
 
 
 class MetricSummary(BaseModel):

@@ -89,6 +89,7 @@ def test_simulated_session_strides_and_knee_angle(api: Api) -> None:
                    headers=bearer(dev)).json()
     assert window["t_s"][0] >= 5 and window["t_s"][-1] <= 10 and window["n_total"] == pytest.approx(500, abs=2)
     assert full["withheld"] is None and window["withheld"] is None
+    assert full["not_worn_s"] == [] and window["not_worn_s"] == []
     assert c.get(f"/v1/sessions/{sid}/knee-angle?leg=right", headers=bearer(dev)).status_code == 404
 
     # Reprocess: device may not; the clinician may; results are replaced, not duplicated.
@@ -130,3 +131,27 @@ def test_an_exercise_session_without_gait_shows_no_knee_angle(api: Api) -> None:
     trace = c.get(f"/v1/sessions/{sid}/knee-angle?leg=left&max_points=500", headers=bearer(clin)).json()
     assert trace["withheld"] == "no_gait" and trace["n_total"] > 1000
     assert all(a is None for a in trace["angle_deg"]) and all(e is None for e in trace["estimator"])
+
+
+def test_sensors_taken_off_mid_session_show_no_angle_there(api: Api) -> None:
+    """The left leg's sensors are laid on a table half-way while the person walks on: the knee-angle response says
+    when (``not_worn_s``), its angles there are null, and the session warns."""
+    c = api.client
+    _, clin = api.clinician()
+    patient = api.patient(clin)
+    dev = api.device(clin, patient["id"])
+    cfg = SimConfig(seed=0, duration_s=90.0, bout_strides=12, off_body="left")
+    sid, sim = _upload_simulated(api, dev, patient["id"], cfg)
+    assert c.post(f"/v1/sessions/{sid}/complete", headers=bearer(dev)).status_code == 202
+    assert run_queued(c.app.state.sessionmaker) == 1  # type: ignore[attr-defined]
+    sess = c.get(f"/v1/sessions/{sid}", headers=bearer(clin)).json()
+    assert sess["status"] == "done", sess["error"]
+    assert any("not on the leg" in w for w in sess["summary"]["warnings"])
+    off_s = sim.info["sensors"]["L-thigh"]["off_body"]["at_s"]
+    left = c.get(f"/v1/sessions/{sid}/knee-angle?leg=left&max_points=200000", headers=bearer(clin)).json()
+    (t0, t1), = left["not_worn_s"]
+    assert off_s - 3.0 < t0 <= off_s + 0.5 and t1 > sim.duration_s - 1.0
+    later = [a for t, a in zip(left["t_s"], left["angle_deg"], strict=True) if t > off_s + 0.5]
+    assert later and all(a is None for a in later)
+    right = c.get(f"/v1/sessions/{sid}/knee-angle?leg=right&max_points=500", headers=bearer(clin)).json()
+    assert right["not_worn_s"] == [] and right["withheld"] is None
