@@ -333,7 +333,23 @@ class MountingParams:
 
 @dataclass(frozen=True)
 class WornParams:
-    """Sensors not on the leg (:mod:`pipeline.worn`): a rest in a posture nobody walks in, while the other leg walks."""
+    """Sensors not on the leg (:mod:`pipeline.worn`): handled unlike a knee, or a rest in a posture nobody walks in
+    while the other leg walks."""
+
+    handled_window_s: float = 0.5
+    """Window of the hinge test's RMS values [s]: a quarter of taking a sensor off, half a stride."""
+    handled_min_dps: float = 30.0
+    """The faster segment's RMS rate a window needs to be judged [deg/s]: slower, noise and bias weigh too much
+    (a sensor laid down gently turns at 50-90)."""
+    handled_ratio: float = 0.6
+    """A window whose RMS hinge residual exceeds this share of that rate turned unlike a knee. On the simulator (tune
+    seeds 0-5: walking, turns, running with ringing 10 g impacts, jumps, stairs, exercises, each with twice the
+    typical 3-D knee and hip motion, three times the wobble) a knee stayed above 0.5 for ``handled_min_s`` only in
+    exercises with twice the 3-D motion, above 0.45 in jumps too; a sensor taken off: 0.67-0.99 (it turns partly
+    about the knee axis, which a knee does too). Real Xsens walking (biomechZoo): 0.42 at most in any window."""
+    handled_min_s: float = 0.5
+    """How long the residual must stay above ``handled_ratio`` [s]: a quarter of taking a sensor off; impacts and
+    wobble last tens of ms."""
 
     min_rest_s: float = 5.0
     """Shortest rest judged [s]: a few of the other leg's strides, longer than a pause between two steps."""

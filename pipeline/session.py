@@ -327,8 +327,8 @@ def _without_not_worn(legs: dict[str, LegResult], swings: dict[str, np.ndarray],
             again = dataclasses.replace(again, diagnostics=dataclasses.replace(again.diagnostics, not_worn_s=spans))
         out[leg] = again
         where = ", ".join(f"{t0:.0f}-{t1:.0f} s" for t0, t1 in spans)
-        warnings.append(f"{leg} leg: sensors not on the leg at {where} (at rest, not standing, while the other leg "
-                        "walked): no knee angle there (not_worn_s)")
+        warnings.append(f"{leg} leg: sensors not on the leg at {where} (turned unlike a knee, or at rest, not "
+                        "standing, while the other leg walked): no knee angle there (not_worn_s)")
     return out, out_swings
 
 

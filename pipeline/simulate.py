@@ -211,8 +211,9 @@ class SimConfig:
     remount_segment: Literal["none", "thigh", "shank"] = "none"
     remount_deg: float = 0.0
     remount_axis: Literal["random", "long"] = "random"
-    # sensors taken off half-way through and left lying on a table (housing face down or up, any heading) while the
-    # person walks on: the left leg's two sensors or all four (the truth keeps the person's knees)
+    # sensors taken off at the first stop past half-way, one strap after the other (thigh first), and left lying on a
+    # table (housing face down or up, any heading) while the person walks on: the left leg's two sensors or all four
+    # (the truth keeps the person's knees)
     off_body: Literal["none", "left", "all"] = "none"
 
 
@@ -353,6 +354,7 @@ _IMPACT_FREQ_HZ, _IMPACT_TAU_S = 28.0, 0.012  # heel-strike shock: damped sine o
 # With an absolute impact_g, the shank sensor's transient rotation grows with the shock up to running's default.
 _IMPACT_ROT_MAX_DEG = 3.0
 _OFF_BODY_MOVE_S = 2.0  # taking a sensor off its strap and laying it on a table
+_OFF_BODY_NEXT_S = 1.0  # between laying one sensor down and taking the next one off
 
 
 def _damped_sine_peak(freq_hz: float, tau_s: float) -> float:
@@ -630,6 +632,13 @@ def _remounted(cfg: SimConfig, r_mount: np.ndarray, t_s: np.ndarray, at_s: float
     gyr[later] = gyr[later] @ m.T
     acc[later] = acc[later] @ m.T
     return gyr, acc, {"at_s": at_s, "mounting": (r_seg @ r_mount).tolist()}
+
+
+def _off_body_at(truth: dict[str, LegTruth], t_end: float) -> float:
+    """When the sensors come off [s]: half a second after the first walking bout that ends past half-way has ended on
+    every leg (a person stops to take them off), else half-way."""
+    ends = [min(ends) for lt in truth.values() if (ends := [b1 for _, b1 in lt.bouts_s if b1 > t_end / 2])]
+    return max(ends) + 0.5 if ends else t_end / 2
 
 
 def _taken_off(cfg: SimConfig, leg: str, seg: str, r_sensor: np.ndarray, skin_normal: np.ndarray, t_s: np.ndarray,
@@ -1188,7 +1197,9 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
             if cfg.off_body == "all" or cfg.off_body == leg:
                 # the sensors sit on the segment's lateral side (lever arms above)
                 skin_normal = r_mount.T @ np.array([0.0, side, 0.0])
-                gyr, acc, off = _taken_off(cfg, leg, seg, r_sensor, skin_normal, t_true, t[-1] / 2, gyr, acc)
+                # one strap after the other: the thigh's first, the shank's when it lies on the table
+                at_s = _off_body_at(truth, t[-1]) + (0.0 if seg == "thigh" else _OFF_BODY_MOVE_S + _OFF_BODY_NEXT_S)
+                gyr, acc, off = _taken_off(cfg, leg, seg, r_sensor, skin_normal, t_true, at_s, gyr, acc)
 
             gbias = np.radians(cfg.gyro_bias_dps) * rng.standard_normal(3)
             gwalk = np.stack([_smooth_noise(rng, t_true, np.radians(cfg.gyro_bias_walk_dps), 20.0)

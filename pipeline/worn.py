@@ -1,41 +1,92 @@
-"""Sensors that are not on the leg: a rest in a posture nobody walks in, while the other leg walks.
+"""Sensors that are not on the leg: turned unlike a knee, or resting in a posture nobody walks in while the other
+leg walks.
 
 A knee angle from two sensors is only a knee angle while both are strapped to the leg. Taken off and left on a
 table (a strap that chafes, a charger, a shower), they keep recording: still, gravity only, in whatever orientation
-they lie. The posture module (:mod:`pipeline.posture`) then reads that as a rest, and the trace shows the table's
-"angle" (on a sixth independent simulator and ours, 36-110 deg RMSE against the knee the person kept walking on);
-the removal itself, a few seconds of turning unlike any knee, enters the session's hinge fit and moves the axes of
-the whole leg (ours: the same leg's trace 6 deg off before the removal).
+they lie. The posture module (:mod:`pipeline.posture`) reads that as a rest, and the trace showed the table's
+"angle" (on a sixth independent simulator and ours, 20-110 deg RMSE against the knee the person walked on); the
+removal itself, seconds of turning unlike any knee, entered the session's hinge fit and moved the axes of the whole
+leg (ours: the same leg's strides up to 6 deg off before the removal). No paper gives the rules below.
 
-The physical test: nobody walks on one leg while the other sits or lies still. A run of at least ``min_rest_s`` in
-which this leg rests (:func:`pipeline.posture.quiet_mask`, outside its own walking bouts) and is not standing
-upright (:func:`pipeline.posture.standing_mask`), during which the other leg's shank swings at least
-``min_swings`` times, is a stretch without the sensors on the leg. Standing on this leg while the other one swings
-(one-legged exercises) is a posture a body holds, and does not count. The stretch reaches back to the last moment
-the leg was surely on the body, quiet upright standing or the end of a stride (the removal's own turning makes no
-whole stride), and on to its first swing after the rest (the sensors taken off and put back on), by at most
-``reach_s``. No paper gives these rules.
+Either physical test marks a stretch:
 
-What the session does with the stretches (:mod:`pipeline.session`): the leg is processed again without them (a
-long hole: nothing there is estimated, and the hinge fit no longer sees the removal); the other leg's strides there
-are still judged against this leg's stillness, so a lying or seated one-legged exercise cannot become gait.
+* **handled** (:func:`handled_spans_s`): a knee is a hinge, so the two segments' angular velocities off the knee
+  axis have equal magnitudes (Seel et al. 2014, Eq. 2: ``|g1 x j1| = |g2 x j2|``). Taking one sensor off while the
+  other stays still breaks that by most of the rate: the RMS residual over ``handled_window_s`` above
+  ``handled_ratio`` of the faster segment's RMS rate (itself above ``handled_min_dps``) for at least
+  ``handled_min_s`` (the figures behind the thresholds: :class:`pipeline.params.WornParams`), outside the leg's
+  walking bouts (a hinge broken while walking is a sensor turned on the limb: :mod:`pipeline.mounting`). The stretch
+  runs from there to the leg's next walking bout (sensors back on) or the end. A sensor turned about the knee axis while
+  the other is still looks like a knee flexing and is not caught.
+* **resting while the other leg walks** (:func:`_resting_spans_s`): nobody walks on one leg while the other sits
+  or lies still. A run of at least ``min_rest_s`` in which this leg rests (:func:`pipeline.posture.quiet_mask`,
+  outside its own walking bouts) and is not standing upright (:func:`pipeline.posture.standing_mask`) while the
+  other leg's shank swings at least ``min_swings`` times. Standing on this leg while the other one swings
+  (one-legged exercises) is a posture a body holds and does not count. The stretch runs on to the leg's first swing
+  after the rest (sensors back on), by at most ``reach_s``.
+
+Either stretch reaches back to the last moment the leg was surely on the body, quiet upright standing or the end of
+a stride (the removal's turning makes no whole stride), by at most ``reach_s``. The session processes the leg again
+without its stretches (:mod:`pipeline.session`): a long hole, so nothing is estimated there and the hinge fit no
+longer sees the removal; the other leg's strides there are still judged against this leg as recorded, so a lying or
+seated one-legged exercise cannot become gait.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import uniform_filter1d
 
 from pipeline.bilateral import OtherLeg
 from pipeline.leg_input import LegInput
 from pipeline.params import WALKING, WornParams
 from pipeline.posture import in_bouts, leg_quiet, standing_mask
-from pipeline.signal_utils import true_runs
+from pipeline.signal_utils import long_runs, true_runs
 
 
 def not_worn_spans_s(leg: LegInput, other: OtherLeg | None, params: WornParams = WALKING.worn
                      ) -> list[tuple[float, float]]:
     """Time spans ``(t0, t1)`` [s, the leg's clock] in which the leg's sensors were not on the leg (module
-    docstring), in order and disjoint; empty without the other leg's swings."""
+    docstring: handled, or resting while the other leg walks), in order and disjoint."""
+    return _merged([*handled_spans_s(leg, params), *_resting_spans_s(leg, other, params)])
+
+
+def handled_spans_s(leg: LegInput, params: WornParams = WALKING.worn) -> list[tuple[float, float]]:
+    """Spans from each stretch in which the two sensors turned unlike a hinge (module docstring) to the leg's next
+    walking bout; stretches within the leg's walking bouts or one of its strides do not count (it was walking: a
+    hinge broken there is a sensor turned on the limb, :mod:`pipeline.mounting`)."""
+    prep = leg.prep
+    t_s, fs = prep.t_s, prep.fs_hz
+    j1, j2 = leg.axes.j1, leg.axes.j2
+    g1 = np.where(prep.valid[:, None], prep.gyr_thigh_rps, 0.0)
+    g2 = np.where(prep.valid[:, None], prep.gyr_shank_rps, 0.0)
+    off_axis = np.linalg.norm(np.cross(g1, j1), axis=1) - np.linalg.norm(np.cross(g2, j2), axis=1)
+    rate = np.maximum(np.einsum("ij,ij->i", g1, g1), np.einsum("ij,ij->i", g2, g2))
+    size = max(int(round(params.handled_window_s * fs)), 1)
+    resid_ms = uniform_filter1d(off_axis**2, size, mode="nearest")
+    rate_ms = uniform_filter1d(rate, size, mode="nearest")
+    unlike = (rate_ms > np.radians(params.handled_min_dps) ** 2) & (resid_ms > params.handled_ratio**2 * rate_ms)
+    # within walking bouts the leg was walking: a hinge broken there is a mounting change (pipeline.mounting)
+    bouts = in_bouts(leg)
+    unlike = long_runs(unlike & prep.valid & ~bouts, params.handled_min_s * fs)
+    if not unlike.any():
+        return []
+    strides = np.array([(t_s[a], t_s[c]) for a, _, c in leg.events.strides]).reshape(-1, 2)
+    bout_starts = t_s[np.flatnonzero(np.diff(bouts.astype(np.int8)) == 1) + 1]
+    settled = _settled_s(leg, standing_mask(leg), params)
+    spans = []
+    for a, b in true_runs(unlike):
+        t0, t1 = float(t_s[a]), float(t_s[b - 1])
+        if ((strides[:, 0] <= t0) & (strides[:, 1] >= t1)).any():
+            continue
+        later = bout_starts[bout_starts > t1]  # the next walk, whole: sensors back on
+        spans.append((_back_to(settled, t0, float(t_s[0]), params), float(later[0]) if later.size else float(t_s[-1])))
+    return spans
+
+
+def _resting_spans_s(leg: LegInput, other: OtherLeg | None, params: WornParams) -> list[tuple[float, float]]:
+    """Spans in which the leg rested in a posture other than standing while the other leg swung (module
+    docstring); empty without the other leg's swings."""
     if other is None or other.swings_s.size < params.min_swings:
         return []
     prep = leg.prep
@@ -46,9 +97,7 @@ def not_worn_spans_s(leg: LegInput, other: OtherLeg | None, params: WornParams =
     rest = quiet & ~bouts & ~standing
     ev = leg.events
     own = np.sort(t_s[ev.ms[ev.ms >= 0]])
-    ends = np.sort(t_s[[c for _, _, c in ev.strides]]) if ev.strides else own
-    # when the leg was surely on the body: quiet upright standing, or just after a stride's end
-    settled = np.sort(np.concatenate([t_s[standing], ends + params.after_stride_s]))
+    settled = _settled_s(leg, standing, params)
     spans: list[tuple[float, float]] = []
     for a, b in true_runs(rest):
         t0, t1 = float(t_s[a]), float(t_s[b - 1])
@@ -57,12 +106,33 @@ def not_worn_spans_s(leg: LegInput, other: OtherLeg | None, params: WornParams =
         n_other = int(np.searchsorted(other.swings_s, t1) - np.searchsorted(other.swings_s, t0))
         if n_other < params.min_swings:
             continue
-        k = int(np.searchsorted(settled, t0))
         m = int(np.searchsorted(own, t1, side="right"))
-        t0 = min(t0, max(float(settled[k - 1]) if k else float(t_s[0]), t0 - params.reach_s))
-        t1 = min(float(own[m]) if m < own.size else float(t_s[-1]), t1 + params.reach_s)
-        if spans and t0 <= spans[-1][1]:
-            spans[-1] = (spans[-1][0], max(spans[-1][1], t1))
-        else:
-            spans.append((t0, t1))
+        spans.append((_back_to(settled, t0, float(t_s[0]), params),
+                      min(float(own[m]) if m < own.size else float(t_s[-1]), t1 + params.reach_s)))
     return spans
+
+
+def _settled_s(leg: LegInput, standing: np.ndarray, params: WornParams) -> np.ndarray:
+    """Sorted times [s] at which the leg was surely on the body: quiet upright standing, or just after one of its
+    strides' end (the removal's own turning makes no whole stride)."""
+    t_s = leg.prep.t_s
+    ev = leg.events
+    ends = t_s[[c for _, _, c in ev.strides]] if ev.strides else t_s[ev.ms[ev.ms >= 0]]
+    return np.sort(np.concatenate([t_s[standing], ends + params.after_stride_s]))
+
+
+def _back_to(settled: np.ndarray, t0: float, first_s: float, params: WornParams) -> float:
+    """Where a stretch found at ``t0`` starts: the last settled moment before it, at most ``reach_s`` back."""
+    k = int(np.searchsorted(settled, t0))
+    return min(t0, max(float(settled[k - 1]) if k else first_s, t0 - params.reach_s))
+
+
+def _merged(spans: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """``spans`` in order, overlapping ones joined."""
+    out: list[tuple[float, float]] = []
+    for t0, t1 in sorted(spans):
+        if out and t0 <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], t1))
+        else:
+            out.append((t0, t1))
+    return out
