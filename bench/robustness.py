@@ -217,6 +217,15 @@ AXES: dict[str, Axis] = {
         _v("thigh turned 60 deg about a random axis", remount_segment="thigh", remount_deg=60.0)),
         note="One set of axes and one level per session cannot fit both mountings (pipeline.mounting): what matters "
              "is what enters trends (the last column; both legs pooled, the right leg is untouched)."),
+    "off_body": Axis("Sensors taken off half-way and left on a table while the person walks on", (
+        _v("the left leg's two sensors", off_body="left"),
+        _v("all four sensors", off_body="all")),
+        note="Strides the sensors could not see (after the removal, on the legs whose sensors were off) count as "
+             "lost data, like a long hole (recall and 'coverage possible' leave them out, coverage does not). "
+             "'Trace while off': legs whose trace showed an angle after the removal, and its RMSE against the knee "
+             f"the person walked on (✗ above {SHOWN_TRACE_MAX_RMSE_DEG:g} deg). A leg is judged off the body when it "
+             "rests in a posture other than standing while the other leg walks (pipeline.worn): with all four off, "
+             "nothing walks."),
     "labels": Axis("Wrongly labelled sensors (scored against the labelled leg; see 'pipeline did')", (
         _v("legs swapped (all four)", label_swap="legs"),
         _v("legs swapped (all four), pelvis and hip 3-D x1", label_swap="legs", hip_3d=1.0),
@@ -293,6 +302,8 @@ class CaseResult:
     score: LegScore
     swap: dict = field(default_factory=dict)  # labels axis: what the pipeline did
     trace_rmse_deg: list[float] = field(default_factory=list)  # per leg whose trace was shown (exercise axis)
+    off_trace_rmse_deg: list[float] = field(default_factory=list)  # off_body axis: per off leg showing an angle there
+    off_legs: int = 0  # off_body axis: legs whose sensors were taken off
     n_legs: int = 0  # legs processed
     seconds: float = 0.0
     error: str = ""
@@ -321,6 +332,12 @@ def _trace_rmse_deg(lr: LegResult, truth: LegTruth) -> float:
     if ok.sum() <= 10:
         return math.nan
     return float(np.sqrt(np.mean((lr.angle_deg[ok] - truth.angle_at(lr.t_s[ok])) ** 2)))
+
+
+def _off_body_s(sim: SimSession) -> dict[str, float]:
+    """Per leg whose sensors the simulator took off the body, when [s, true time]."""
+    return {leg: info["off_body"]["at_s"] for leg in sim.truth
+            if "off_body" in (info := sim.info["sensors"][f"{leg[0].upper()}-thigh"])}
 
 
 def _swap_report(sim: SimSession, legs: dict, warnings: list[str]) -> dict:
@@ -381,8 +398,17 @@ def run_case(case: Case) -> CaseResult:
     if AXES[case.axis].values[case.index].true_time:
         clocks = sim.info["sensors"]
         legs = {leg: _on_true_time(lr, clocks[f"{leg[0].upper()}-thigh"]) for leg, lr in legs.items()}
+    off = _off_body_s(sim)
     for leg, truth in sim.truth.items():
-        total.add(score_leg(legs.get(leg), truth, data_gaps(sim, leg), non_gait))
+        unseen = [(off[leg], math.inf)] if leg in off else []
+        total.add(score_leg(legs.get(leg), truth, data_gaps(sim, leg) + unseen, non_gait))
+    for leg, at_s in off.items():
+        out.off_legs += 1
+        lr = legs.get(leg)
+        if lr is not None:
+            later = dataclasses.replace(lr, angle_deg=np.where(lr.t_s > at_s, lr.angle_deg, np.nan))
+            if not math.isnan(e := _trace_rmse_deg(later, sim.truth[leg])):
+                out.off_trace_rmse_deg.append(e)
     if sim.config.label_swap != "none":
         out.swap = _swap_report(sim, legs, warnings)
     out.n_legs = len(legs)
@@ -420,10 +446,11 @@ def _swap_cell(reports: list[dict]) -> str:
             f"RMSE {_f(float(np.median(rmse)) if rmse else math.nan)} deg")
 
 
-def _shown_cell(rows: list[CaseResult]) -> str:
-    """Legs whose trace was shown out of those processed, and the shown traces' RMSE range."""
-    rmse = [e for r in rows for e in r.trace_rmse_deg]
-    cell = f"{len(rmse)}/{sum(r.n_legs for r in rows)}"
+def _shown_cell(rows: list[CaseResult], off_body: bool = False) -> str:
+    """Legs whose trace was shown out of those processed (``off_body``: after the removal, out of the legs whose
+    sensors were taken off), and the shown traces' RMSE range."""
+    rmse = [e for r in rows for e in (r.off_trace_rmse_deg if off_body else r.trace_rmse_deg)]
+    cell = f"{len(rmse)}/{sum(r.off_legs if off_body else r.n_legs for r in rows)}"
     if rmse:
         cell += f", {min(rmse):.1f} .. {max(rmse):.1f}"
     return _miss(cell, any(e > SHOWN_TRACE_MAX_RMSE_DEG for e in rmse))
@@ -466,9 +493,10 @@ def axis_table(name: str, results: list[CaseResult]) -> list[str]:
     """The Markdown table of one axis from all its case results."""
     axis = AXES[name]
     swap = name == "labels"
-    shown = name == "exercise"
-    header = ["value", *HEADER, *(["pipeline did"] if swap else []), *(["traces shown: legs, RMSE (deg)"] if shown
-                                                                      else [])]
+    shown = name in ("exercise", "off_body")
+    header = ["value", *HEADER, *(["pipeline did"] if swap else []),
+              *([("trace while off" if name == "off_body" else "traces shown") + ": legs, RMSE (deg)"] if shown
+                else [])]
     lines = [f"### {axis.title} (`{name}`)", ""]
     if axis.note:
         lines += [axis.note, ""]
@@ -485,7 +513,7 @@ def axis_table(name: str, results: list[CaseResult]) -> list[str]:
             reps = [{**r.swap, "legs_only": value.overrides.get("label_swap") == "legs"} for r in rows if r.swap]
             extra = [_swap_cell(reps)]
         if shown:
-            extra = [_shown_cell(rows)]
+            extra = [_shown_cell(rows, off_body=name == "off_body")]
         label = value.label + (" (crashed: " + "; ".join({r.error for r in rows if r.error}) + ")"
                                if any(r.error for r in rows) else "")
         lines.append(format_row(label, summarise(pooled), value.targets, extra))
