@@ -359,6 +359,9 @@ class WornParams:
     reach_s: float = 10.0
     """How far the stretch reaches back to the end of the leg's last stride and on to its next swing [s]: taking two
     sensors off their straps and laying them down, or putting them back on."""
+    min_piece_s: float = 10.0
+    """Shortest stretch between two not-worn spans (or the session's ends) processed on its own [s]: a few strides to
+    learn the knee axes from; a shorter one shows nothing."""
     after_stride_s: float = 0.2
     """Kept after that last stride's end [s]: its heel strike is found on the samples that follow it."""
 

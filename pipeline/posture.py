@@ -38,11 +38,24 @@ def _norm(x: np.ndarray) -> np.ndarray:
 def quiet_mask(prep: PreparedLeg, params: PostureParams = WALKING.posture) -> np.ndarray:
     """(N,) bool: both segments still (slower than ``still_dps``, specific force within ``force_tol`` of g) for at
     least ``quiet_min_s``: there the accelerometer angle sees gravity only and is accurate to a degree or two."""
-    still = prep.valid & slower_than(prep.gyr_thigh_rps, params.still_dps)
-    still &= slower_than(prep.gyr_shank_rps, params.still_dps)
-    for acc in (prep.acc_thigh_mps2, prep.acc_shank_mps2):
-        still &= np.abs(_norm(acc) - G_MPS2) < params.force_tol * G_MPS2
-    return long_runs(still, params.quiet_min_s * prep.fs_hz)
+    thigh, shank = _still_segments(prep, params)
+    return long_runs(thigh & shank, params.quiet_min_s * prep.fs_hz)
+
+
+def quiet_segments(prep: PreparedLeg, params: PostureParams = WALKING.posture) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) bool per segment (thigh, shank): that segment alone still as :func:`quiet_mask` has it, for at least
+    ``quiet_min_s``."""
+    n = params.quiet_min_s * prep.fs_hz
+    thigh, shank = _still_segments(prep, params)
+    return long_runs(thigh, n), long_runs(shank, n)
+
+
+def _still_segments(prep: PreparedLeg, params: PostureParams) -> tuple[np.ndarray, np.ndarray]:
+    out = []
+    for gyr, acc in ((prep.gyr_thigh_rps, prep.acc_thigh_mps2), (prep.gyr_shank_rps, prep.acc_shank_mps2)):
+        out.append(prep.valid & slower_than(gyr, params.still_dps)
+                   & (np.abs(_norm(acc) - G_MPS2) < params.force_tol * G_MPS2))
+    return out[0], out[1]
 
 
 def leg_quiet(leg: LegInput) -> np.ndarray:
@@ -74,22 +87,32 @@ def posture_labels(leg: LegInput, quiet: np.ndarray | None = None) -> np.ndarray
     """(N,) str per sample: ``"standing"`` (:func:`standing_mask`), ``"sitting"`` (quiet, shank upright, thigh not:
     a horizontal thigh), ``"lying"`` (quiet, neither segment upright), ``""`` elsewhere (moving, walking, or no
     strides to learn the upright directions from). The same quiet and upright tests as the zero uses."""
-    p = leg.params.posture
     prep = leg.prep
     quiet = leg_quiet(leg) if quiet is None else quiet
     out = np.full(prep.n, "", dtype=object)
-    ups = _gait_up_directions(leg)
-    if ups is None:
+    upright = upright_segments(leg)
+    if upright is None:
         return out.astype(str)
-    upright = []
-    for acc, up, j in ((prep.acc_thigh_mps2, ups[0], leg.axes.j1), (prep.acc_shank_mps2, ups[1], leg.axes.j2)):
-        y = np.cross(j, up)
-        upright.append(np.abs(np.degrees(np.arctan2(acc @ y, acc @ up))) < p.upright_deg)
     rest = quiet & prep.valid & ~in_bouts(leg)
     out[rest & ~upright[0] & upright[1]] = "sitting"
     out[rest & ~upright[0] & ~upright[1]] = "lying"
     out[standing_mask(leg, quiet)] = "standing"
     return out.astype(str)
+
+
+def upright_segments(leg: LegInput) -> tuple[np.ndarray, np.ndarray] | None:
+    """(N,) bool per segment (thigh, shank): its specific force within ``upright_deg`` of the segment's mean stance
+    direction in its joint plane (:func:`standing_mask`'s test on every sample); None without strides to learn the
+    directions from."""
+    ups = _gait_up_directions(leg)
+    if ups is None:
+        return None
+    prep = leg.prep
+    out = []
+    for acc, up, j in ((prep.acc_thigh_mps2, ups[0], leg.axes.j1), (prep.acc_shank_mps2, ups[1], leg.axes.j2)):
+        y = np.cross(j, up)
+        out.append(np.abs(np.degrees(np.arctan2(acc @ y, acc @ up))) < leg.params.posture.upright_deg)
+    return out[0], out[1]
 
 
 def acc_zero_deg(leg: LegInput, quiet: np.ndarray | None = None) -> tuple[float, float | None]:

@@ -36,6 +36,7 @@ from pipeline.params import (
     PipelineParams,
     PostureParams,
     QualityParams,
+    WornParams,
     preset,
 )
 from pipeline.phases import GaitEvents
@@ -56,7 +57,7 @@ from pipeline.types import (
     StrideMetrics,
 )
 from pipeline.walking import build_walking_leg_input, gait_events
-from pipeline.worn import not_worn_spans_s
+from pipeline.worn import joined, not_worn_spans_s, pieces_s
 
 
 def process_session(streams: Sequence[RawSensorStream], activity: str = "walking", estimator: str = "auto",
@@ -302,8 +303,9 @@ def _without_not_worn(legs: dict[str, LegResult], swings: dict[str, np.ndarray],
                       assigned: Mapping[str, str], others: Mapping[str, OtherLeg], warnings: list[str]
                       ) -> tuple[dict[str, LegResult], dict[str, np.ndarray]]:
     """Each leg whose sensors were off the leg for a while (``LegDiagnostics.not_worn_s``, :mod:`pipeline.worn`)
-    processed again without those spans: a long hole, so nothing is estimated there and the hinge fit does not
-    take the sensors' removal for the knee."""
+    processed again piece by piece between those spans: nothing is estimated inside them, and each piece learns its
+    own knee axes and level, since the sensors may have been put back on otherwise (:func:`pipeline.worn.pieces_s`,
+    :func:`pipeline.worn.joined`)."""
     out, out_swings = dict(legs), dict(swings)
     for leg, lr in legs.items():
         spans = () if lr.diagnostics is None else lr.diagnostics.not_worn_s
@@ -311,33 +313,30 @@ def _without_not_worn(legs: dict[str, LegResult], swings: dict[str, np.ndarray],
             continue
         thigh_leg = {"left": "right", "right": "left"}[leg] \
             if assigned.get(leg) == "thighs_exchanged_between_legs" else leg
-        try:
-            again, out_swings[leg] = _process_leg(
-                leg, _cut(by_leg[thigh_leg]["thigh"], spans), _cut(by_leg[leg]["shank"], spans), activity,
-                estimator, params, (calibration or {}).get(leg), other=others.get(leg))
-        except ValueError:  # too little left to process: the first result, blank over the spans
-            off = np.zeros(lr.t_s.size, dtype=bool)
-            for t0, t1 in spans:
-                off |= (lr.t_s >= t0) & (lr.t_s <= t1)
-            again = dataclasses.replace(lr, angle_deg=np.where(off, np.nan, lr.angle_deg),
-                                        estimator=np.where(off, "", lr.estimator),
-                                        strides=[s for s in lr.strides
-                                                 if not any(s.t_end_s > t0 and s.t_start_s < t1 for t0, t1 in spans)])
-        if again.diagnostics is not None:
-            again = dataclasses.replace(again, diagnostics=dataclasses.replace(again.diagnostics, not_worn_s=spans))
-        out[leg] = again
+        thigh, shank = by_leg[thigh_leg]["thigh"], by_leg[leg]["shank"]
+        parts: list[tuple[LegResult, np.ndarray]] = []
+        for t0, t1 in pieces_s(spans, float(lr.t_s[0]), float(lr.t_s[-1]), _worn_params(params, activity)):
+            try:
+                parts.append(_process_leg(leg, _within(thigh, t0, t1), _within(shank, t0, t1), activity, estimator,
+                                          params, (calibration or {}).get(leg), other=others.get(leg)))
+            except ValueError:  # too little there to process: that piece shows nothing
+                continue
+        out[leg], out_swings[leg] = joined(lr, parts, spans)
         where = ", ".join(f"{t0:.0f}-{t1:.0f} s" for t0, t1 in spans)
         warnings.append(f"{leg} leg: sensors not on the leg at {where} (turned unlike a knee, or at rest, not "
-                        "standing, while the other leg walked): no knee angle there (not_worn_s)")
+                        "standing, while the other leg walked): no knee angle there, and the leg's axes learned "
+                        "apart before and after (not_worn_s)")
     return out, out_swings
 
 
-def _cut(stream: RawSensorStream, spans: Sequence[tuple[float, float]]) -> RawSensorStream:
-    """``stream`` without its samples inside ``spans`` [s]."""
+def _worn_params(params: PipelineParams | None, activity: str) -> WornParams:
+    return (params if params is not None else preset(activity)).worn
+
+
+def _within(stream: RawSensorStream, t0: float, t1: float) -> RawSensorStream:
+    """``stream``'s samples from ``t0`` to ``t1`` [s]."""
     t = np.asarray(stream.t_s)
-    keep = np.ones(t.size, dtype=bool)
-    for t0, t1 in spans:
-        keep &= (t < t0) | (t > t1)
+    keep = (t >= t0) & (t <= t1)
     return dataclasses.replace(stream, t_s=t[keep], gyr=np.asarray(stream.gyr)[keep],
                                acc=np.asarray(stream.acc)[keep])
 

@@ -19,20 +19,26 @@ Either physical test marks a stretch:
   runs from there to the leg's next walking bout (sensors back on) or the end. A sensor turned about the knee axis while
   the other is still looks like a knee flexing and is not caught.
 * **resting while the other leg walks** (:func:`_resting_spans_s`): nobody walks on one leg while the other sits
-  or lies still. A run of at least ``min_rest_s`` in which this leg rests (:func:`pipeline.posture.quiet_mask`,
-  outside its own walking bouts) and is not standing upright (:func:`pipeline.posture.standing_mask`) while the
-  other leg's shank swings at least ``min_swings`` times. Standing on this leg while the other one swings
-  (one-legged exercises) is a posture a body holds and does not count. The stretch runs on to the leg's first swing
-  after the rest (sensors back on), by at most ``reach_s``.
+  or lies still, nor with a thigh or shank that does not move. A run of at least ``min_rest_s`` in which this leg
+  rests (:func:`pipeline.posture.quiet_mask`, outside its own walking bouts) and is not standing upright
+  (:func:`pipeline.posture.standing_mask`), or one of its segments alone is still off the upright or within the
+  leg's own walking bouts (:func:`pipeline.posture.quiet_segments`, :func:`pipeline.posture.upright_segments`: a
+  thigh sensor fallen off while the shank walks on), while the other leg's shank swings at least ``min_swings``
+  times. Standing on this
+  leg while the other one swings (one-legged exercises) is a posture a body holds and does not count. The stretch
+  runs on to the leg's first swing after the rest (sensors back on), by at most ``reach_s``.
 
 Either stretch reaches back to the last moment the leg was surely on the body, quiet upright standing or the end of
 a stride (the removal's turning makes no whole stride), by at most ``reach_s``. The session processes the leg again
-without its stretches (:mod:`pipeline.session`): a long hole, so nothing is estimated there and the hinge fit no
-longer sees the removal; the other leg's strides there are still judged against this leg as recorded, so a lying or
-seated one-legged exercise cannot become gait.
+piece by piece between its stretches (:mod:`pipeline.session`, :func:`pieces_s`, :func:`joined`): nothing is
+estimated inside them, and each piece learns its own knee axes and level (the sensors may have gone back on
+otherwise; a piece without a gait stride shows nothing). The other leg's strides there are still judged against
+this leg as recorded, so a lying or seated one-legged exercise cannot become gait.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 from scipy.ndimage import uniform_filter1d
@@ -40,8 +46,9 @@ from scipy.ndimage import uniform_filter1d
 from pipeline.bilateral import OtherLeg
 from pipeline.leg_input import LegInput
 from pipeline.params import WALKING, WornParams
-from pipeline.posture import in_bouts, leg_quiet, standing_mask
+from pipeline.posture import in_bouts, leg_quiet, quiet_segments, standing_mask, upright_segments
 from pipeline.signal_utils import long_runs, true_runs
+from pipeline.types import LegResult
 
 
 def not_worn_spans_s(leg: LegInput, other: OtherLeg | None, params: WornParams = WALKING.worn
@@ -95,6 +102,11 @@ def _resting_spans_s(leg: LegInput, other: OtherLeg | None, params: WornParams) 
     bouts = in_bouts(leg)
     standing = standing_mask(leg, quiet, bouts)
     rest = quiet & ~bouts & ~standing
+    # one segment alone still off the upright, or still at all within the leg's own walking (a walking thigh turns
+    # every stride): a thigh sensor fallen off while the shank walks on (its strides also move the segment's upright)
+    upright = upright_segments(leg) or (np.zeros(prep.n, dtype=bool),) * 2
+    for still, up in zip(quiet_segments(prep, leg.params.posture), upright, strict=True):
+        rest |= still & (bouts | ~up)
     ev = leg.events
     own = np.sort(t_s[ev.ms[ev.ms >= 0]])
     settled = _settled_s(leg, standing, params)
@@ -136,3 +148,55 @@ def _merged(spans: list[tuple[float, float]]) -> list[tuple[float, float]]:
         else:
             out.append((t0, t1))
     return out
+
+
+def pieces_s(spans: list[tuple[float, float]] | tuple[tuple[float, float], ...], t_first: float, t_last: float,
+             params: WornParams = WALKING.worn) -> list[tuple[float, float]]:
+    """The stretches ``(t0, t1)`` [s] between ``t_first``, the ``spans`` and ``t_last`` that last at least
+    ``min_piece_s``: what the session processes, each on its own."""
+    out, t = [], t_first
+    for t0, t1 in [*spans, (t_last, t_last)]:
+        if t0 - t >= params.min_piece_s:
+            out.append((t, t0))
+        t = max(t, t1)
+    return out
+
+
+def joined(first: LegResult, parts: list[tuple[LegResult, np.ndarray]], spans: tuple[tuple[float, float], ...]
+           ) -> tuple[LegResult, np.ndarray]:
+    """One leg's result from its pieces processed apart (``parts``: result and mid-swing times [s], in time order):
+    traces, strides, gaps and swings in sequence, the counts summed, the other diagnostics from the piece with the
+    most strides; ``first`` (the leg processed whole) describes it when no piece could be processed. A piece without
+    a gait stride of its own shows no angle (its axes and level have nothing to be learned from, as
+    ``pipeline.session._withhold_unanchored`` rules for a whole leg)."""
+    if not parts:
+        diag = None if first.diagnostics is None else dataclasses.replace(
+            first.diagnostics, n_strides=0, n_fallback=0, gait_strides=0, not_worn_s=tuple(spans))
+        return dataclasses.replace(first, angle_deg=np.full_like(first.angle_deg, np.nan),
+                                   estimator=np.full(first.estimator.shape, "", dtype=first.estimator.dtype),
+                                   strides=[], walking_s=0.0, gaps_s=sorted([*first.gaps_s, *spans]),
+                                   diagnostics=diag), np.empty(0)
+    shown = [p.diagnostics is None or p.diagnostics.gait_strides > 0 for p, _ in parts]
+    angle = np.concatenate([p.angle_deg if ok else np.full_like(p.angle_deg, np.nan)
+                            for (p, _), ok in zip(parts, shown, strict=True)])
+    estimator = np.concatenate([p.estimator if ok else np.full(p.estimator.shape, "", dtype=p.estimator.dtype)
+                                for (p, _), ok in zip(parts, shown, strict=True)])
+    strides = [dataclasses.replace(st, index=i) for i, st in
+               enumerate(st for (p, _), ok in zip(parts, shown, strict=True) if ok for st in p.strides)]
+    base = max((p for p, _ in parts), key=lambda p: len(p.strides))
+    diag = base.diagnostics
+    diags = [p.diagnostics for p, _ in parts if p.diagnostics is not None]
+    if diag is not None:
+        changed = [d.mounting for d in diags if d.mounting is not None and d.mounting.changed]
+        diag = dataclasses.replace(
+            diag, n_strides=len(strides), n_fallback=sum(1 for st in strides if st.fallback),
+            gait_strides=sum(d.gait_strides for d in diags), bouts=sum(d.bouts for d in diags),
+            bridged_gaps=sum(d.bridged_gaps for d in diags),
+            masked_implausible_samples=sum(d.masked_implausible_samples for d in diags),
+            clock_disagreement=any(d.clock_disagreement for d in diags),
+            mounting=changed[0] if changed else diag.mounting, not_worn_s=tuple(spans))
+    gaps = sorted([g for p, _ in parts for g in p.gaps_s] + list(spans))
+    return dataclasses.replace(
+        base, t_s=np.concatenate([p.t_s for p, _ in parts]), angle_deg=angle, estimator=estimator, strides=strides,
+        gaps_s=gaps, walking_s=float(sum(st.duration_s for st in strides)), diagnostics=diag
+    ), np.concatenate([sw for _, sw in parts])

@@ -7,6 +7,7 @@ from functools import cache
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from pipeline.params import WALKING
 from pipeline.session import process_session
@@ -23,13 +24,14 @@ def _session(seed: int) -> SimSession:
     return simulate_session(SimConfig(seed=seed, duration_s=120.0, bout_strides=12))
 
 
-def _held(sim: SimSession, leg: str, t_from: tuple[float, float], after_s: float) -> list:
-    """The session with ``leg``'s two sensors holding, from ``after_s`` on, their mean reading over ``t_from``
-    (plus their noise): the leg kept still in that posture while the other leg walks on."""
+def _held(sim: SimSession, leg: str, t_from: tuple[float, float], after_s: float,
+          segments: tuple[str, ...] = ("thigh", "shank")) -> list:
+    """The session with ``leg``'s sensors on ``segments`` holding, from ``after_s`` on, their mean reading over
+    ``t_from`` (plus their noise): kept still in that posture while the rest walks on."""
     rng = np.random.default_rng(1)
     out = []
     for s in sim.streams:
-        if s.leg == leg:
+        if s.leg == leg and s.segment in segments:
             src = (s.t_s >= t_from[0]) & (s.t_s <= t_from[1])
             later = s.t_s > after_s
             gyr, acc = s.gyr.copy(), s.acc.copy()
@@ -124,3 +126,45 @@ def test_a_knee_with_twice_the_typical_3d_motion_turns_like_a_hinge(activities: 
         synced = synchronised_leg(leg, segs["thigh"], segs["shank"], WALKING)
         data = build_walking_leg_input(synced.prep, WALKING, axes=synced.axes, fit_gyr=synced.fit_gyr)
         assert handled_spans_s(data) == []
+
+
+def test_sensors_put_back_on_otherwise_learn_their_axes_again() -> None:
+    """The left leg's sensors lie on a table from 68 to 84 s (their seated reading held while the right leg walks)
+    and go back on turned by 90 deg: each piece is processed on its own, so the strides after the stretch are right
+    and enter trends, and the ones before are not spoilt by the second mounting. (The stretch starts at the sitting
+    down before it: under the whole session's axes, a mix of both mountings, that turned unlike a knee too.)"""
+    sim = _session(2)
+    turn = Rotation.from_rotvec(np.radians(90.0) * np.array([0.6, 0.0, 0.8])).as_matrix()
+    held = _held(sim, "left", (57.0, 63.0), 68.0)
+    streams = []
+    for s, orig in zip(held, sim.streams, strict=True):
+        if s.leg == "left":
+            back = s.t_s > 84.0
+            gyr, acc = s.gyr.copy(), s.acc.copy()
+            gyr[back] = orig.gyr[back] @ turn.T
+            acc[back] = orig.acc[back] @ turn.T
+            s = dataclasses.replace(s, gyr=gyr, acc=acc)
+        streams.append(s)
+    res = process_session(streams)
+    left = res.legs["left"]
+    (t0, t1), = left.diagnostics.not_worn_s
+    assert 50.0 < t0 <= 68.5 and 84.0 <= t1 < 90.0
+    truth = [t for t in sim.truth["left"].strides if t.steady]
+    for lo, hi in ((0.0, 68.0), (84.0, 120.0)):
+        errs = [st.peak_swing_flexion_deg - min(truth, key=lambda t: abs(t.t_start_s - st.t_start_s))
+                .peak_swing_flexion_deg for st in left.strides if lo < st.t_start_s < hi and st.quality >= 0.5]
+        assert len(errs) >= 8 and np.median(np.abs(errs)) < 3.0, (lo, errs)
+
+
+def test_a_thigh_sensor_fallen_off_while_the_shank_walks_on_shows_nothing() -> None:
+    """The left thigh's sensor lies still off the upright from 70 s on (its seated reading held: a strap slipped,
+    the sensor on the floor) while the shank's walks on: a walking leg's thigh moves every stride, so from there the
+    leg shows nothing, and no stride of it enters trends."""
+    sim = _session(2)
+    res = process_session(_held(sim, "left", (57.0, 63.0), 70.0, segments=("thigh",)))
+    left = res.legs["left"]
+    (t0, t1), = left.diagnostics.not_worn_s
+    assert 60.0 < t0 <= 70.5 and t1 > sim.duration_s - 1.0
+    assert not np.isfinite(left.angle_deg[left.t_s > 70.5]).any()
+    assert not [s for s in left.strides if s.t_end_s > 70.5 and s.quality >= 0.5]
+    assert len(_peak_errors(res, sim, "left", 68.0)) >= 10
