@@ -35,6 +35,7 @@ from pipeline import ALGORITHM_VERSION
 from pipeline.estimators import get_estimator
 from pipeline.params import LongSessionParams, PipelineParams, preset
 from pipeline.session import process_session
+from pipeline.signal_utils import merged_intervals
 from pipeline.types import (
     KneeCalibration,
     LegDiagnostics,
@@ -209,6 +210,7 @@ class _Leg:
     shown: bool = False  # some chunk showed the leg's trace
     mounting: MountingCheck | None = None  # the first chunk's check that found a mounting change
     not_worn: list[tuple[float, float]] = dataclasses.field(default_factory=list)  # every chunk's, overlaps merged
+    handled: list[tuple[float, float]] = dataclasses.field(default_factory=list)  # ditto
 
     def count(self, d: LegDiagnostics) -> None:
         """Add one chunk's counts and flags."""
@@ -223,13 +225,8 @@ class _Leg:
             self.withheld = d.trace_withheld
         if d.mounting is not None and d.mounting.changed and (self.mounting is None or not self.mounting.changed):
             self.mounting = d.mounting  # a chunk whose sensor was turned speaks for the leg
-        merged: list[tuple[float, float]] = []
-        for t0, t1 in sorted([*self.not_worn, *d.not_worn_s]):
-            if merged and t0 <= merged[-1][1]:
-                merged[-1] = (merged[-1][0], max(merged[-1][1], t1))
-            else:
-                merged.append((t0, t1))
-        self.not_worn = merged
+        self.not_worn = merged_intervals([*self.not_worn, *d.not_worn_s])
+        self.handled = merged_intervals([*self.handled, *d.handled_s])
 
 
 class _Merged:
@@ -312,7 +309,7 @@ class _Merged:
                                            gait_strides=leg.gait_strides,
                                            trace_withheld=None if leg.shown else leg.withheld,
                                            mounting=leg.mounting if leg.mounting is not None else diag.mounting,
-                                           not_worn_s=tuple(leg.not_worn))
+                                           not_worn_s=tuple(leg.not_worn), handled_s=tuple(leg.handled))
             legs[name] = dataclasses.replace(
                 leg.best, fs_hz=leg.trace.fs_hz, t_s=t_s, angle_deg=angle, estimator=est, strides=strides,
                 gaps_s=leg.gaps, walking_s=float(sum(s.duration_s for s in strides)),

@@ -22,6 +22,7 @@ from pipeline.constants import G_MPS2
 from pipeline.kernels import central_slopes, hermite_eval, saturated_runs, shifted_context, si_block
 from pipeline.params import WALKING, PostureParams, PrepareParams
 from pipeline.rest_offset import rest_offsets
+from pipeline.signal_utils import merged_intervals
 from pipeline.types import RawSensorStream
 
 MAX_BRIDGE_S = WALKING.prepare.max_bridge_s
@@ -622,8 +623,8 @@ def prepare_leg_si(leg: str, si1: tuple[np.ndarray, np.ndarray, np.ndarray],
         leg=leg, fs_hz=fs_hz, t0_s=float(t_start), t_s=t_grid,
         gyr_thigh_rps=gyr_thigh, gyr_shank_rps=shank6[:, :3],
         acc_thigh_mps2=acc_thigh, acc_shank_mps2=shank6[:, 3:],
-        valid=valid, saturated=saturated, gaps_s=_merge_intervals(gaps), bridged_gaps=br1 + br2,
-        bridged_s=_merge_intervals(noted1 + noted2), filled_s=_merge_intervals(filled1 + filled2),
+        valid=valid, saturated=saturated, gaps_s=merged_intervals(gaps), bridged_gaps=br1 + br2,
+        bridged_s=merged_intervals(noted1 + noted2), filled_s=merged_intervals(filled1 + filled2),
         thigh_gaps_s=gaps1, thigh_filled_s=filled1, thigh_noted_s=noted1, shank_bridged=br2,
         thigh_saturated=sat_thigh, shank_saturated_raw=sat_shank,
         acc_offset_thigh_mps2=off1, acc_offset_shank_mps2=off2, gyr_bias_thigh_rps=gb1, gyr_bias_shank_rps=gb2,
@@ -670,11 +671,3 @@ def _cut(x: np.ndarray, kept: slice) -> np.ndarray:
     return x if kept == slice(None) else x[kept]
 
 
-def _merge_intervals(intervals: list[tuple[float, float]]) -> list[tuple[float, float]]:
-    out: list[tuple[float, float]] = []
-    for a, b in sorted(intervals):
-        if out and a <= out[-1][1]:
-            out[-1] = (out[-1][0], max(out[-1][1], b))
-        else:
-            out.append((a, b))
-    return out

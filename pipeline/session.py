@@ -57,7 +57,7 @@ from pipeline.types import (
     StrideMetrics,
 )
 from pipeline.walking import build_walking_leg_input, gait_events
-from pipeline.worn import joined, not_worn_spans_s, pieces_s
+from pipeline.worn import blanked, joined, not_worn_spans_s, pieces_s
 
 
 def process_session(streams: Sequence[RawSensorStream], activity: str = "walking", estimator: str = "auto",
@@ -303,34 +303,42 @@ def _without_not_worn(legs: dict[str, LegResult], swings: dict[str, np.ndarray],
                       assigned: Mapping[str, str], others: Mapping[str, OtherLeg], warnings: list[str]
                       ) -> tuple[dict[str, LegResult], dict[str, np.ndarray]]:
     """Each leg whose sensors were off the leg for a while (``LegDiagnostics.not_worn_s``, :mod:`pipeline.worn`)
-    processed again piece by piece between those spans: nothing is estimated inside them, and each piece learns its
-    own knee axes and level, since the sensors may have been put back on otherwise (:func:`pipeline.worn.pieces_s`,
-    :func:`pipeline.worn.joined`)."""
+    shows nothing there (:func:`pipeline.worn.blanked`); where the sensors were handled (``handled_s``) the pieces
+    on either side are processed again apart, each learning its own knee axes and level, since the sensors may have
+    been put back on otherwise and the handling itself is no knee motion for the hinge fit
+    (:func:`pipeline.worn.pieces_s`, :func:`pipeline.worn.joined`)."""
     out, out_swings = dict(legs), dict(swings)
     for leg, lr in legs.items():
-        spans = () if lr.diagnostics is None else lr.diagnostics.not_worn_s
-        if not spans:
+        if lr.diagnostics is None or not lr.diagnostics.not_worn_s:
             continue
-        thigh_leg = {"left": "right", "right": "left"}[leg] \
-            if assigned.get(leg) == "thighs_exchanged_between_legs" else leg
-        thigh, shank = by_leg[thigh_leg]["thigh"], by_leg[leg]["shank"]
-        parts: list[tuple[LegResult, np.ndarray]] = []
-        for t0, t1 in pieces_s(spans, float(lr.t_s[0]), float(lr.t_s[-1]), _worn_params(params, activity)):
-            try:
-                parts.append(_process_leg(leg, _within(thigh, t0, t1), _within(shank, t0, t1), activity, estimator,
-                                          params, (calibration or {}).get(leg), other=others.get(leg)))
-            except ValueError:  # too little there to process: that piece shows nothing
-                continue
-        out[leg], out_swings[leg] = joined(lr, parts, spans)
+        spans, handled = lr.diagnostics.not_worn_s, lr.diagnostics.handled_s
+        if handled:
+            thigh_leg = {"left": "right", "right": "left"}[leg] \
+                if assigned.get(leg) == "thighs_exchanged_between_legs" else leg
+            thigh, shank = by_leg[thigh_leg]["thigh"], by_leg[leg]["shank"]
+            parts: list[tuple[LegResult, np.ndarray]] = []
+            for t0, t1 in pieces_s(handled, float(lr.t_s[0]), float(lr.t_s[-1]), _worn_params(params, activity)):
+                try:
+                    parts.append(_process_leg(leg, _within(thigh, t0, t1), _within(shank, t0, t1), activity,
+                                              estimator, params, (calibration or {}).get(leg),
+                                              other=others.get(leg)))
+                except ValueError:  # too little there to process: that piece shows nothing
+                    continue
+            lr, out_swings[leg] = joined(lr, parts)
+        out[leg] = blanked(lr, spans, handled)
         where = ", ".join(f"{t0:.0f}-{t1:.0f} s" for t0, t1 in spans)
+        apart = " (the sensors were handled: the leg's axes and level learned apart on either side)" if handled else ""
         warnings.append(f"{leg} leg: sensors not on the leg at {where} (turned unlike a knee, or at rest, not "
-                        "standing, while the other leg walked): no knee angle there, and the leg's axes learned "
-                        "apart before and after (not_worn_s)")
+                        f"standing, while the other leg walked): no knee angle there{apart} (not_worn_s)")
     return out, out_swings
 
 
 def _worn_params(params: PipelineParams | None, activity: str) -> WornParams:
     return (params if params is not None else preset(activity)).worn
+
+
+def _rounded_spans(spans: Sequence[tuple[float, float]]) -> tuple[tuple[float, float], ...]:
+    return tuple((round(a, 2), round(b, 2)) for a, b in spans)
 
 
 def _within(stream: RawSensorStream, t0: float, t1: float) -> RawSensorStream:
@@ -534,7 +542,7 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
     # again cost as much as the check itself, and the windows' verdicts were the same on the tune seeds)
     fit_gyr = synced.fit_gyr or (synced.prep.gyr_thigh_rps, synced.prep.gyr_shank_rps)
     mounting = check_mounting(synced.prep, synced.axes, fit_gyr, data.params.mounting)
-    not_worn = not_worn_spans_s(data, other, data.params.worn) if data.activity == "walking" else []
+    not_worn, handled = not_worn_spans_s(data, other, data.params.worn) if data.activity == "walking" else ([], [])
     leg_reasons = (("clock_disagreement",) if clock_unknown else ()) + (("mounting_changed",) if mounting.changed
                                                                          else ())
     strides = _strides(leg, data, result, leg_reasons)
@@ -542,7 +550,7 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
         len(gait_strides(data.prep.t_s, data.events.strides, data.events.ms, other))
     diagnostics = dataclasses.replace(_diagnostics(data, synced, result, strides, running, calibration,
                                                    clock_unknown, n_gait), mounting=mounting,
-                                      not_worn_s=tuple((round(a, 2), round(b, 2)) for a, b in not_worn))
+                                      not_worn_s=_rounded_spans(not_worn), handled_s=_rounded_spans(handled))
     return LegResult(leg=leg, fs_hz=data.fs_hz, t_s=data.prep.t_s, angle_deg=result.angle_deg,
                      estimator=result.estimator, strides=strides, gaps_s=list(data.prep.gaps_s),
                      walking_s=float(sum(s.duration_s for s in strides)), activity=data.activity,

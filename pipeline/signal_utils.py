@@ -204,3 +204,14 @@ def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     out[:, 1] = a2 * b0 - a0 * b2
     out[:, 2] = a0 * b1 - a1 * b0
     return out
+
+
+def merged_intervals(intervals: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
+    """``intervals`` ``(start, end)`` in order, overlapping or touching ones joined."""
+    out: list[tuple[float, float]] = []
+    for a, b in sorted(intervals):
+        if out and a <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
+    return out

@@ -184,6 +184,8 @@ class LegDiagnostics:
     mounting: MountingCheck | None = None
     # time spans [s] in which the leg's sensors were not on the leg (pipeline.worn): nothing estimated there
     not_worn_s: tuple[tuple[float, float], ...] = ()
+    # those of them in which the sensors were handled: the leg was processed apart on either side
+    handled_s: tuple[tuple[float, float], ...] = ()
 
 
 @dataclass
