@@ -362,6 +362,11 @@ class WornParams:
     min_piece_s: float = 10.0
     """Shortest stretch between two not-worn spans (or the session's ends) processed on its own [s]: a few strides to
     learn the knee axes from; a shorter one shows nothing."""
+    trusted_piece_s: float = 60.0
+    """A piece of a leg whose sensors were handled that is shorter than this [s] keeps its strides out of trends
+    (``sensors_handled``): too short for its own mounting check (two 15-s windows on either side of a change,
+    MountingParams) to vouch for one mounting in it; on the simulator, pieces of 15-50 s around a sensor turned by
+    90 deg let strides 6-17 deg off into trends."""
     after_stride_s: float = 0.2
     """Kept after that last stride's end [s]: its heel strike is found on the samples that follow it."""
 
@@ -547,7 +552,7 @@ class QualityParams:
     default_penalty: float = 0.1
     """Quality lost for a reason not listed."""
     untrusted: tuple[str, ...] = ("peak_in_gap", "long_gap", "clock_disagreement", "side_in_doubt",
-                                   "level_wander", "mounting_changed")
+                                   "level_wander", "mounting_changed", "sensors_handled")
     """Reasons that leave the stride's metrics unobserved or unmeasurable: quality is capped below the trend
     threshold."""
     untrusted_cap: float = 0.3

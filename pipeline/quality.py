@@ -21,11 +21,13 @@ reasons come from :mod:`pipeline.policy`; the data's reasons from here:
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
 
 from pipeline.params import WALKING, QualityParams
+from pipeline.types import StrideMetrics
 
 
 def stride_quality(reasons: Sequence[str], params: QualityParams = WALKING.quality) -> float:
@@ -117,3 +119,12 @@ def edge_reasons(strides: Sequence[tuple[int, int, int]], bout_of_stride: Sequen
             if abs(dur[k] - d_med) > duration_tol * d_med or abs(peak[k] - p_med) > peak_tol * abs(p_med):
                 out[k] = ("bout_edge",)
     return out
+
+
+def with_reason(strides: Sequence[StrideMetrics], reason: str, params: QualityParams = WALKING.quality
+                ) -> list[StrideMetrics]:
+    """``strides`` with ``reason`` among their quality reasons and their quality capped by it (those that have it
+    already unchanged)."""
+    return [st if reason in st.quality_reasons else dataclasses.replace(
+        st, quality_reasons=(*st.quality_reasons, reason),
+        quality=min(st.quality, stride_quality((*st.quality_reasons, reason), params))) for st in strides]

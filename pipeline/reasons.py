@@ -33,6 +33,9 @@ REASONS: dict[str, str] = {
     "mounting_changed": "a sensor's mounting changed during the session: the knee axis in its frame moved between "
                         "the windows before a point in time and those after it (MountingParams), so one set of axes "
                         "and one level do not fit the whole session (out of trends)",
+    "sensors_handled": "the leg's sensors were handled during the session (taken off, put back: pipeline.worn) and "
+                       "the stretch this stride belongs to is too short to check on its own that the sensors kept "
+                       "one mounting in it (WornParams.trusted_piece_s) (out of trends)",
     "clock_disagreement": "the thigh and shank clocks drift apart in a way no credible clock rate explains "
                           "(SyncParams.max_drift, max_line_drift): the timing between the two segments, and so the "
                           "angle, is unknown (out of trends)",

@@ -42,7 +42,7 @@ from pipeline.params import (
 from pipeline.phases import GaitEvents
 from pipeline.policy import PolicyResult, auto, single_estimator
 from pipeline.prepare import SI, to_si
-from pipeline.quality import edge_reasons, gap_reasons, stride_quality
+from pipeline.quality import edge_reasons, gap_reasons, stride_quality, with_reason
 from pipeline.running import build_running_leg_input, detect_running
 from pipeline.sync import SyncedLeg, stride_clock_runaway, synchronised_leg
 from pipeline.types import (
@@ -324,13 +324,35 @@ def _without_not_worn(legs: dict[str, LegResult], swings: dict[str, np.ndarray],
                                               other=others.get(leg)))
                 except ValueError:  # too little there to process: that piece shows nothing
                     continue
-            lr, out_swings[leg] = joined(lr, parts)
+            lr, out_swings[leg] = joined(lr, _trusted_pieces(parts, lr, params if params is not None
+                                                            else preset(activity)))
         out[leg] = blanked(lr, spans, handled)
         where = ", ".join(f"{t0:.0f}-{t1:.0f} s" for t0, t1 in spans)
         apart = " (the sensors were handled: the leg's axes and level learned apart on either side)" if handled else ""
         warnings.append(f"{leg} leg: sensors not on the leg at {where} (turned unlike a knee, or at rest, not "
                         f"standing, while the other leg walked): no knee angle there{apart} (not_worn_s)")
     return out, out_swings
+
+
+def _trusted_pieces(parts: list[tuple[LegResult, np.ndarray]], whole: LegResult, params: PipelineParams
+                    ) -> list[tuple[LegResult, np.ndarray]]:
+    """``parts`` whose strides trends may take: a piece shorter than ``WornParams.trusted_piece_s`` keeps them out
+    (``sensors_handled``: too short for its own mounting check), and the piece holding the mounting change the leg
+    processed ``whole`` showed (:mod:`pipeline.mounting`) too (``mounting_changed``, said in its diagnostics); a
+    change that fell between two pieces was where the sensors were handled, and the pieces learned their axes
+    apart."""
+    m = _mounting(whole)
+    out = []
+    for part, swings in parts:
+        if part.t_s.size and part.t_s[-1] - part.t_s[0] < params.worn.trusted_piece_s:
+            part = dataclasses.replace(part, strides=with_reason(part.strides, "sensors_handled", params.quality))
+        if m is not None and m.changed and m.at_s is not None and part.t_s.size \
+                and part.t_s[0] <= m.at_s <= part.t_s[-1]:
+            diag = None if part.diagnostics is None else dataclasses.replace(part.diagnostics, mounting=m)
+            part = dataclasses.replace(part, strides=with_reason(part.strides, "mounting_changed", params.quality),
+                                       diagnostics=diag)
+        out.append((part, swings))
+    return out
 
 
 def _worn_params(params: PipelineParams | None, activity: str) -> WornParams:
@@ -435,11 +457,8 @@ def _check_sides(legs: dict[str, LegResult], ap: AssignmentParams, qp: QualityPa
                     f"the other leg's would (left {shift['left'][0]:+.1f}, right {shift['right'][0]:+.1f} deg/s), so "
                     "the thigh sensors, and perhaps the shank sensors too, sit on the other legs; every stride is kept "
                     "out of trends (side_in_doubt): confirm the sides in the app")
-    reason = "side_in_doubt"
-    return {leg: dataclasses.replace(lr, strides=[
-        dataclasses.replace(st, quality_reasons=(*st.quality_reasons, reason),
-                            quality=min(st.quality, stride_quality((*st.quality_reasons, reason), qp)))
-        for st in lr.strides]) for leg, lr in legs.items()}
+    return {leg: dataclasses.replace(lr, strides=with_reason(lr.strides, "side_in_doubt", qp))
+            for leg, lr in legs.items()}
 
 
 def _clock_unknown(lr: LegResult) -> bool:

@@ -39,6 +39,8 @@ REASONS = {
     "side_in_doubt": "the left and right sensor labels look swapped: this stride may belong to the other knee",
     "mounting_changed": "a sensor was turned or re-fastened on the leg during the session: the angle cannot be "
                         "trusted",
+    "sensors_handled": "the sensors were taken off or put back during the session, and too little was recorded "
+                       "around this stride to check how they sat: the angle cannot be trusted",
 }
 
 ESTIMATORS = {

@@ -203,5 +203,6 @@ def test_sensors_taken_off_are_one_span_over_the_chunks() -> None:
     (a, b), = left.diagnostics.not_worn_s
     assert off_s - 10.0 < a <= off_s + 0.5 and b > t0 + sim.duration_s - 1.0
     assert not np.isfinite(left.angle_deg[left.t_s > off_s + 0.5]).any()
-    assert any(s.t_end_s < off_s for s in left.strides) and all(s.t_end_s < off_s + 0.5 for s in left.strides)
+    assert all(s.t_end_s < off_s + 0.5 for s in left.strides)
+    assert any(s.quality >= 0.5 for s in left.strides)  # pieces of minutes vouch for their mounting
     assert res.legs["right"].diagnostics.not_worn_s == ()

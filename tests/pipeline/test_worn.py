@@ -46,7 +46,7 @@ def _peak_errors(res: SessionResult, sim: SimSession, leg: str, before_s: float)
     truth = [t for t in sim.truth[leg].strides if t.steady]
     errs = []
     for s in res.legs[leg].strides:
-        if s.t_end_s < before_s and s.quality >= 0.5:
+        if s.t_end_s < before_s:
             near = min(truth, key=lambda t: abs(t.t_start_s - s.t_start_s))
             errs.append(s.peak_swing_flexion_deg - near.peak_swing_flexion_deg)
     return errs
@@ -69,6 +69,8 @@ def test_sensors_taken_off_show_no_angle_and_do_not_bend_the_leg_before(seed: in
     assert all(s.t_end_s < off_s for s in left.strides)
     errs = _peak_errors(res, sim, "left", off_s)
     assert len(errs) >= 10 and np.median(np.abs(errs)) < 3.0
+    # the piece before the removal is shorter than WornParams.trusted_piece_s: right, but out of trends
+    assert all("sensors_handled" in s.quality_reasons and s.quality < 0.5 for s in left.strides)
     ok = np.isfinite(left.angle_deg) & (left.t_s < off_s)
     truth = sim.truth["left"].angle_at(left.t_s[ok])
     assert np.sqrt(np.mean((left.angle_deg[ok] - truth) ** 2)) < 3.0
@@ -130,9 +132,10 @@ def test_a_knee_with_twice_the_typical_3d_motion_turns_like_a_hinge(activities: 
 
 def test_sensors_put_back_on_otherwise_learn_their_axes_again() -> None:
     """The left leg's sensors lie on a table from 68 to 84 s (their seated reading held while the right leg walks)
-    and go back on turned by 90 deg: each piece is processed on its own, so the strides after the stretch are right
-    and enter trends, and the ones before are not spoilt by the second mounting. (The stretch starts at the sitting
-    down before it: under the whole session's axes, a mix of both mountings, that turned unlike a knee too.)"""
+    and go back on turned by 90 deg: each piece is processed on its own, so the strides after the stretch are right,
+    and the ones before are not spoilt by the second mounting (both pieces are shorter than
+    WornParams.trusted_piece_s, so out of trends). The stretch starts at the sitting down before it: under the whole
+    session's axes, a mix of both mountings, that turned unlike a knee too."""
     sim = _session(2)
     turn = Rotation.from_rotvec(np.radians(90.0) * np.array([0.6, 0.0, 0.8])).as_matrix()
     held = _held(sim, "left", (57.0, 63.0), 68.0)
@@ -152,7 +155,7 @@ def test_sensors_put_back_on_otherwise_learn_their_axes_again() -> None:
     truth = [t for t in sim.truth["left"].strides if t.steady]
     for lo, hi in ((0.0, 68.0), (84.0, 120.0)):
         errs = [st.peak_swing_flexion_deg - min(truth, key=lambda t: abs(t.t_start_s - st.t_start_s))
-                .peak_swing_flexion_deg for st in left.strides if lo < st.t_start_s < hi and st.quality >= 0.5]
+                .peak_swing_flexion_deg for st in left.strides if lo < st.t_start_s < hi]
         assert len(errs) >= 8 and np.median(np.abs(errs)) < 3.0, (lo, errs)
 
 

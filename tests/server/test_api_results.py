@@ -151,7 +151,7 @@ def test_sensors_taken_off_mid_session_show_no_angle_there(api: Api) -> None:
     left = c.get(f"/v1/sessions/{sid}/knee-angle?leg=left&max_points=200000", headers=bearer(clin)).json()
     (t0, t1), = left["not_worn_s"]
     assert off_s - 3.0 < t0 <= off_s + 0.5 and t1 > sim.duration_s - 1.0
-    later = [a for t, a in zip(left["t_s"], left["angle_deg"], strict=True) if t > off_s + 0.5]
-    assert later and all(a is None for a in later)
+    shown = [t for t, a in zip(left["t_s"], left["angle_deg"], strict=True) if a is not None]
+    assert shown and max(shown) < off_s + 0.5
     right = c.get(f"/v1/sessions/{sid}/knee-angle?leg=right&max_points=500", headers=bearer(clin)).json()
     assert right["not_worn_s"] == [] and right["withheld"] is None
