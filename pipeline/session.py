@@ -36,7 +36,6 @@ from pipeline.params import (
     PipelineParams,
     PostureParams,
     QualityParams,
-    WornParams,
     preset,
 )
 from pipeline.phases import GaitEvents
@@ -308,6 +307,7 @@ def _without_not_worn(legs: dict[str, LegResult], swings: dict[str, np.ndarray],
     been put back on otherwise and the handling itself is no knee motion for the hinge fit
     (:func:`pipeline.worn.pieces_s`, :func:`pipeline.worn.joined`)."""
     out, out_swings = dict(legs), dict(swings)
+    tree = params if params is not None else preset(activity)
     for leg, lr in legs.items():
         if lr.diagnostics is None or not lr.diagnostics.not_worn_s:
             continue
@@ -317,15 +317,14 @@ def _without_not_worn(legs: dict[str, LegResult], swings: dict[str, np.ndarray],
                 if assigned.get(leg) == "thighs_exchanged_between_legs" else leg
             thigh, shank = by_leg[thigh_leg]["thigh"], by_leg[leg]["shank"]
             parts: list[tuple[LegResult, np.ndarray]] = []
-            for t0, t1 in pieces_s(handled, float(lr.t_s[0]), float(lr.t_s[-1]), _worn_params(params, activity)):
+            for t0, t1 in pieces_s(handled, float(lr.t_s[0]), float(lr.t_s[-1]), tree.worn):
                 try:
                     parts.append(_process_leg(leg, _within(thigh, t0, t1), _within(shank, t0, t1), activity,
                                               estimator, params, (calibration or {}).get(leg),
                                               other=others.get(leg)))
                 except ValueError:  # too little there to process: that piece shows nothing
                     continue
-            lr, out_swings[leg] = joined(lr, _trusted_pieces(parts, lr, params if params is not None
-                                                            else preset(activity)))
+            lr, out_swings[leg] = joined(lr, _trusted_pieces(parts, lr, tree))
         out[leg] = blanked(lr, spans, handled)
         where = ", ".join(f"{t0:.0f}-{t1:.0f} s" for t0, t1 in spans)
         apart = " (the sensors were handled: the leg's axes and level learned apart on either side)" if handled else ""
@@ -353,10 +352,6 @@ def _trusted_pieces(parts: list[tuple[LegResult, np.ndarray]], whole: LegResult,
                                        diagnostics=diag)
         out.append((part, swings))
     return out
-
-
-def _worn_params(params: PipelineParams | None, activity: str) -> WornParams:
-    return (params if params is not None else preset(activity)).worn
 
 
 def _rounded_spans(spans: Sequence[tuple[float, float]]) -> tuple[tuple[float, float], ...]:
