@@ -105,6 +105,9 @@ def _resting_spans_s(leg: LegInput, other: OtherLeg | None, params: WornParams) 
         return []
     prep = leg.prep
     t_s = prep.t_s
+    still = quiet_segments(prep, leg.params.posture)
+    if not _runs_while_swinging(still[0] | still[1], t_s, other.swings_s, params):
+        return []  # no segment rests long enough while the other leg swings (every plain session): nothing to judge
     quiet = leg_quiet(leg)
     bouts = in_bouts(leg)
     standing = standing_mask(leg, quiet, bouts)
@@ -112,23 +115,30 @@ def _resting_spans_s(leg: LegInput, other: OtherLeg | None, params: WornParams) 
     # one segment alone still off the upright, or still at all within the leg's own walking (a walking thigh turns
     # every stride): a thigh sensor fallen off while the shank walks on (its strides also move the segment's upright)
     upright = upright_segments(leg) or (np.zeros(prep.n, dtype=bool),) * 2
-    for still, up in zip(quiet_segments(prep, leg.params.posture), upright, strict=True):
-        rest |= still & (bouts | ~up)
+    for seg_still, up in zip(still, upright, strict=True):
+        rest |= seg_still & (bouts | ~up)
     ev = leg.events
     own = np.sort(t_s[ev.ms[ev.ms >= 0]])
     settled = _settled_s(leg, standing, params)
     spans: list[tuple[float, float]] = []
-    for a, b in true_runs(rest):
-        t0, t1 = float(t_s[a]), float(t_s[b - 1])
-        if t1 - t0 < params.min_rest_s:
-            continue
-        n_other = int(np.searchsorted(other.swings_s, t1) - np.searchsorted(other.swings_s, t0))
-        if n_other < params.min_swings:
-            continue
+    for t0, t1 in _runs_while_swinging(rest, t_s, other.swings_s, params):
         m = int(np.searchsorted(own, t1, side="right"))
         spans.append((_back_to(settled, t0, float(t_s[0]), params),
                       min(float(own[m]) if m < own.size else float(t_s[-1]), t1 + params.reach_s)))
     return spans
+
+
+def _runs_while_swinging(mask: np.ndarray, t_s: np.ndarray, swings_s: np.ndarray, params: WornParams
+                         ) -> list[tuple[float, float]]:
+    """``(t0, t1)`` [s] of the runs of ``mask`` lasting ``min_rest_s`` or more during which the other leg swings
+    (``swings_s``, sorted) at least ``min_swings`` times."""
+    out = []
+    for a, b in true_runs(mask):
+        t0, t1 = float(t_s[a]), float(t_s[b - 1])
+        if t1 - t0 >= params.min_rest_s and \
+                np.searchsorted(swings_s, t1) - np.searchsorted(swings_s, t0) >= params.min_swings:
+            out.append((t0, t1))
+    return out
 
 
 def _settled_s(leg: LegInput, standing: np.ndarray, params: WornParams) -> np.ndarray:
