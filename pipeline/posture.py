@@ -51,6 +51,8 @@ def quiet_segments(prep: PreparedLeg, params: PostureParams = WALKING.posture) -
 
 
 def _still_segments(prep: PreparedLeg, params: PostureParams) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) bool per segment (thigh, shank): that sample still (slower than ``still_dps``, specific force within
+    ``force_tol`` of g), however briefly."""
     out = []
     for gyr, acc in ((prep.gyr_thigh_rps, prep.acc_thigh_mps2), (prep.gyr_shank_rps, prep.acc_shank_mps2)):
         out.append(prep.valid & slower_than(gyr, params.still_dps)

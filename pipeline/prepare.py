@@ -669,5 +669,3 @@ def _kept_grid(reuse: PreparedLeg | None, t2: np.ndarray, fs_hz: float) -> slice
 def _cut(x: np.ndarray, kept: slice) -> np.ndarray:
     """``x[kept]``, or ``x`` itself for the whole grid (the first pass's arrays, not new views of them)."""
     return x if kept == slice(None) else x[kept]
-
-
