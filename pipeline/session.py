@@ -227,7 +227,7 @@ def _keep_labels(leg: str, streams: Sequence[RawSensorStream], activity: str, es
     by_leg[leg] = segs
     del assigned[leg]
     dropped = len(legs[leg].strides)
-    legs[leg] = _without(legs[leg], set(range(dropped)))
+    legs[leg] = legs[leg].without(set(range(dropped)))
     warnings[:] = [w for w in warnings if not w.startswith(f"{leg} leg: the sensor labelled thigh moves like a shank")]
     warnings.append(f"{leg} leg: thigh and shank labels kept as given: the swing rates read them as exchanged, but "
                     f"the leg has no gait stride either way (the shank swings slower than the thigh: not walking; "
@@ -290,7 +290,7 @@ def _alternating_strides(legs: dict[str, LegResult], swings: dict[str, np.ndarra
         spans = np.column_stack([t0, mid_swings_s(np.sort(swings[leg]), to, t1), t1])
         drop = set(non_alternating(spans, swings[other], gaps_s[other]))
         if drop:
-            out[leg] = _without(lr, drop)
+            out[leg] = lr.without(drop)
             warnings.append(f"{leg} leg: {len(drop)} stride(s) dropped: the other leg did not swing in anti-phase "
                             "(not gait)")
     return out
@@ -359,9 +359,9 @@ def _rounded_spans(spans: Sequence[tuple[float, float]]) -> tuple[tuple[float, f
 
 
 def _within(stream: RawSensorStream, t0: float, t1: float) -> RawSensorStream:
-    """``stream``'s samples from ``t0`` to ``t1`` [s]."""
+    """``stream``'s samples from ``t0`` to ``t1`` [s] (its times increase: two binary searches, one slice)."""
     t = np.asarray(stream.t_s)
-    keep = (t >= t0) & (t <= t1)
+    keep = slice(int(np.searchsorted(t, t0, side="left")), int(np.searchsorted(t, t1, side="right")))
     return dataclasses.replace(stream, t_s=t[keep], gyr=np.asarray(stream.gyr)[keep],
                                acc=np.asarray(stream.acc)[keep])
 
@@ -377,7 +377,7 @@ def _level_strides(legs: dict[str, LegResult], params: PhaseParams, warnings: li
         spans = np.array([(s.t_start_s, s.t_end_s) for s in lr.strides])
         drop = set(not_level_walking(lr.angle_deg, lr.t_s, spans, params.level_band_deg, params.level_min_share))
         if drop:
-            out[leg] = _without(lr, drop)
+            out[leg] = lr.without(drop)
             warnings.append(f"{leg} leg: {len(drop)} stride(s) dropped: the knee stayed near extension for less "
                             f"than {params.level_min_share:.0%} of the stride (stairs or step-ups, not level gait)")
     return out
@@ -424,16 +424,6 @@ def _withhold_unanchored(legs: dict[str, LegResult], gait_legs: set[str], warnin
                         "angle's zero from (exercises or sitting alone, or strides the other leg's swings contradict: "
                         "jumps, squats, or that leg's sensors not worn); the trace is withheld (trace_withheld)")
     return out
-
-
-def _without(lr: LegResult, drop: set[int]) -> LegResult:
-    """The leg without the strides at the indices ``drop``, the rest renumbered and its counts updated."""
-    kept = [dataclasses.replace(s, index=i) for i, s in enumerate(x for k, x in enumerate(lr.strides)
-                                                                    if k not in drop)]
-    diag = lr.diagnostics
-    if diag is not None:
-        diag = dataclasses.replace(diag, n_strides=len(kept), n_fallback=sum(1 for s in kept if s.fallback))
-    return dataclasses.replace(lr, strides=kept, walking_s=float(sum(s.duration_s for s in kept)), diagnostics=diag)
 
 
 def _check_sides(legs: dict[str, LegResult], ap: AssignmentParams, qp: QualityParams, warnings: list[str]

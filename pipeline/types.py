@@ -203,6 +203,16 @@ class LegResult:
     activity: str = "walking"  # what the leg was processed as: "walking" or "running"
     diagnostics: LegDiagnostics | None = None  # None only for results not made by the pipeline (test doubles)
 
+    def without(self, drop: set[int]) -> LegResult:
+        """This leg without the strides at the indices ``drop``, the rest renumbered and its counts updated."""
+        kept = [dataclasses.replace(s, index=i) for i, s in enumerate(x for k, x in enumerate(self.strides)
+                                                                        if k not in drop)]
+        diag = self.diagnostics
+        if diag is not None:
+            diag = dataclasses.replace(diag, n_strides=len(kept), n_fallback=sum(1 for s in kept if s.fallback))
+        return dataclasses.replace(self, strides=kept, walking_s=float(sum(s.duration_s for s in kept)),
+                                   diagnostics=diag)
+
 
 @dataclass
 class SessionResult:

@@ -51,7 +51,7 @@ from pipeline.bilateral import OtherLeg
 from pipeline.leg_input import LegInput
 from pipeline.params import WALKING, WornParams
 from pipeline.posture import in_bouts, leg_quiet, quiet_segments, standing_mask, upright_segments
-from pipeline.signal_utils import long_runs, merged_intervals, true_runs
+from pipeline.signal_utils import long_runs, merged_intervals, ranges_mask, true_runs
 from pipeline.types import LegResult
 
 
@@ -207,16 +207,16 @@ def blanked(lr: LegResult, spans: Sequence[tuple[float, float]], handled: Sequen
             ) -> LegResult:
     """``lr`` showing nothing inside ``spans`` [s]: angles NaN, no stride touching one, the spans among its gaps and
     in its diagnostics (``not_worn_s``; ``handled_s``: those in which the sensors were handled)."""
-    off = np.zeros(lr.t_s.size, dtype=bool)
-    for t0, t1 in spans:
-        off |= (lr.t_s >= t0) & (lr.t_s <= t1)
-    strides = [dataclasses.replace(st, index=i) for i, st in enumerate(
-        st for st in lr.strides if not any(st.t_end_s > t0 and st.t_start_s < t1 for t0, t1 in spans))]
+    starts, ends = (np.asarray([sp[k] for sp in spans], dtype=float) for k in (0, 1))
+    off = ranges_mask(lr.t_s.size, np.searchsorted(lr.t_s, starts, side="left"),
+                      np.searchsorted(lr.t_s, ends, side="right"))
+    # spans are disjoint and in order: a stride touches one iff the last span starting before its end outlasts its start
+    k = np.searchsorted(starts, [st.t_end_s for st in lr.strides], side="left")
+    lr = lr.without({i for i, (st, kk) in enumerate(zip(lr.strides, k, strict=True))
+                     if kk > 0 and ends[kk - 1] > st.t_start_s})
     diag = lr.diagnostics
     if diag is not None:
-        diag = dataclasses.replace(diag, n_strides=len(strides), n_fallback=sum(1 for st in strides if st.fallback),
-                                   not_worn_s=tuple(spans), handled_s=tuple(handled))
+        diag = dataclasses.replace(diag, not_worn_s=tuple(spans), handled_s=tuple(handled))
     return dataclasses.replace(lr, angle_deg=np.where(off, np.nan, lr.angle_deg),
-                               estimator=np.where(off, "", lr.estimator), strides=strides,
-                               gaps_s=merged_intervals([*lr.gaps_s, *spans]),
-                               walking_s=float(sum(st.duration_s for st in strides)), diagnostics=diag)
+                               estimator=np.where(off, "", lr.estimator),
+                               gaps_s=merged_intervals([*lr.gaps_s, *spans]), diagnostics=diag)
