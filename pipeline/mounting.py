@@ -12,16 +12,26 @@ knee's fitted hinge also moves with the activity (3-D hip and knee: the thigh's 
 stairs on the simulator's ``joint_3d`` chain, the shank's by up to 7), but those windows interleave over a session,
 so the two means stay close; a remount moves every later window. No paper gives these rules; the thresholds sit
 above the activity spread the simulator shows.
+
+A turn about an axis near the knee axis barely moves the hinge, but it turns the joint-plane frames in which the
+accelerometer angle (Seel Eq. 6-7) is measured, so it moves the leg's level: :func:`level_step` looks for a step
+that quiet standing and the walking strides show alike (either alone also steps for other reasons).
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from pipeline.axes import JointAxes, axis_angle_deg, fit_margin_mask, mean_axis, refit_axes, select_fit_samples
+from pipeline.estimators.go import go_relative
+from pipeline.leg_input import LegInput
 from pipeline.params import WALKING, AxesParams, MountingParams
+from pipeline.policy import stance_offsets
+from pipeline.posture import standing_mask
 from pipeline.prepare import PreparedLeg
-from pipeline.signal_utils import row_norm
+from pipeline.signal_utils import row_norm, true_runs
 from pipeline.types import MountingCheck
 
 
@@ -70,3 +80,68 @@ def check_mounting(prep: PreparedLeg, axes: JointAxes, fit_gyr: tuple[np.ndarray
         return MountingCheck(thigh_deg=None, shank_deg=None, at_s=None, windows=int(starts.size), changed=False)
     return MountingCheck(thigh_deg=round(best[0], 1), shank_deg=round(best[1], 1), at_s=round(best[2], 2),
                          windows=int(starts.size), changed=best[0] > params.thigh_deg or best[1] > params.shank_deg)
+
+
+def with_level_step(check: MountingCheck, leg: LegInput, params: MountingParams = WALKING.mounting,
+                    stance_levels_deg: np.ndarray | None = None, standing: np.ndarray | None = None
+                    ) -> MountingCheck:
+    """``check`` (the axes') with the leg's :func:`level_step`: changed too when the step exceeds
+    ``params.level_step_deg``, and then at the step's split point unless the axes found the change already."""
+    step, at_s = level_step(leg, params, stance_levels_deg, standing)
+    stepped = step is not None and step > params.level_step_deg
+    return dataclasses.replace(check, level_step_deg=step, changed=check.changed or stepped,
+                               at_s=at_s if stepped and not check.changed else check.at_s)
+
+
+def level_step(leg: LegInput, params: MountingParams = WALKING.mounting, stance_levels_deg: np.ndarray | None = None,
+               standing: np.ndarray | None = None) -> tuple[float | None, float | None]:
+    """The largest step of the leg's level [deg] that quiet standing and the walking strides show alike, and the
+    split point [s] (:func:`coherent_step`); ``(None, None)`` where no split point has both on either side.
+    ``stance_levels_deg`` (per stride of ``leg.events.strides``) and ``standing`` (N,): the walking policy's, when
+    it computed them (:class:`pipeline.policy.PolicyResult`); a constant added to the former changes nothing.
+
+    Standing level: per run of quiet upright standing (:func:`pipeline.posture.standing_mask`), the median
+    accelerometer angle (Seel Eq. 6-7; there it is the angle between the segments' gravity directions in the joint
+    plane). Walking level: per stride, the mean of (accelerometer angle - GO) over its calm mid-stance
+    (:func:`pipeline.policy.stance_offsets`; GO's zero sits at the knee's minimum before swing, Allseits et al.
+    2018). Both rest on the joint-plane frames, which turn with a sensor turned on its segment; the patient's own
+    standing and gait change one at a time."""
+    strides = leg.events.strides
+    runs = true_runs(standing_mask(leg) if standing is None else standing)
+    if len(runs) < 2 or len(strides) < 2 * params.level_min_strides:
+        return None, None
+    t_s = leg.prep.t_s
+    angle = leg.acc_angle_deg
+    stand_t = np.array([t_s[a] for a, _ in runs])
+    stand_deg = np.array([np.nanmedian(angle[a:b]) for a, b in runs])
+    offs = stance_offsets(leg, go_relative(leg)[0], strides)[0] if stance_levels_deg is None else stance_levels_deg
+    stride_t = np.array([t_s[a] for a, _, _ in strides])
+    ok = np.isfinite(offs)
+    return coherent_step(stand_t[np.isfinite(stand_deg)], stand_deg[np.isfinite(stand_deg)], stride_t[ok], offs[ok],
+                         params)
+
+
+def coherent_step(stand_t_s: np.ndarray, stand_deg: np.ndarray, stride_t_s: np.ndarray, stride_deg: np.ndarray,
+                  params: MountingParams = WALKING.mounting) -> tuple[float | None, float | None]:
+    """The largest step [deg] shared by two level series, and where [s]. ``stand_*``: one level per standing run
+    (start time, level); ``stride_*``: one per stride, both sorted by time. At each split point (the start of a
+    standing run or of a walking bout, i.e. a stride more than 2.5 median stride periods after the one before) with
+    a standing run and ``level_min_strides`` strides on either side, each series steps by the difference of its
+    medians after and before; the shared step is the smaller of the two when they share their sign and agree within
+    ``level_agree_deg``, else 0. ``(None, None)`` without such a split point."""
+    if stand_t_s.size < 2 or stride_t_s.size < 2 * params.level_min_strides:
+        return None, None
+    periods = np.diff(stride_t_s)
+    bout_starts = stride_t_s[1:][periods > 2.5 * np.median(periods)]
+    best: tuple[float, float] | None = None
+    for t in np.unique(np.concatenate([stand_t_s[1:], bout_starts])):
+        ks, kw = int(np.searchsorted(stand_t_s, t)), int(np.searchsorted(stride_t_s, t))
+        if not 0 < ks < stand_t_s.size or min(kw, stride_t_s.size - kw) < params.level_min_strides:
+            continue
+        d_stand = float(np.median(stand_deg[ks:]) - np.median(stand_deg[:ks]))
+        d_walk = float(np.median(stride_deg[kw:]) - np.median(stride_deg[:kw]))
+        shared = min(abs(d_stand), abs(d_walk)) if d_stand * d_walk > 0 and \
+            abs(d_stand - d_walk) <= params.level_agree_deg else 0.0
+        if best is None or shared > best[0]:
+            best = (shared, float(t))
+    return (None, None) if best is None else (round(best[0], 1), round(best[1], 2))

@@ -329,6 +329,17 @@ class MountingParams:
     """A change of the shank's axis beyond this [deg] is a remount. The same sessions: up to 6.6 deg with typical
     3-D motion, 12.5 at twice it with a varus knee; a shank turned by 30 deg about a random axis: 8-28 deg (6 of 12
     caught in 90 s, more in longer sessions)."""
+    level_step_deg: float = 5.0
+    """A step of the leg's level beyond this [deg], seen alike in quiet standing and in the walking strides, is a
+    remount (:func:`pipeline.mounting.level_step`). Standing alone steps when a patient stands differently (a few deg
+    between stands), the strides alone when the gait changes (their GO zero sits at the knee's minimum before swing);
+    a sensor turned on its segment moves both by the same amount. On the simulator (tune seeds 0-4, 90 s) both
+    levels stay within 2 deg over a session without a remount; a shank turned by 15 deg about a random axis steps
+    them by 2-13 deg, a thigh turned by 30 deg by 4-28."""
+    level_agree_deg: float = 2.5
+    """The two steps (standing, strides) must agree within this [deg] and share their sign."""
+    level_min_strides: int = 6
+    """Strides with a mid-stance level needed on each side of a split point."""
 
 
 @dataclass(frozen=True)

@@ -79,6 +79,10 @@ class PolicyResult:
     # the same check on the CF fallback strides alone (their level follows the accelerometer in motion), and whether
     # they were moved by it; ``level_bridged`` also holds when only they were
     fallback_bridge_check_deg: float | None = None
+    # walking auto: per stride the mid-stance level (stance_offsets, before any bridge; NaN without one) and the
+    # quiet upright standing mask it was anchored on, which the mounting check reuses (pipeline.mounting.level_step)
+    stance_levels_deg: np.ndarray | None = None
+    standing: np.ndarray | None = None
 
 
 def _reference(ref: float | None) -> AbsoluteReference:
@@ -351,6 +355,7 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     # acc - ref reads 0 when standing; standing itself is standing_knee_deg of flexion
     ref_deg = ref - leg.params.posture.standing_knee_deg if ref is not None else 0.0
     offs, quiet_counts = stance_offsets(leg, go_rel + ref_deg, strides)
+    stance_levels = offs
     check, bridged_level, bridged_ang = None, False, None
     arr = np.asarray(strides, dtype=int).reshape(-1, 3)
     lo, hi = arr[:, 0], arr[:, 2] + 1
@@ -383,7 +388,7 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     ref_out = None if ref is None else round(ref, 2)
     if not strides:
         return PolicyResult(angle_deg=angle, estimator=labels.astype(str), choices=(), absolute_reference=reference,
-                            standing_ref_deg=ref_out, cf_shift_deg=round(cf_shift, 2))
+                            standing_ref_deg=ref_out, cf_shift_deg=round(cf_shift, 2), standing=standing)
     centres = np.array([(a + b) / 2.0 for a, _, b in strides])
     go_abs = go_rel + np.interp(np.arange(n), centres, smooth)
     flags = _stride_flags(leg, go_diag, go_abs, cf_used, lo, hi)
@@ -418,4 +423,5 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
                         offset_median_deg=round(raw_level, 2),
                         bridge_check_deg=None if check is None else round(check, 2),
                         level_bridged=bridged_level or cf_moves,
-                        fallback_bridge_check_deg=None if cf_check is None else round(cf_check, 2))
+                        fallback_bridge_check_deg=None if cf_check is None else round(cf_check, 2),
+                        stance_levels_deg=stance_levels, standing=standing)

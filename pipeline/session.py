@@ -28,7 +28,7 @@ from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
 from pipeline.level_walking import not_level_walking
 from pipeline.metrics import stride_values_many
-from pipeline.mounting import check_mounting
+from pipeline.mounting import check_mounting, with_level_step
 from pipeline.params import (
     RUNNING,
     AssignmentParams,
@@ -151,14 +151,21 @@ def _angle_warnings(legs: dict[str, LegResult]) -> list[str]:
     out = [f"{leg} leg: its thigh and shank clocks run apart faster than crystal clocks can; the knee angle's "
            "timing is unknown and its strides are kept out of trends (clock_disagreement)"
            for leg in sorted(legs) if _clock_unknown(legs[leg]) and not _withheld(legs[leg])]
-    out += [f"{leg} leg: a sensor's mounting changed near {m.at_s:.0f} s (the knee axis moved {m.thigh_deg:.0f} deg "
-            f"in the thigh sensor's frame, {m.shank_deg:.0f} deg in the shank's): one set of axes does not fit the "
-            "whole session, so its strides are kept out of trends (mounting_changed); keep the straps in place, or "
-            "start a new session after re-fastening one"
-            for leg in sorted(legs) if (m := _mounting(legs[leg])) is not None and m.changed
-            and not _withheld(legs[leg])]
+    out += [_mounting_warning(leg, m) for leg in sorted(legs)
+            if (m := _mounting(legs[leg])) is not None and m.changed and not _withheld(legs[leg])]
     return out + [_level_bridged_warning(leg, d) for leg in sorted(legs)
                   if (d := legs[leg].diagnostics) is not None and d.level_bridged and not _withheld(legs[leg])]
+
+
+def _mounting_warning(leg: str, m: MountingCheck) -> str:
+    moved = [f"the knee axis moved {m.thigh_deg:.0f} deg in the thigh sensor's frame, {m.shank_deg:.0f} deg in the "
+             "shank's"] if m.thigh_deg is not None and m.shank_deg is not None else []
+    if m.level_step_deg is not None:
+        moved.append(f"the level stepped by {m.level_step_deg:.0f} deg in standing and walking alike")
+    at = "" if m.at_s is None else f" near {m.at_s:.0f} s"
+    return (f"{leg} leg: a sensor's mounting changed{at} ({'; '.join(moved)}): one set of axes and one level do not "
+            "fit the whole session, so its strides are kept out of trends (mounting_changed); keep the straps in "
+            "place, or start a new session after re-fastening one")
 
 
 def _level_bridged_warning(leg: str, d: LegDiagnostics) -> str:
@@ -546,6 +553,8 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
     # again cost as much as the check itself, and the windows' verdicts were the same on the tune seeds)
     fit_gyr = synced.fit_gyr or (synced.prep.gyr_thigh_rps, synced.prep.gyr_shank_rps)
     mounting = check_mounting(synced.prep, synced.axes, fit_gyr, data.params.mounting)
+    if data.activity == "walking":
+        mounting = with_level_step(mounting, data, data.params.mounting, result.stance_levels_deg, result.standing)
     not_worn, handled = not_worn_spans_s(data, other, data.params.worn) if data.activity == "walking" else ([], [])
     leg_reasons = (("clock_disagreement",) if clock_unknown else ()) + (("mounting_changed",) if mounting.changed
                                                                          else ())

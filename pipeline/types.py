@@ -108,13 +108,14 @@ TRACE_WITHHELD_NO_GAIT = "no_gait"
 @dataclass(frozen=True)
 class MountingCheck:
     """:func:`pipeline.mounting.check_mounting`: the largest change of each segment's knee axis [deg] between the
-    time windows before and after one point in time."""
+    time windows before and after one point in time, and :func:`pipeline.mounting.level_step`: that of the level."""
 
     thigh_deg: float | None  # None: too few windows to judge
     shank_deg: float | None
-    at_s: float | None  # the split point (start of the first window after it) [s]
+    at_s: float | None  # the split point of the check that found the change (else the axes') [s]
     windows: int  # windows that moved enough to be fitted
-    changed: bool  # beyond MountingParams.thigh_deg or shank_deg
+    changed: bool  # beyond MountingParams.thigh_deg or shank_deg, or a level step beyond level_step_deg
+    level_step_deg: float | None = None  # the largest step of the level seen alike standing and walking; None: unjudged
 
 
 @dataclass(frozen=True)

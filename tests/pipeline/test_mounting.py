@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.mounting import check_mounting
+from pipeline.mounting import check_mounting, coherent_step
 from pipeline.params import WALKING
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, simulate_session
@@ -90,3 +90,48 @@ def test_the_simulated_remount_turns_only_the_later_readings() -> None:
         turn = Rotation.from_matrix(np.asarray(info["remount"]["mounting"]) @ np.asarray(info["mounting"]).T)
         assert np.degrees(turn.magnitude()) == pytest.approx(40.0, abs=1e-6)
         assert np.median(np.linalg.norm(sb.gyr[later] - fit.apply(sa.gyr[later]), axis=1)) < 2.0
+
+
+def test_a_turn_the_axes_barely_show_steps_the_level_in_standing_and_walking_alike() -> None:
+    """A thigh sensor turned by 30 deg leaves its fitted hinge within the thigh's threshold (the hip's 3-D motion
+    moves it that much), but it turns the joint-plane frames: the level of quiet standing and of the strides'
+    mid-stance steps by the same amount, and the leg's strides leave the trends."""
+    sim = simulate_session(SimConfig(seed=1, duration_s=90.0, bout_strides=12, remount_segment="thigh",
+                                     remount_deg=30.0))
+    res = process_session(sim.streams)
+    left, right = res.legs["left"].diagnostics.mounting, res.legs["right"].diagnostics.mounting
+    assert left.thigh_deg < WALKING.mounting.thigh_deg and left.shank_deg < WALKING.mounting.shank_deg
+    assert left.changed and left.level_step_deg > WALKING.mounting.level_step_deg
+    assert abs(left.at_s - sim.duration_s / 2) < 10.0
+    assert all("mounting_changed" in s.quality_reasons and s.quality < 0.5 for s in res.legs["left"].strides)
+    assert not right.changed and right.level_step_deg < 1.0
+    assert any("level stepped" in w for w in res.warnings)
+
+
+_T_STAND = np.array([0.0, 20.0, 40.0, 60.0, 80.0])
+_T_STRIDES = np.concatenate([np.arange(5.0, 15.0, 1.0), np.arange(25.0, 35.0, 1.0), np.arange(45.0, 55.0, 1.0),
+                             np.arange(65.0, 75.0, 1.0)])
+
+
+@pytest.mark.parametrize(("stand_step", "stride_step", "shared"), [
+    (8.0, 8.0, 8.0),     # a sensor turned at 40 s: both levels move
+    (8.0, 0.0, 0.0),     # the patient stands otherwise after 40 s, walks the same
+    (0.0, 8.0, 0.0),     # walks otherwise (the knee's minimum before swing), stands the same
+    (8.0, -8.0, 0.0),    # opposite steps: no turn of a frame
+    (8.0, 4.0, 0.0),     # too different to be one turn (MountingParams.level_agree_deg)
+], ids=["both", "standing only", "walking only", "opposite", "disagreeing"])
+def test_only_a_step_both_levels_share_counts(stand_step: float, stride_step: float, shared: float) -> None:
+    rng = np.random.default_rng(0)
+    stand = np.where(_T_STAND >= 40.0, stand_step, 0.0) + rng.normal(0.0, 0.3, _T_STAND.size)
+    strides = np.where(_T_STRIDES >= 40.0, stride_step, 0.0) + rng.normal(0.0, 1.0, _T_STRIDES.size)
+    step, at_s = coherent_step(_T_STAND, stand, _T_STRIDES, strides)
+    if shared:
+        assert step == pytest.approx(shared, abs=1.5)
+        assert at_s in (40.0, 45.0)  # the standing run or the walking bout the new level starts with
+    else:  # a median over a split mixture can fall half-way, so some split may share part of a step, never all
+        assert step < WALKING.mounting.level_step_deg
+
+
+def test_no_split_point_with_both_levels_on_either_side_is_unjudged() -> None:
+    assert coherent_step(_T_STAND[:1], np.zeros(1), _T_STRIDES, np.zeros(_T_STRIDES.size)) == (None, None)
+    assert coherent_step(_T_STAND, np.zeros(_T_STAND.size), _T_STRIDES[:8], np.zeros(8)) == (None, None)
