@@ -31,8 +31,9 @@ REASONS: dict[str, str] = {
                      "right labels of the four sensors (or of the two thighs) look swapped, so the stride may "
                      "belong to the other knee (out of trends)",
     "mounting_changed": "a sensor's mounting changed during the session: the knee axis in its frame moved between "
-                        "the windows before a point in time and those after it (MountingParams), so one set of axes "
-                        "and one level do not fit the whole session (out of trends)",
+                        "the windows before a point in time and those after it, or its level stepped there in quiet "
+                        "standing and in the strides alike (MountingParams), so one set of axes and one level do not "
+                        "fit the whole session (out of trends)",
     "sensors_handled": "the leg's sensors were handled during the session (taken off, put back: pipeline.worn) and "
                        "the stretch this stride belongs to is too short to check on its own that the sensors kept "
                        "one mounting in it (WornParams.trusted_piece_s) (out of trends)",
