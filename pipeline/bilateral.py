@@ -76,10 +76,13 @@ def mid_swings_s(own_swings_s: np.ndarray, t_toe_off_s: np.ndarray, t_end_s: np.
 
 @dataclass(frozen=True)
 class OtherLeg:
-    """What the alternation check needs of the contralateral leg: its mid-swing times (sorted) and data gaps [s]."""
+    """What the alternation check needs of the contralateral leg: its mid-swing times (sorted) and data gaps [s]; and
+    for :mod:`pipeline.worn`, those of its swings that could be walking (its thigh near upright), None when that
+    leg has no gait strides to tell upright from."""
 
     swings_s: np.ndarray
     gaps_s: tuple[tuple[float, float], ...] = ()
+    walking_swings_s: np.ndarray | None = None
 
 
 def stride_spans_s(t_s: np.ndarray, strides: Sequence[tuple[int, int, int]], ms: np.ndarray

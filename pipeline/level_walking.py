@@ -8,7 +8,9 @@ contact near extension and flexes under load to ~75 deg before toe-off (Riener e
 2007). So the share of a stride spent within ``PhaseParams.level_band_deg`` of its own minimum separates the two
 without any absolute level: 0.59-0.68 on the real biomechZoo trial (its Vicon angles 0.68-0.71), 0.61-0.80 over
 the simulator's walking patterns (fast to stiff-knee and crouch, 3-D knees, 50 Hz, turns, loss); 0.29-0.41 in its
-stair flights. Running never stays near extension (a running leg is not judged).
+stair flights. Running never stays near extension (a running leg is not judged). The strides that lead onto or
+off a stair step are transitions, neither (:func:`next_to`): the last one before a flight lifts the foot onto the
+first step, the first one after it takes its stance on the last.
 """
 
 from __future__ import annotations
@@ -38,3 +40,17 @@ def not_level_walking(angle_deg: np.ndarray, t_s: np.ndarray, spans_s: np.ndarra
     less than ``min_share`` of the stride (:func:`near_extension_share`): stair or step-like, not level gait."""
     share = near_extension_share(angle_deg, t_s, spans_s, band_deg)
     return np.flatnonzero(share < min_share).tolist()
+
+
+def next_to(spans_s: np.ndarray, idx: list[int] | set[int], tol_s: float = 0.02) -> list[int]:
+    """Indices of the strides (rows ``[t_start, t_end)`` of ``spans_s`` [s]) not in ``idx`` that share a heel strike
+    (within ``tol_s``) with one in ``idx``: the strides next to them in their bout."""
+    spans = np.asarray(spans_s, dtype=float).reshape(-1, 2)
+    marked = np.zeros(spans.shape[0], dtype=bool)
+    marked[list(idx)] = True
+    if not marked.any():
+        return []
+    ends, starts = spans[marked, 1], spans[marked, 0]
+    touch = (np.abs(spans[:, 0, None] - ends[None, :]) <= tol_s).any(axis=1) | \
+        (np.abs(spans[:, 1, None] - starts[None, :]) <= tol_s).any(axis=1)
+    return np.flatnonzero(touch & ~marked).tolist()

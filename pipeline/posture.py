@@ -22,8 +22,11 @@ the same way. No paper gives the detection rules below.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
+from pipeline.axes import JointAxes
 from pipeline.constants import G_MPS2
 from pipeline.leg_input import LegInput
 from pipeline.params import WALKING, PostureParams
@@ -128,24 +131,50 @@ def acc_zero_deg(leg: LegInput, quiet: np.ndarray | None = None) -> tuple[float,
 
 
 def _gait_up_directions(leg: LegInput) -> list[np.ndarray] | None:
-    """Per segment, the in-plane direction of the mean specific force over whole strides (pointing up): over a
-    gait cycle the segment's mean acceleration is zero (its velocity is periodic), so this is gravity at the
-    segment's mean orientation during gait, near its long axis (walking and running alike; stance alone is
-    dominated by the foot-strike shocks in running). Needs no joint-centre geometry (whose sensor->knee directions
-    can be off by tens of degrees). None without strides or a consistent direction."""
-    strides = leg.filter_strides
+    """:func:`gait_up_directions` over the leg's :attr:`pipeline.leg_input.LegInput.filter_strides`."""
+    return gait_up_directions(leg.prep, leg.axes, leg.filter_strides)
+
+
+def gait_up_directions(prep: PreparedLeg, axes: JointAxes, strides: Sequence[tuple[int, ...]]
+                       ) -> list[np.ndarray] | None:
+    """Per segment, the in-plane direction of the mean specific force over whole strides (``(start, ..., stop)``
+    sample indices; pointing up): over a gait cycle the segment's mean acceleration is zero (its velocity is
+    periodic), so this is gravity at the segment's mean orientation during gait, near its long axis (walking and
+    running alike; stance alone is dominated by the foot-strike shocks in running). Needs no joint-centre geometry
+    (whose sensor->knee directions can be off by tens of degrees). None without strides or a consistent
+    direction."""
     if not strides:
         return None
-    arr = np.asarray(strides)
-    sel = ranges_mask(leg.prep.n, arr[:, 0], arr[:, 1]) & leg.prep.valid
+    arr = np.asarray([(s[0], s[-1]) for s in strides])
+    sel = ranges_mask(prep.n, arr[:, 0], arr[:, 1]) & prep.valid
     out = []
-    for acc, j in ((leg.prep.acc_thigh_mps2, leg.axes.j1), (leg.prep.acc_shank_mps2, leg.axes.j2)):
+    for acc, j in ((prep.acc_thigh_mps2, axes.j1), (prep.acc_shank_mps2, axes.j2)):
         m = acc[sel].mean(axis=0) if sel.any() else np.zeros(3)
         m = m - (m @ j) * j
         if np.linalg.norm(m) < 0.5 * G_MPS2:  # no consistent direction: not gait
             return None
         out.append(m / np.linalg.norm(m))
     return out
+
+
+def thigh_upright_at(prep: PreparedLeg, axes: JointAxes, strides: Sequence[tuple[int, ...]], idx: np.ndarray,
+                     params: PostureParams = WALKING.posture) -> np.ndarray | None:
+    """Per sample index in ``idx``, whether the thigh's mean specific force over the second around it (a gait
+    cycle: gravity at the thigh's mean orientation) lies within ``upright_deg`` of its direction during ``strides``
+    in the joint plane (:func:`gait_up_directions`); None without such a direction. Walking keeps a thigh near
+    upright; a seated or lying leg's thigh swings far from it."""
+    ups = gait_up_directions(prep, axes, strides)
+    if ups is None:
+        return None
+    idx = np.asarray(idx, dtype=int)
+    half = max(int(round(0.5 * prep.fs_hz)), 1)
+    acc = np.where(prep.valid[:, None], prep.acc_thigh_mps2, 0.0)
+    cum = np.concatenate((np.zeros((1, 3)), np.cumsum(acc, axis=0)))
+    lo, hi = np.clip(idx - half, 0, prep.n), np.clip(idx + half + 1, 0, prep.n)
+    mean = cum[hi] - cum[lo]
+    up, j = ups[0], axes.j1
+    y = np.cross(j, up)
+    return np.abs(np.degrees(np.arctan2(mean @ y, mean @ up))) < params.upright_deg
 
 
 def in_bouts(leg: LegInput) -> np.ndarray:

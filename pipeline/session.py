@@ -26,7 +26,7 @@ from pipeline.bilateral import OtherLeg, gait_strides, mid_swings_s, non_alterna
 from pipeline.constants import G_MPS2
 from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
-from pipeline.level_walking import not_level_walking
+from pipeline.level_walking import next_to, not_level_walking
 from pipeline.metrics import stride_values_many
 from pipeline.mounting import check_mounting, with_level_step
 from pipeline.params import (
@@ -40,6 +40,7 @@ from pipeline.params import (
 )
 from pipeline.phases import GaitEvents
 from pipeline.policy import PolicyResult, auto, single_estimator
+from pipeline.posture import thigh_upright_at
 from pipeline.prepare import SI, to_si
 from pipeline.quality import edge_reasons, gap_reasons, stride_quality, with_reason
 from pipeline.running import build_running_leg_input, detect_running
@@ -104,7 +105,7 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
     warnings += label_warnings + leg_warnings
     warnings += _offset_warnings(synced, by_leg, session_params.posture)
     events = _leg_events(synced, activity, params)
-    others = _other_legs(synced, events)
+    others = _other_legs(synced, events, session_params)
     for leg in sorted(synced):
         segs = by_leg[leg]
         try:
@@ -382,11 +383,13 @@ def _level_strides(legs: dict[str, LegResult], params: PhaseParams, warnings: li
         if lr.activity != "walking" or not lr.strides or _clock_unknown(lr):
             continue
         spans = np.array([(s.t_start_s, s.t_end_s) for s in lr.strides])
-        drop = set(not_level_walking(lr.angle_deg, lr.t_s, spans, params.level_band_deg, params.level_min_share))
-        if drop:
-            out[leg] = lr.without(drop)
-            warnings.append(f"{leg} leg: {len(drop)} stride(s) dropped: the knee stayed near extension for less "
-                            f"than {params.level_min_share:.0%} of the stride (stairs or step-ups, not level gait)")
+        stairs = not_level_walking(lr.angle_deg, lr.t_s, spans, params.level_band_deg, params.level_min_share)
+        onto = next_to(spans, stairs)
+        if stairs:
+            out[leg] = lr.without({*stairs, *onto})
+            warnings.append(f"{leg} leg: {len(stairs) + len(onto)} stride(s) dropped: the knee stayed near extension "
+                            f"for less than {params.level_min_share:.0%} of the stride (stairs or step-ups, not level "
+                            f"gait){f', or the stride led onto or off such a one ({len(onto)})' if onto else ''}")
     return out
 
 
@@ -494,15 +497,31 @@ def _leg_events(synced: Mapping[str, SyncedLeg], activity: str, params: Pipeline
     return {leg: gait_events(sl.prep, sl.axes, p) for leg, sl in synced.items()}
 
 
-def _other_legs(synced: Mapping[str, SyncedLeg], events: Mapping[str, tuple[np.ndarray, GaitEvents]]
-                ) -> dict[str, OtherLeg]:
+def _other_legs(synced: Mapping[str, SyncedLeg], events: Mapping[str, tuple[np.ndarray, GaitEvents]],
+                params: PipelineParams) -> dict[str, OtherLeg]:
     """Per leg, the contralateral leg's mid-swing times and gaps (:func:`_leg_events`): what lets a leg's
     processing tell its gait strides from jumps (:mod:`pipeline.bilateral`)."""
     if set(events) != {"left", "right"}:
         return {}
     seen = {leg: OtherLeg(np.sort(synced[leg].prep.t_s[ev.ms]), tuple(synced[leg].prep.gaps_s))
             for leg, (_, ev) in events.items() if not synced[leg].clock_disagreement}
+    for leg, other in (("left", "right"), ("right", "left")):
+        if leg in seen:
+            seen[leg] = dataclasses.replace(seen[leg], walking_swings_s=_walking_swings_s(
+                synced[leg], events[leg][1], seen.get(other), params))
     return {leg: seen[other] for leg, other in (("left", "right"), ("right", "left")) if other in seen}
+
+
+def _walking_swings_s(synced: SyncedLeg, ev: GaitEvents, other: OtherLeg | None, params: PipelineParams
+                      ) -> np.ndarray | None:
+    """The leg's mid-swing times [s] (sorted) at which its thigh was near upright
+    (:func:`pipeline.posture.thigh_upright_at`), its upright learned from its strides that alternate with ``other``
+    (gait); None without such strides. A seated or lying one-legged exercise swings a thigh far from upright."""
+    prep = synced.prep
+    ms = np.sort(ev.ms[ev.ms >= 0])
+    gait = gait_strides(prep.t_s, ev.strides, ev.ms, other)
+    upright = thigh_upright_at(prep, synced.axes, gait, ms, params.posture) if gait and other is not None else None
+    return None if upright is None else prep.t_s[ms[upright]]
 
 
 def _leg_input(synced: SyncedLeg, activity: str, params: PipelineParams | None,

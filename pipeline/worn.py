@@ -24,9 +24,12 @@ Either physical test marks a stretch:
   (:func:`pipeline.posture.standing_mask`), or one of its segments alone is still off the upright or within the
   leg's own walking bouts (:func:`pipeline.posture.quiet_segments`, :func:`pipeline.posture.upright_segments`: a
   thigh sensor fallen off while the shank walks on), while the other leg's shank swings at least ``min_swings``
-  times. Standing on this
-  leg while the other one swings (one-legged exercises) is a posture a body holds and does not count. The stretch
-  runs on to the leg's first swing after the rest (sensors back on), by at most ``reach_s``.
+  times with its thigh near upright (:attr:`pipeline.bilateral.OtherLeg.walking_swings_s`: a walk; all its swings
+  when it has no gait strides to learn its upright from). Standing on this leg while the other one swings, or
+  sitting or lying while the other one's thigh swings far from upright (one-legged exercises: seated knee
+  extensions; lying ones whose thigh stays beyond ``PostureParams.upright_deg`` from upright), is a posture a body
+  holds and does not count. The stretch runs on to the leg's
+  first swing after the rest (sensors back on), by at most ``reach_s``.
 
 Either stretch reaches back to the last moment the leg was surely on the body, quiet upright standing, a swing in a
 walking bout or the end of a stride (the removal's turning makes no whole stride), by at most ``reach_s``. The leg
@@ -99,14 +102,15 @@ def handled_spans_s(leg: LegInput, params: WornParams = WALKING.worn) -> list[tu
 
 
 def _resting_spans_s(leg: LegInput, other: OtherLeg | None, params: WornParams) -> list[tuple[float, float]]:
-    """Spans in which the leg rested in a posture other than standing while the other leg swung (module
+    """Spans in which the leg rested in a posture other than standing while the other leg walked (module
     docstring); empty without the other leg's swings."""
-    if other is None or other.swings_s.size < params.min_swings:
+    swings_s = None if other is None else other.swings_s if other.walking_swings_s is None else other.walking_swings_s
+    if swings_s is None or swings_s.size < params.min_swings:
         return []
     prep = leg.prep
     t_s = prep.t_s
     still = quiet_segments(prep, leg.params.posture)
-    if not _runs_while_swinging(still[0] | still[1], t_s, other.swings_s, params):
+    if not _runs_while_swinging(still[0] | still[1], t_s, swings_s, params):
         return []  # no segment rests long enough while the other leg swings (every plain session): nothing to judge
     quiet = leg_quiet(leg)
     bouts = in_bouts(leg)
@@ -121,7 +125,7 @@ def _resting_spans_s(leg: LegInput, other: OtherLeg | None, params: WornParams) 
     own = np.sort(t_s[ev.ms[ev.ms >= 0]])
     settled = _settled_s(leg, standing, params)
     spans: list[tuple[float, float]] = []
-    for t0, t1 in _runs_while_swinging(rest, t_s, other.swings_s, params):
+    for t0, t1 in _runs_while_swinging(rest, t_s, swings_s, params):
         m = int(np.searchsorted(own, t1, side="right"))
         spans.append((_back_to(settled, t0, float(t_s[0]), params),
                       min(float(own[m]) if m < own.size else float(t_s[-1]), t1 + params.reach_s)))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from bench.matching import match_strides
-from pipeline.level_walking import near_extension_share, not_level_walking
+from pipeline.level_walking import near_extension_share, next_to, not_level_walking
 from pipeline.params import PhaseParams
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, simulate_session
@@ -51,3 +51,25 @@ def test_a_stair_flight_gives_no_strides_and_keeps_the_walk() -> None:
     for leg, lr in res.legs.items():
         steady = [t for t in sim.truth[leg].strides if t.steady]
         assert len(match_strides(lr.strides, steady)) >= 0.95 * len(steady), leg
+
+
+def test_the_strides_next_to_a_stair_step_are_found() -> None:
+    """Strides share heel strikes within a bout: the one before a stair stride and the one after it; a stride of
+    another bout (a pause between) is not next to it."""
+    spans = np.array([(0.0, 1.1), (1.1, 2.2), (2.2, 3.3), (3.3, 4.4), (6.0, 7.1)])
+    assert next_to(spans, [2]) == [1, 3]
+    assert next_to(spans, [3]) == [2]
+    assert next_to(spans, [1, 2]) == [0, 3]
+    assert next_to(spans, []) == []
+
+
+def test_a_step_onto_a_landing_is_no_gait_stride() -> None:
+    """An exercise session without walking (3-D knee and hip): the last step of a stair flight, onto the landing,
+    kept its knee near extension long enough to pass as level gait and entered trends (quality 0.75, peak 47 deg);
+    it led off a stair stride, so it is a transition and is dropped with the flight."""
+    sim = simulate_session(SimConfig(seed=3, duration_s=90.0, bout_strides=12, walking=False, hip_3d=1.0, knee_3d=1.0,
+                                     move_reps=6, activities=("sitting", "seated_extension", "sit_to_stand", "jump",
+                                                              "step_test", "stair_flight")))
+    res = process_session(sim.streams)
+    assert not [s for lr in res.legs.values() for s in lr.strides if s.quality >= 0.5]
+    assert any("led onto or off such a one" in w for w in res.warnings)

@@ -171,3 +171,26 @@ def test_a_thigh_sensor_fallen_off_while_the_shank_walks_on_shows_nothing() -> N
     assert not np.isfinite(left.angle_deg[left.t_s > 70.5]).any()
     assert not [s for s in left.strides if s.t_end_s > 70.5 and s.quality >= 0.5]
     assert len(_peak_errors(res, sim, "left", 68.0)) >= 10
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_seated_one_legged_exercise_leaves_the_still_leg_worn(seed: int) -> None:
+    """Seated knee extensions between walks, six per knee in turn: the still leg rests seated while the other one
+    swings, as it would if its sensors lay on a chair while the person walked, but the swinging thigh lies
+    horizontal (pipeline.posture.thigh_upright_at): nobody walks like that. Both legs keep their angle there, and it
+    is the knee's."""
+    sim = simulate_session(SimConfig(seed=seed, duration_s=120.0, bout_strides=12, activities=("seated_extension",),
+                                     move_reps=12))
+    res = process_session(sim.streams)
+    assert not any("not on the leg" in w for w in res.warnings)
+    spans = [(t0, t1) for kind, t0, t1 in sim.info["non_gait_s"] if kind == "seated_extension"]
+    assert spans
+    for leg, lr in res.legs.items():
+        assert lr.diagnostics.not_worn_s == ()
+        inside = np.zeros(lr.t_s.size, dtype=bool)
+        for t0, t1 in spans:
+            inside |= (lr.t_s > t0) & (lr.t_s < t1)
+        shown = inside & np.isfinite(lr.angle_deg)
+        assert shown.sum() > 0.9 * inside.sum()
+        err = lr.angle_deg[shown] - sim.truth[leg].angle_at(lr.t_s[shown])
+        assert np.sqrt(np.mean(err**2)) < 5.0
