@@ -168,6 +168,25 @@ class SyncParams:
     """Shortest span [s] of those strides: over less, 500 ppm moves the stride timing by less than its noise."""
     max_lag_s: float = 0.06
     """Search range of the lag [s]: larger offsets are not a clock error between two BLE sensors."""
+    wide_max_lag_s: float = 0.15
+    """Search range of the lag [s] where none is found within ``max_lag_s`` (:func:`pipeline.sync.clock_model`):
+    stamps taken on the phone as packets arrive carry a BLE connection interval (7.5-100 ms) and the radio's
+    buffering. Far inside a stride (the hinge cue's next minimum lies a whole cycle away)."""
+    wide_from_share: float = 0.75
+    """A line found beyond this share of ``max_lag_s`` is searched over ``wide_max_lag_s`` too (a 75 ms offset read
+    as 67 ms, a 90 ms one as 54 ms on the simulator: the narrow windows followed it part of the way out)."""
+    research_times: int = 2
+    """Times the wide search reads a window again around the lag it read, where that lies more than ``agree_s``
+    from where it searched: the joint-centre cue fits its centres at the searched lag and reads short of a far one."""
+    wide_max_se_s: float = 0.004
+    """Largest standard error [s] of a hinge window's lag the wide search takes: over +-0.15 s the shallow cost curve
+    of a window without a walk (a stair flight, exercises) has false minima 50 ms out (standard errors 5.5-8 ms on
+    the simulator's tune seeds); windows of walking read 1.5-3.7 ms."""
+    wide_min_windows: int = 3
+    """Windows that must speak in the wide search (the narrow one takes two)."""
+    scattered_max_lag_s: float = 0.015
+    """Where the wide search's window lags scatter beyond ``agree_s`` about a line beyond this [s], the leg's timing
+    is unknown (``clock_disagreement``: its strides stay out of trends); 15 ms move the swing peak by ~7 deg."""
     restamp_max_lag_s: float = 0.25
     """Widest lag [s] searched on a whole leg re-stamped by the stride timing's drift (a clock without a crystal,
     :func:`pipeline.sync.synchronised_leg`): a quarter of a slow stride, so that the hinge cue's cost of a periodic

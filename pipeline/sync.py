@@ -31,6 +31,7 @@ read what is left. After all of this the stride timing checks the result (:func:
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -186,6 +187,28 @@ def _corrected(streams: _LegStreams, axes: JointAxes, offset: float, drift: floa
 
 def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
                 axes_params: AxesParams | None = None) -> ClockFit:
+    """:func:`_clock_model` within ``max_lag_s``; where that finds no line, once more within ``wide_max_lag_s``. The
+    narrow search first: over the wide range the cost curves of windows without a clear minimum near zero (jumps,
+    sit-to-stand) find false ones, and the sweep's sessions with activities between walks came out worse for it. A
+    lag beyond ``max_lag_s`` leaves every window's minimum at the edge of its range (no line), which the wide search
+    then finds: phone-side stamps carry a BLE connection interval and the radio's buffering, and two independent
+    simulators drew +-40 ms per sensor (80 ms between a thigh and its shank), whose 60-75 ms went uncorrected with
+    swing peaks 10-40 deg off. A line found near the edge of the narrow range (beyond ``wide_from_share`` of it: the
+    windows' searches follow the line of those before and slide part of the way out) is searched wide as well, and
+    the wide line kept where there is one. The wide search reads each window again around the lag it read
+    (``research_times``) and, where its windows scatter about a lag beyond ``scattered_max_lag_s``, says the timing
+    is unknown."""
+    fit = _clock_model(prep, g1, g2, axes, params, axes_params)
+    near_edge = fit.offset_s is not None and abs(fit.offset_s) > params.wide_from_share * params.max_lag_s
+    if (fit.offset_s is not None and not near_edge) or fit.disagreement or params.wide_max_lag_s <= params.max_lag_s:
+        return fit
+    wide = _clock_model(prep, g1, g2, axes, dataclasses.replace(params, max_lag_s=params.wide_max_lag_s),
+                        axes_params, wide=True)
+    return fit if near_edge and wide.offset_s is None else wide
+
+
+def _clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
+                 axes_params: AxesParams | None = None, wide: bool = False) -> ClockFit:
     """Shank-vs-thigh lag at mid-session [s] and its drift [s/s] (:func:`_line_model`): one lag per ``window_s``
     window, at least three windows, so that a drift shows as a slope and the windows can disagree with a line. The
     hinge constraint's lags where the knee moves as a hinge and they speak; the joint-centre constraint's (when
@@ -197,7 +220,7 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
     fs = prep.fs_hz
     win = int(params.window_s * fs)
     if prep.n < 2 * win:
-        return ClockFit(_short_session_lag(prep, g1, g2, axes, params, axes_params))
+        return ClockFit(None if wide else _short_session_lag(prep, g1, g2, axes, params, axes_params))
     edges = np.linspace(0, prep.n, max(int(prep.n // win), 3) + 1).astype(int)
     windows = [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
     if not axes.leaning:
@@ -216,22 +239,22 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
             return hinge[-1]
         # the cue's information on the lag: the squared slope of the compared rate (mostly in turns)
         weight = np.gradient(rates[1]) ** 2 * measured
-        fit = _line_model(prep, windows, params, hinge_lag, weight=weight)
+        fit = _line_model(prep, windows, params, hinge_lag, weight=weight, wide=wide)
         # on a hinge knee the centre cue is the less accurate of the two wherever turns make both informative
         # (sweep and accuracy tune seeds: crouch gait, long lever arms); but a knee whose tibia turns as it flexes
         # without leaning the hinge fit reads a lag of its own into the hinge cue (10-25 ms on an independent
         # simulator), so the centre cue is asked too, around the hinge's line, and a disagreement is settled later
         if fit.offset_s is not None and axes_params is not None:
-            return _checked_by_centre(prep, g1, g2, axes, params, axes_params, windows, fit)
+            return _checked_by_centre(prep, g1, g2, axes, params, axes_params, windows, fit, wide)
         if fit.offset_s is not None or axes_params is None or sum(lag is not None for lag in hinge) >= 2:
             return fit
     elif axes_params is None:
         return ClockFit(None)
-    return _centre_line(prep, windows, params, _centre_lag_of(prep, g1, g2, axes, params, axes_params))
+    return _centre_line(prep, windows, params, _centre_lag_of(prep, g1, g2, axes, params, axes_params), wide=wide)
 
 
 def _checked_by_centre(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
-                       axes_params: AxesParams, windows: list[slice], fit: ClockFit) -> ClockFit:
+                       axes_params: AxesParams, windows: list[slice], fit: ClockFit, wide: bool = False) -> ClockFit:
     """The hinge cue's line ``fit``, with the joint-centre cue's line as its ``alternative`` where the two differ
     by more than ``agree_s``: first the middle window alone, searched around the hinge line; where it differs, the
     line on ``check_centre_windows`` windows (its centres handed on from the first fit)."""
@@ -242,7 +265,7 @@ def _checked_by_centre(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
     probe = cue[0](mid, expected)
     if probe is None or abs(probe.lag_s - expected) <= params.agree_s:
         return fit
-    alt = _centre_line(prep, windows, params, cue, around=fit, max_windows=params.check_centre_windows)
+    alt = _centre_line(prep, windows, params, cue, around=fit, max_windows=params.check_centre_windows, wide=wide)
     if alt.offset_s is not None and abs(alt.offset_s - fit.offset_s) > params.agree_s:
         return ClockFit(fit.offset_s, fit.drift, alternative=alt)
     return fit
@@ -252,7 +275,7 @@ CentreCue = tuple[Callable[[slice, float], LagEstimate | None], np.ndarray]
 
 
 def _centre_line(prep: PreparedLeg, windows: list[slice], params: SyncParams, cue: CentreCue,
-                 around: ClockFit | None = None, max_windows: int | None = None) -> ClockFit:
+                 around: ClockFit | None = None, max_windows: int | None = None, wide: bool = False) -> ClockFit:
     """The joint-centre cue's line (:func:`_line_model`; ``cue``: :func:`_centre_lag_of`) on at most
     ``max_windows`` (default ``max_centre_windows``) of ``windows``, spread evenly; with ``around``, each window
     searched around that line's lag at its time instead of the windows before it."""
@@ -265,7 +288,7 @@ def _centre_line(prep: PreparedLeg, windows: list[slice], params: SyncParams, cu
 
         def search(w: slice, _predicted: float) -> LagEstimate | None:
             return lag_of(w, offset + drift * (_cue_time(prep, w, weight) - t_mid))
-    return _line_model(prep, [windows[int(i)] for i in pick], params, search, weight=weight)
+    return _line_model(prep, [windows[int(i)] for i in pick], params, search, weight=weight, wide=wide)
 
 
 def _cue_time(prep: PreparedLeg, w: slice, weight: np.ndarray | None) -> float:
@@ -542,9 +565,25 @@ def _predicted_lag(pts: list[tuple[float, float]], t: float, params: SyncParams)
     return float(np.median(lag - drift * tt) + drift * t)
 
 
+def _window_lag(lag_of: Callable[[slice, float], LagEstimate | None], w: slice, centre: float, params: SyncParams,
+                wide: bool) -> LagEstimate | None:
+    """``lag_of(w, centre)``; in the wide search read again around what it read (``research_times``: the joint-centre
+    cue fits its centres at the lag it is searched around and reads short of a far one, 75 ms as 42-49 ms from 0),
+    and None unless clear (``wide_max_se_s``: over the wide range a shallow curve finds false minima)."""
+    est = lag_of(w, centre)
+    if not wide:
+        return est
+    for _ in range(params.research_times):
+        if est is None or abs(est.lag_s - centre) <= params.agree_s:
+            break
+        centre = est.lag_s
+        est = lag_of(w, centre)
+    return None if est is not None and est.se_s is not None and est.se_s > params.wide_max_se_s else est
+
+
 def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
                 lag_of: Callable[[slice, float], LagEstimate | None], drifting: bool = True,
-                weight: np.ndarray | None = None) -> ClockFit:
+                weight: np.ndarray | None = None, wide: bool = False) -> ClockFit:
     """Offset at mid-session and drift of the window lags ``lag_of(window, centre_s)``, each searched around the
     lag the windows before it predict (``centre_s``: their line, clipped to ``max_drift``, at the window's time, so
     that a drifting lag is followed beyond ``max_lag_s``); no correction unless at least two
@@ -555,17 +594,20 @@ def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
     window its lag is measured (the window is placed at the weighted mean time, not at its centre: under a drift a
     window's lag is that of its turns or heel strikes). Where every lag carries a standard error the line is a
     weighted least-squares fit (weights 1 / max(se, ``window_lag_floor_s``)^2): a window that lost most of its
-    turns to packet loss or speaks only faintly no longer sets the drift as much as the others."""
+    turns to packet loss or speaks only faintly no longer sets the drift as much as the others. ``wide``: the
+    search over ``wide_max_lag_s`` (:func:`clock_model`): each window read again around the lag it read, only
+    clear windows (standard error within ``wide_max_se_s``), ``wide_min_windows`` of them, a line no steeper than
+    ``max_drift``; scattered windows about a far lag mark the timing unknown."""
     t_mid = float(prep.t_s[prep.n // 2])
     pts: list[tuple[float, float]] = []
     ses: list[float | None] = []
     for w in windows:
         t_w = _cue_time(prep, w, weight)
-        est = lag_of(w, _predicted_lag(pts, t_w - t_mid, params) if drifting else 0.0)
+        est = _window_lag(lag_of, w, _predicted_lag(pts, t_w - t_mid, params) if drifting else 0.0, params, wide)
         if est is not None:
             pts.append((t_w - t_mid, est.lag_s))
             ses.append(est.se_s)
-    if len(pts) < 2:
+    if len(pts) < (params.wide_min_windows if wide else 2):
         return ClockFit(None)
     t, lag = np.array(pts).T
     inv_se = None
@@ -581,7 +623,11 @@ def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
         drift = 0.0
     offset = float(np.median(lag - drift * t) if inv_se is None else np.average(lag - drift * t, weights=inv_se ** 2))
     if np.max(np.abs(lag - offset - drift * t)) > params.agree_s:
-        return ClockFit(None)  # scattered windows (a noisy cue), no clock seen: nothing corrected
+        # scattered windows (a noisy cue), no clock seen: nothing corrected; but where the wide search still puts
+        # them far from zero, the timing is known to be off by more than the strides can bear
+        return ClockFit(None, disagreement=wide and abs(offset) > params.scattered_max_lag_s)
+    if wide and abs(drift) > params.max_drift:
+        return ClockFit(None)  # the wide search is for an offset; a runaway clock is the re-stamping's (above)
     if abs(drift) > params.max_line_drift:
         # the windows agree on a lag that runs away faster than they can see: timing unknown
         return ClockFit(None, disagreement=True)

@@ -236,13 +236,13 @@ def test_window_lags_are_placed_where_the_cue_is(long_walk, monkeypatch: pytest.
     seen: list[tuple[float, float]] = []
     line_model = sync_module._line_model
 
-    def spy(prep, windows, params, lag_of, drifting=True, weight=None):  # noqa: ANN001, ANN202
+    def spy(prep, windows, params, lag_of, drifting=True, weight=None, wide=False):  # noqa: ANN001, ANN202
         def rec(w: slice, centre_s: float) -> LagEstimate | None:
             est = lag_of(w, centre_s)
             if est is not None:
                 seen.append((float(np.average(prep.t_s[w], weights=weight[w])), est.lag_s))
             return est
-        return line_model(prep, windows, params, rec, drifting, weight)
+        return line_model(prep, windows, params, rec, drifting, weight, wide)
 
     monkeypatch.setattr(sync_module, "_line_model", spy)
     prep, g1, g2, axes = _prepared(thigh, shank)
@@ -297,9 +297,9 @@ def test_a_line_too_steep_for_the_windows_keeps_the_leg_out_of_trends(long_walk,
 
     real = sync._line_model
 
-    def steep(prep, windows, params, lag_of, drifting=True, weight=None):  # noqa: ANN001, ANN202
+    def steep(prep, windows, params, lag_of, drifting=True, weight=None, wide=False):  # noqa: ANN001, ANN202
         if prep.leg == "right":
-            return real(prep, windows, params, lag_of, drifting, weight)
+            return real(prep, windows, params, lag_of, drifting, weight, wide)
         t_mid = float(prep.t_s[prep.n // 2])
         line = 1.2 * params.max_line_drift
         return real(prep, windows, params,
@@ -572,3 +572,22 @@ def test_a_centre_fit_without_a_body_worn_position_gives_no_timing_verdict(strai
     leg = synchronised_leg("left", thigh, shank, WALKING)
     assert np.isfinite(centre_misfit(leg, WALKING)) and centre_misfit(leg, WALKING) < 0.5
     assert centre_misfit(leg, params) == np.inf
+
+
+@pytest.mark.parametrize(("seed", "lag_s"), [(3, 0.075), (2, -0.09), (0, -0.09)])
+def test_an_offset_beyond_the_narrow_range_is_searched_wide(seed: int, lag_s: float) -> None:
+    """Phone-side stamps put 60-90 ms between a thigh and its shank at times (a BLE connection interval and the
+    radio's buffering). Beyond ``max_lag_s`` every window's minimum lay at the edge of its range, or the windows
+    slid part of the way out (-90 ms read as -54), and the leg went uncorrected into trends with swing peaks 11-17
+    deg off; the wide search (``wide_max_lag_s``) finds the offset and the strides are right."""
+    sim = simulate_session(SimConfig(seed=seed, duration_s=120.0, bout_strides=12, sync_offset_ms=0.0,
+                                     clock_drift_ppm=0.0))
+    streams = [dataclasses.replace(s, t_s=s.t_s + lag_s) if (s.leg, s.segment) == ("left", "shank") else s
+               for s in sim.streams]
+    assert abs(lag_s) > WALKING.sync.max_lag_s
+    left = process_session(streams).legs["left"]
+    assert left.diagnostics.shank_lag_ms == pytest.approx(1000 * lag_s, abs=3.0)
+    truth = [t for t in sim.truth["left"].strides if t.steady]
+    errors = [s.peak_swing_flexion_deg - min(truth, key=lambda t: abs(t.t_start_s - s.t_start_s)).peak_swing_flexion_deg
+              for s in left.strides if s.quality >= 0.5]
+    assert len(errors) >= 40 and max(abs(e) for e in errors) < 6.0
