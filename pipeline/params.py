@@ -377,6 +377,12 @@ class WornParams:
     typical 3-D knee and hip motion, three times the wobble) a knee stayed above 0.5 for ``handled_min_s`` only in
     exercises with twice the 3-D motion, above 0.45 in jumps too; a sensor taken off: 0.67-0.99 (it turns partly
     about the knee axis, which a knee does too). Real Xsens walking (biomechZoo): 0.42 at most in any window."""
+    handled_turned_deg: float = 30.0
+    """A stretch is no handling where each segment's mean specific force over the second after it points within this
+    [deg] of that over the second before (:func:`pipeline.worn._a_turn_of_the_body`):
+    an independent simulator's pivot turns (137-140 deg on one foot, the tibia turning 15-20 deg against the femur)
+    broke the hinge as much as a removal and cut 57-187 s of 32 legs out; a turn about the vertical leaves gravity
+    where it was in both sensors, a sensor laid down or strapped back on moves it by 45-90 deg."""
     handled_min_s: float = 0.5
     """How long the residual must stay above ``handled_ratio`` [s]: a quarter of taking a sensor off; impacts and
     wobble last tens of ms."""

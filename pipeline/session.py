@@ -9,6 +9,7 @@ angle (Seel Eq. 5-7; :mod:`pipeline.walking` or :mod:`pipeline.running`) -> the 
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings as _warnings
 from collections.abc import Mapping, Sequence
 
@@ -363,7 +364,9 @@ def _trusted_pieces(parts: list[tuple[LegResult, np.ndarray]], whole: LegResult,
 
 
 def _rounded_spans(spans: Sequence[tuple[float, float]]) -> tuple[tuple[float, float], ...]:
-    return tuple((round(a, 2), round(b, 2)) for a, b in spans)
+    """``spans`` [s] to the hundredth, outwards: the blanking reads them back, and a span rounded inwards left the
+    sample at its end shown."""
+    return tuple((math.floor(a * 100.0) / 100.0, math.ceil(b * 100.0) / 100.0) for a, b in spans)
 
 
 def _within(stream: RawSensorStream, t0: float, t1: float) -> RawSensorStream:

@@ -14,10 +14,12 @@ Either physical test marks a stretch:
   axis have equal magnitudes (Seel et al. 2014, Eq. 2: ``|g1 x j1| = |g2 x j2|``). Taking one sensor off while the
   other stays still breaks that by most of the rate: the RMS residual over ``handled_window_s`` above
   ``handled_ratio`` of the faster segment's RMS rate (itself above ``handled_min_dps``) for at least
-  ``handled_min_s`` (the figures behind the thresholds: :class:`pipeline.params.WornParams`), outside the leg's
-  walking bouts (a hinge broken while walking is a sensor turned on the limb: :mod:`pipeline.mounting`). The stretch
-  runs from there to the leg's next walking bout (sensors back on) or the end. A sensor turned about the knee axis while
-  the other is still looks like a knee flexing and is not caught.
+  ``handled_min_s`` (the figures behind the thresholds: :class:`pipeline.params.WornParams`), after which a segment
+  lies otherwise against gravity than before (``handled_turned_deg``: a removal lays the sensor down; a pivot turn
+  on one foot breaks the hinge by the tibia's turn against the femur and leaves both as they were), outside the
+  leg's walking bouts (a hinge broken while walking is a sensor turned on the limb: :mod:`pipeline.mounting`). The
+  stretch runs from there to the leg's next walking bout (sensors back on) or the end. A sensor turned about the
+  knee axis while the other is still looks like a knee flexing and is not caught.
 * **resting while the other leg walks** (:func:`_resting_spans_s`): nobody walks on one leg while the other sits
   or lies still, nor with a thigh or shank that does not move. A run of at least ``min_rest_s`` in which this leg
   rests (:func:`pipeline.posture.quiet_mask`, outside its own walking bouts) and is not standing upright
@@ -54,6 +56,7 @@ from pipeline.bilateral import OtherLeg
 from pipeline.leg_input import LegInput
 from pipeline.params import WALKING, WornParams
 from pipeline.posture import in_bouts, leg_quiet, quiet_segments, standing_mask, upright_segments
+from pipeline.prepare import PreparedLeg
 from pipeline.signal_utils import long_runs, merged_intervals, ranges_mask, true_runs
 from pipeline.types import LegResult
 
@@ -63,8 +66,10 @@ def not_worn_spans_s(leg: LegInput, other: OtherLeg | None, params: WornParams =
     """Time spans ``(t0, t1)`` [s, the leg's clock] in which the leg's sensors were not on the leg (module
     docstring: handled, or resting while the other leg walks), in order and disjoint; and those of them that hold a
     stretch of handling (the sensors may have gone back on otherwise)."""
-    handled = handled_spans_s(leg, params)
-    spans = merged_intervals([*handled, *_resting_spans_s(leg, other, params)])
+    resting, fallen = _resting_spans_s(leg, other, params)
+    # a segment still while its leg walks fell off or slipped: its data would move the whole leg's axes, as handling's
+    handled = [*handled_spans_s(leg, params), *fallen]
+    spans = merged_intervals([*handled, *resting])
     return spans, [sp for sp in spans if any(h0 < sp[1] and h1 > sp[0] for h0, h1 in handled)]
 
 
@@ -94,24 +99,44 @@ def handled_spans_s(leg: LegInput, params: WornParams = WALKING.worn) -> list[tu
     spans = []
     for a, b in true_runs(unlike):
         t0, t1 = float(t_s[a]), float(t_s[b - 1])
-        if ((strides[:, 0] <= t0) & (strides[:, 1] >= t1)).any():
+        if ((strides[:, 0] <= t0) & (strides[:, 1] >= t1)).any() or _a_turn_of_the_body(prep, a, b, params):
             continue
         later = bout_starts[bout_starts > t1]  # the next walk, whole: sensors back on
         spans.append((_back_to(settled, t0, float(t_s[0]), params), float(later[0]) if later.size else float(t_s[-1])))
     return spans
 
 
-def _resting_spans_s(leg: LegInput, other: OtherLeg | None, params: WornParams) -> list[tuple[float, float]]:
+def _a_turn_of_the_body(prep: PreparedLeg, a: int, b: int, params: WornParams) -> bool:
+    """Whether samples ``a:b`` leave both segments lying against gravity over the second after them as over the
+    second before (within ``handled_turned_deg``): the body turned, no sensor was handled. A pivot on one foot turns
+    the shank about the vertical, the tibia against the femur by up to 20 deg, and breaks the hinge as much as a
+    removal; a removal lays the sensor down, putting it back stands it up again."""
+    n = int(round(prep.fs_hz))
+    ok = prep.valid
+    before, after = slice(max(a - n, 0), a), slice(b, min(b + n, prep.n))
+    if not ok[before].any() or not ok[after].any():
+        return False
+    cos_max = np.cos(np.radians(params.handled_turned_deg))
+    for acc in (prep.acc_thigh_mps2, prep.acc_shank_mps2):
+        u, v = acc[before][ok[before]].mean(axis=0), acc[after][ok[after]].mean(axis=0)
+        if u @ v < cos_max * np.linalg.norm(u) * np.linalg.norm(v):
+            return False
+    return True
+
+
+def _resting_spans_s(leg: LegInput, other: OtherLeg | None, params: WornParams
+                     ) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:
     """Spans in which the leg rested in a posture other than standing while the other leg walked (module
-    docstring); empty without the other leg's swings."""
+    docstring), and those of a segment alone still within the leg's own walking (fallen off); empty without the
+    other leg's swings."""
     swings_s = None if other is None else other.swings_s if other.walking_swings_s is None else other.walking_swings_s
     if swings_s is None or swings_s.size < params.min_swings:
-        return []
+        return [], []
     prep = leg.prep
     t_s = prep.t_s
     still = quiet_segments(prep, leg.params.posture)
     if not _runs_while_swinging(still[0] | still[1], t_s, swings_s, params):
-        return []  # no segment rests long enough while the other leg swings (every plain session): nothing to judge
+        return [], []  # no segment rests long enough while the other leg swings (every plain session)
     quiet = leg_quiet(leg)
     bouts = in_bouts(leg)
     standing = standing_mask(leg, quiet, bouts)
@@ -124,12 +149,15 @@ def _resting_spans_s(leg: LegInput, other: OtherLeg | None, params: WornParams) 
     ev = leg.events
     own = np.sort(t_s[ev.ms[ev.ms >= 0]])
     settled = _settled_s(leg, standing, params)
-    spans: list[tuple[float, float]] = []
-    for t0, t1 in _runs_while_swinging(rest, t_s, swings_s, params):
-        m = int(np.searchsorted(own, t1, side="right"))
-        spans.append((_back_to(settled, t0, float(t_s[0]), params),
-                      min(float(own[m]) if m < own.size else float(t_s[-1]), t1 + params.reach_s)))
-    return spans
+
+    def spans_of(mask: np.ndarray) -> list[tuple[float, float]]:
+        out = []
+        for t0, t1 in _runs_while_swinging(mask, t_s, swings_s, params):
+            m = int(np.searchsorted(own, t1, side="right"))
+            out.append((_back_to(settled, t0, float(t_s[0]), params),
+                        min(float(own[m]) if m < own.size else float(t_s[-1]), t1 + params.reach_s)))
+        return out
+    return spans_of(rest), spans_of((still[0] | still[1]) & bouts)
 
 
 def _runs_while_swinging(mask: np.ndarray, t_s: np.ndarray, swings_s: np.ndarray, params: WornParams

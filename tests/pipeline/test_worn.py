@@ -194,3 +194,27 @@ def test_a_seated_one_legged_exercise_leaves_the_still_leg_worn(seed: int) -> No
         assert shown.sum() > 0.9 * inside.sum()
         err = lr.angle_deg[shown] - sim.truth[leg].angle_at(lr.t_s[shown])
         assert np.sqrt(np.mean(err**2)) < 5.0
+
+
+def test_a_pivot_on_one_foot_is_no_handling() -> None:
+    """A turn on one foot while standing: the shank turns about the vertical by 20 deg in 0.6 s while the thigh stays
+    (the tibia against the femur, as an independent simulator's pivots did), which breaks Seel's hinge as much as
+    taking a sensor off: the leg was cut in pieces there and 20 of its 60 strides left the trends. But it leaves
+    gravity where it was in both sensors; a removal lays the sensor down. The leg is not cut."""
+    sim = _session(2)
+    bouts = sim.truth["left"].bouts_s
+    t0 = 0.5 * (bouts[3][1] + bouts[4][0]) - 0.3  # mid-way through the standing between the fourth and fifth walk
+    streams = []
+    for s in sim.streams:
+        if (s.leg, s.segment) == ("left", "shank"):
+            turn = (s.t_s >= t0) & (s.t_s < t0 + 0.6)
+            up = s.acc[(s.t_s > t0 - 1.0) & (s.t_s < t0)].mean(axis=0)
+            rate_dps = 20.0 / 0.3 * np.sin(np.pi * (s.t_s[turn] - t0) / 0.6) ** 2  # 20 deg in 0.6 s
+            gyr = s.gyr.copy()
+            gyr[turn] += rate_dps[:, None] * (up / np.linalg.norm(up))
+            s = dataclasses.replace(s, gyr=gyr)
+        streams.append(s)
+    res = process_session(streams)
+    left = res.legs["left"]
+    assert left.diagnostics.not_worn_s == () and left.diagnostics.handled_s == ()
+    assert sum(s.quality >= 0.5 for s in left.strides) == len(left.strides) > 50
