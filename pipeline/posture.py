@@ -81,10 +81,8 @@ def standing_mask(leg: LegInput, quiet: np.ndarray | None = None, exclude: np.nd
         return np.zeros(prep.n, dtype=bool)
     stand = quiet & prep.valid & ~exclude
     for acc, up, j in ((prep.acc_thigh_mps2, ups[0], leg.axes.j1), (prep.acc_shank_mps2, ups[1], leg.axes.j2)):
-        y = np.cross(j, up)
         cand = np.flatnonzero(stand)  # the upright test only where it can still matter (row by row: same values)
-        a = acc[cand]
-        stand[cand] = np.abs(np.degrees(np.arctan2(a @ y, a @ up))) < p.upright_deg
+        stand[cand] = _upright(acc[cand], up, j, p)
     return long_runs(stand, p.quiet_min_s * prep.fs_hz)
 
 
@@ -115,8 +113,7 @@ def upright_segments(leg: LegInput) -> tuple[np.ndarray, np.ndarray] | None:
     prep = leg.prep
     out = []
     for acc, up, j in ((prep.acc_thigh_mps2, ups[0], leg.axes.j1), (prep.acc_shank_mps2, ups[1], leg.axes.j2)):
-        y = np.cross(j, up)
-        out.append(np.abs(np.degrees(np.arctan2(acc @ y, acc @ up))) < leg.params.posture.upright_deg)
+        out.append(_upright(acc, up, j, leg.params.posture))
     return out[0], out[1]
 
 
@@ -172,9 +169,13 @@ def thigh_upright_at(prep: PreparedLeg, axes: JointAxes, strides: Sequence[tuple
     cum = np.concatenate((np.zeros((1, 3)), np.cumsum(acc, axis=0)))
     lo, hi = np.clip(idx - half, 0, prep.n), np.clip(idx + half + 1, 0, prep.n)
     mean = cum[hi] - cum[lo]
-    up, j = ups[0], axes.j1
+    return _upright(mean, ups[0], axes.j1, params)
+
+
+def _upright(force: np.ndarray, up: np.ndarray, j: np.ndarray, params: PostureParams) -> np.ndarray:
+    """(M,) bool per specific force (M, 3): within ``upright_deg`` of ``up`` in the joint plane normal to ``j``."""
     y = np.cross(j, up)
-    return np.abs(np.degrees(np.arctan2(mean @ y, mean @ up))) < params.upright_deg
+    return np.abs(np.degrees(np.arctan2(force @ y, force @ up))) < params.upright_deg
 
 
 def in_bouts(leg: LegInput) -> np.ndarray:

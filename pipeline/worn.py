@@ -35,10 +35,11 @@ Either physical test marks a stretch:
 
 Either stretch reaches back to the last moment the leg was surely on the body, quiet upright standing, a swing in a
 walking bout or the end of a stride (the removal's turning makes no whole stride), by at most ``reach_s``. The leg
-shows nothing inside its stretches (:func:`blanked`); where the sensors were handled, the session processes the
-pieces on either side apart (:mod:`pipeline.session`, :func:`pieces_s`, :func:`joined`), each learning its own knee
-axes and level (the sensors may have gone back on otherwise, and the handling is no knee motion for the hinge fit; a
-piece without a gait stride shows nothing). A rest alone neither splits nor cuts the leg's data: on an independent
+shows nothing inside its stretches (:func:`blanked`); where the sensors were handled, or a segment lay still while
+its leg walked (fallen off), the session processes the pieces on either side apart (:mod:`pipeline.session`,
+:func:`pieces_s`, :func:`joined`), each learning its own knee axes and level (the sensors may have gone back on
+otherwise, and neither the handling nor the still segment is knee motion for the hinge fit; a piece without a gait
+stride shows nothing). A rest alone neither splits nor cuts the leg's data: on an independent
 simulator, cutting the still leg's rests of one-legged exercises out cost its strides 0.2-0.6 deg of mean accuracy
 (the rests' orientations inform the accelerometer offsets, :mod:`pipeline.rest_offset`). The other leg's strides
 there are still judged against this leg as recorded, so a lying or seated one-legged exercise cannot become gait.
