@@ -383,7 +383,7 @@ def _level_strides(legs: dict[str, LegResult], params: PhaseParams, warnings: li
     (its angle's shape is)."""
     out = dict(legs)
     for leg, lr in legs.items():
-        if lr.activity != "walking" or not lr.strides:
+        if lr.activity != "walking" or not lr.strides or _clock_unknown(lr):
             continue
         spans = np.array([(s.t_start_s, s.t_end_s) for s in lr.strides])
         stairs = not_level_walking(lr.angle_deg, lr.t_s, spans, params.level_band_deg, params.level_min_share)
