@@ -185,8 +185,9 @@ class SyncParams:
     wide_min_windows: int = 3
     """Windows that must speak in the wide search (the narrow one takes two)."""
     scattered_max_lag_s: float = 0.015
-    """Where the wide search's window lags scatter beyond ``agree_s`` about a line beyond this [s], the leg's timing
-    is unknown (``clock_disagreement``: its strides stay out of trends); 15 ms move the swing peak by ~7 deg."""
+    """Where the wide search's window lags scatter beyond ``agree_s`` but every one lies beyond this [s] on the same
+    side, the leg's timing is unknown (``clock_disagreement``: its strides stay out of trends); 15 ms move the swing
+    peak by ~7 deg. Windows of exercises without a walk scatter on both sides and leave the leg as it was."""
     restamp_max_lag_s: float = 0.25
     """Widest lag [s] searched on a whole leg re-stamped by the stride timing's drift (a clock without a crystal,
     :func:`pipeline.sync.synchronised_leg`): a quarter of a slow stride, so that the hinge cue's cost of a periodic
