@@ -194,18 +194,17 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
     then finds: phone-side stamps carry a BLE connection interval and the radio's buffering, and two independent
     simulators drew +-40 ms per sensor (80 ms between a thigh and its shank), whose 60-75 ms went uncorrected with
     swing peaks 10-40 deg off. A line found near the edge of the narrow range (beyond ``wide_from_share`` of it: the
-    windows' searches follow the line of those before and slide part of the way out) is searched wide as well: the
-    wide line is kept, and without one the timing is unknown. The wide search reads each window again around the lag
-    it read (``research_times``) and, where its windows scatter but all lie beyond ``scattered_max_lag_s`` on one
-    side, says the timing is unknown."""
+    windows' searches follow the line of those before and slide part of the way out) is searched wide as well, and
+    the wide line kept where there is one (a drifting clock's narrow line lies there too, rightly). The wide search
+    reads each window again around the lag it read (``research_times``) and, where its windows scatter but all lie
+    beyond ``scattered_max_lag_s`` on one side, says the timing is unknown."""
     fit = _clock_model(prep, g1, g2, axes, params, axes_params)
     near_edge = fit.offset_s is not None and abs(fit.offset_s) > params.wide_from_share * params.max_lag_s
     if (fit.offset_s is not None and not near_edge) or fit.disagreement or params.wide_max_lag_s <= params.max_lag_s:
         return fit
     wide = _clock_model(prep, g1, g2, axes, dataclasses.replace(params, max_lag_s=params.wide_max_lag_s),
                         axes_params, wide=True)
-    # a line at the edge of the narrow range that the wide search does not bear out: the timing is unknown
-    return ClockFit(None, disagreement=True) if near_edge and wide.offset_s is None else wide
+    return fit if near_edge and wide.offset_s is None else wide
 
 
 def _clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
