@@ -116,9 +116,8 @@ def level_step(leg: LegInput, params: MountingParams = WALKING.mounting, stance_
     stand_deg = np.array([np.nanmedian(angle[a:b]) for a, b in runs])
     offs = stance_offsets(leg, go_relative(leg)[0], strides)[0] if stance_levels_deg is None else stance_levels_deg
     stride_t = np.array([t_s[a] for a, _, _ in strides])
-    ok = np.isfinite(offs)
-    return coherent_step(stand_t[np.isfinite(stand_deg)], stand_deg[np.isfinite(stand_deg)], stride_t[ok], offs[ok],
-                         params)
+    stood, ok = np.isfinite(stand_deg), np.isfinite(offs)
+    return coherent_step(stand_t[stood], stand_deg[stood], stride_t[ok], offs[ok], params)
 
 
 def coherent_step(stand_t_s: np.ndarray, stand_deg: np.ndarray, stride_t_s: np.ndarray, stride_deg: np.ndarray,

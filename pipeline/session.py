@@ -160,6 +160,7 @@ def _angle_warnings(legs: dict[str, LegResult]) -> list[str]:
 
 
 def _mounting_warning(leg: str, m: MountingCheck) -> str:
+    """The session warning of a leg whose mounting changed (:mod:`pipeline.mounting`): what moved, and when."""
     moved = [f"the knee axis moved {m.thigh_deg:.0f} deg in the thigh sensor's frame, {m.shank_deg:.0f} deg in the "
              "shank's"] if m.thigh_deg is not None and m.shank_deg is not None else []
     if m.level_step_deg is not None:
