@@ -71,10 +71,12 @@ def r_scale(leg: LegInput, quiet: np.ndarray) -> np.ndarray:
     return np.where(quiet, leg.params.kf.quiet_r_scale, 1.0)
 
 
-def run_per_segment(leg: LegInput, fn: Callable[[int, int], np.ndarray], usable: np.ndarray) -> np.ndarray:
+def run_per_segment(leg: LegInput, fn: Callable[[int, int], np.ndarray], usable: np.ndarray,
+                    restart_ok: np.ndarray | None = None) -> np.ndarray:
     """``fn(a, b)`` on each valid run ``[a, b)`` of the leg, NaN elsewhere. ``usable`` (N,) bool: where the
     accelerometer may update the filter (:func:`update_mask`); a filter starts from its first usable samples
     (:func:`pipeline.estimators.kf.start_from_measurement`), so a run without any is left NaN: it has no level.
+    ``restart_ok`` (N,) bool, None for everywhere: the samples after a fill at which a restart may be made.
 
     The filters restart after a masked gap, and after a hole filled from the neighbouring strides
     (``PreparedLeg.filled_s``): a filter integrates the fill's rate like a measured one, and a neighbouring stride's
@@ -97,7 +99,8 @@ def run_per_segment(leg: LegInput, fn: Callable[[int, int], np.ndarray], usable:
             continue
         m = measured[a:b]
         # a piece may restart at the first measured sample after each fill
-        cands = [k for k in (a + 1 + np.flatnonzero(m[1:] & ~m[:-1])).tolist() if k <= b - 2]
+        cands = [k for k in (a + 1 + np.flatnonzero(m[1:] & ~m[:-1])).tolist()
+                 if k <= b - 2 and (restart_ok is None or restart_ok[k])]
         restarts: list[int] = []
         start = a
         for k, nxt in zip(cands, [*cands[1:], b][:len(cands)], strict=True):

@@ -435,6 +435,9 @@ class CfParams:
     tau_s: float = 0.5
     """Time constant [s] of the accelerometer correction, lambda = dt / tau: shorter follows accelerometer noise on
     real data (biomechZoo), longer lets gyro bias through (simulator)."""
+    restart_quiet_share: float = 0.5
+    """Walking: the filter restarts after a filled hole when at least this share of the second after it is quiet
+    (:func:`pipeline.estimators.cf.walking_cf`): the start value is then the accelerometer angle of gravity alone."""
 
 
 @dataclass(frozen=True)

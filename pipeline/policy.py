@@ -34,7 +34,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from pipeline.estimators import get_estimator
-from pipeline.estimators.cf import complementary_filter
+from pipeline.estimators.cf import walking_cf
 from pipeline.estimators.go import GoDiagnostics, go_relative
 from pipeline.estimators.kf import FilterDiagnostics
 from pipeline.leg_input import EstimatorDiagnostics, LegInput
@@ -229,8 +229,7 @@ def go_levelled(leg: LegInput, angle: np.ndarray, go_rel: np.ndarray) -> np.ndar
 def walking_auto(leg: LegInput) -> PolicyResult:
     """The walking policy: absolute GO per stride, CF fallback (module docstring)."""
     go_rel, go_diag = go_relative(leg)
-    cf = complementary_filter(leg.rate_dps, leg.acc_angle_deg, leg.fs_hz, leg.prep.valid, leg.params.cf.tau_s)
-    return fuse(leg, go_rel, go_diag, cf)
+    return fuse(leg, go_rel, go_diag, walking_cf(leg))
 
 
 def _running_median(x: np.ndarray, width: int) -> np.ndarray:
