@@ -225,6 +225,25 @@ def mean_cycle(x: np.ndarray, cycles: tuple[tuple[int, int], ...] | list[tuple[i
     return np.mean(rows, axis=0) if rows else np.full(n_points, np.nan)
 
 
+def shank_axis_sign(j2: np.ndarray, g2_rps: np.ndarray,
+                    cycles: tuple[tuple[int, int], ...] | list[tuple[int, int]],
+                    params: RunningParams = _RP) -> np.ndarray:
+    """The sign of ``j2`` for running: the one under which the shank rotates forward (positive rate) over the late
+    swing of the foot-strike cycle (``RunningParams.shank_swing_window``; Novacheck 1998). The walking convention
+    (:func:`pipeline.axes.orient_axes`: the largest excursion positive) takes the swing peak for granted; in running
+    the stance right after a rearfoot strike can turn the shank backwards faster than the swing turns it forwards,
+    and the wrong sign makes the knee angle the sum of the two segments' angles. The foot strikes come from the
+    shank accelerometer's impacts, so they do not depend on the sign."""
+    if len(cycles) < 3:
+        return j2
+    m = mean_cycle(np.rad2deg(g2_rps @ j2), cycles)
+    if not np.isfinite(m).all():
+        return j2
+    lo, hi = params.shank_swing_window
+    late = m[int(round(lo * (m.size - 1))):int(round(hi * (m.size - 1))) + 1]
+    return j2 if float(late.mean()) >= 0.0 else -j2
+
+
 def thigh_axis_sign(j1: np.ndarray, j2: np.ndarray, g1_rps: np.ndarray, g2_rps: np.ndarray,
                     cycles: tuple[tuple[int, int], ...] | list[tuple[int, int]], fs_hz: float,
                     params: RunningParams = _RP) -> np.ndarray:
@@ -312,11 +331,13 @@ def build_running_leg_input(prep: PreparedLeg, params: PipelineParams, cycles: R
 def _running_axes(prep: PreparedLeg, fit_mask: np.ndarray, cycles: RunningCycles, params: PipelineParams
                   ) -> JointAxes:
     """Eq. 2 axes on the fit windows; signs from whole strides (within 40-80 % thigh and shank may rotate in
-    opposite senses) and the thigh's from the timing of the flexion peak (:func:`thigh_axis_sign`)."""
+    opposite senses): the shank's from its late-swing rotation (:func:`shank_axis_sign`), the thigh's from the
+    timing of the flexion peak (:func:`thigh_axis_sign`)."""
     valid = prep.valid
     axes = fit_joint_axes(prep.gyr_thigh_rps, prep.gyr_shank_rps, fit_mask, params.axes,
                           up=axis_up(prep, params.axes))
     j1, j2 = orient_axes(axes.j1, axes.j2, prep.gyr_thigh_rps[valid], prep.gyr_shank_rps[valid])
+    j2 = shank_axis_sign(j2, prep.gyr_shank_rps, cycles.cycles, params.running)
     j1 = thigh_axis_sign(j1, j2, prep.gyr_thigh_rps, prep.gyr_shank_rps, cycles.cycles, prep.fs_hz,
                          params.running)
     return replace(axes, j1=j1, j2=j2)

@@ -7,11 +7,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from pipeline.axes import orient_axes
 from pipeline.constants import G_MPS2
 from pipeline.estimators import get_estimator
 from pipeline.estimators.cf import complementary_filter
 from pipeline.estimators.kf import kf_leg
-from pipeline.params import RUNNING
+from pipeline.params import RUNNING, WALKING
+from pipeline.phases import detect_gait_events
 from pipeline.prepare import prepare_leg
 from pipeline.running import (
     build_running_leg_input,
@@ -22,6 +24,7 @@ from pipeline.running import (
     impact_mask,
     looks_like_running,
     lowpass_7hz,
+    shank_axis_sign,
     thigh_axis_sign,
 )
 from pipeline.session import process_session
@@ -191,6 +194,44 @@ def test_thigh_axis_sign_is_recovered_from_the_swing_peak(running_sim: SimSessio
     for start in (j1, -j1):
         got = thigh_axis_sign(start, j2, prep.gyr_thigh_rps, prep.gyr_shank_rps, cycles, prep.fs_hz)
         np.testing.assert_allclose(got, j1)
+
+
+def _rearfoot_shank_rate_dps(fs_hz: float = 100.0, stride_s: float = 0.7, n_strides: int = 30
+                             ) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """A running shank's sagittal rate [deg/s] from foot strike to foot strike: the loading dip after a rearfoot
+    strike (-700 at 18 %) deeper than both the early-swing minimum (-350 at 40 %) and the swing peak (+600 at
+    75 %). Returns the rate and the (strike, next strike) cycles."""
+    keys = np.array([(0, 0), (0.05, -300), (0.18, -700), (0.3, -200), (0.4, -350), (0.55, 0), (0.75, 600),
+                     (0.92, 100), (1.0, 0)], dtype=float)
+    t = np.arange(int(n_strides * stride_s * fs_hz)) / fs_hz
+    rate = np.interp((t / stride_s) % 1.0, keys[:, 0], keys[:, 1])
+    per = int(round(stride_s * fs_hz))
+    return rate, [(k * per, (k + 1) * per) for k in range(n_strides - 1)]
+
+
+def test_shank_axis_sign_comes_from_the_late_swing_not_the_largest_rate() -> None:
+    """Where the stance dip outweighs the swing peak, the walking convention (largest excursion positive) turns the
+    shank axis round; the late swing of the foot-strike cycle turns it back, from either start."""
+    rate, cycles = _rearfoot_shank_rate_dps()
+    j = np.array([0.0, 0.0, 1.0])
+    g2 = np.deg2rad(rate)[:, None] * j
+    g1 = 0.4 * np.roll(g2, 10, axis=0)
+    _, flipped = orient_axes(j, j, g1, g2)
+    np.testing.assert_allclose(flipped, -j)
+    for start in (j, -j):
+        np.testing.assert_allclose(shank_axis_sign(start, g2, cycles), j)
+
+
+def test_running_toe_off_is_not_taken_from_the_loading_dip() -> None:
+    """Walking's 0.3 s toe-off search reaches back into a running stride's loading response; its deeper dip made
+    every stance share ~18 % and every stride implausible. The running preset searches 0.2 s."""
+    rate, _ = _rearfoot_shank_rate_dps()
+    valid = np.ones(rate.size, dtype=bool)
+    assert detect_gait_events(rate, 100.0, valid, params=WALKING.phases).strides == []
+    strides = detect_gait_events(rate, 100.0, valid, params=RUNNING.phases).strides
+    assert len(strides) >= 25
+    share = [100 * (t - a) / (b - a) for a, t, b in strides]
+    assert all(35 <= x <= 50 for x in share)  # true toe-off near the early-swing minimum, 35-40 %
 
 
 def test_kf_update_mask_skips_impacts_and_keeps_swing_windows(running_sim: SimSession) -> None:
