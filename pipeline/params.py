@@ -72,6 +72,11 @@ class AxesParams:
     fit_cutoff_hz: float = 10.0
     """Gyro/acc low-pass [Hz] for the axis and centre fits and the accelerometer angle: keeps gait (< 6 Hz),
     drops sensor noise and impact ringing."""
+    min_gait_strides: int = 3
+    """Fewest gait strides (:func:`pipeline.bilateral.gait_strides`) that anchor a leg's knee axes, their signs and
+    its zero; with fewer the leg shows no angle and keeps no stride (``pipeline.session``). A turn on the spot
+    gives 1-2 (an independent simulator's step-to crutch gait, whose steps are no strides: 1-2 per leg from its
+    turns, and the trace they anchored read a 30 deg swing as -14 deg); a single walk of 5 steps gives 3."""
     fit_margin_s: float = 0.1
     """Centre-fit samples stay this far [s] from a masked gap: filters and Eq. 1 differences are unreliable there."""
     max_fit_samples: int = 1000

@@ -132,7 +132,7 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
         if _keep_labels(leg, streams, activity, estimator, params, (calibration or {}).get(leg), others.get(leg),
                         legs, swings, by_leg, assigned, warnings):
             gait_legs.discard(leg)
-    legs = _withhold_unanchored(legs, gait_legs, warnings)
+    legs = _withhold_unanchored(legs, gait_legs, session_params.axes.min_gait_strides, warnings)
     legs = _check_sides(legs, ap, session_params.quality, warnings)
     warnings += _angle_warnings(legs)
     _note_assignment(legs, assigned)
@@ -412,31 +412,47 @@ def _withheld(lr: LegResult) -> bool:
     return lr.diagnostics is not None and lr.diagnostics.trace_withheld is not None
 
 
-def _withhold_unanchored(legs: dict[str, LegResult], gait_legs: set[str], warnings: list[str]
-                         ) -> dict[str, LegResult]:
+def _withhold_unanchored(legs: dict[str, LegResult], gait_legs: set[str], min_gait_strides: int,
+                         warnings: list[str]) -> dict[str, LegResult]:
     """Each leg without a gait stride loses its knee-angle trace (every sample NaN, ``trace_withheld``): none of the
     strides its gait events delimit survives the other leg's anti-phase check, or a label exchange was undone
     (:func:`_keep_labels`); ``gait_legs`` are the others. A still other leg (its sensors not worn) contradicts
     every stride too: such a leg loses its strides already (:func:`_alternating_strides`), and its trace with them.
+    A leg with fewer than ``min_gait_strides`` (``AxesParams.min_gait_strides``) loses its trace and its strides.
 
     The knee axes (Seel et al. 2014 Eq. 2 orients them by the swing), the upright directions that tell standing from
     sitting, and so the absolute zero (:mod:`pipeline.posture`) are all learned from gait. Without it they are
     unanchored: seated knee extensions keep the thigh still (its axis is unobservable), and on exercise-only
     sessions of two simulators (sitting, seated extensions, sit-to-stand, jumps, a step test; no walking) the trace
     was 10-100 deg off, with the seated knee read near 0 deg. A gait stride dropped later as stair gait still counts:
-    it turns the knee about the same axis (stair-only sessions: trace RMSE 0.7-1.7 deg)."""
+    it turns the knee about the same axis (stair-only sessions: trace RMSE 0.7-1.7 deg). One or two strides of a
+    turn on the spot do not anchor it: in step-to (crutch) gait, whose steps are no strides, they set the signs and
+    zero of a trace 15-45 deg off."""
     out = dict(legs)
-    for leg in sorted(set(legs) - gait_legs):
+    for leg in sorted(legs):
         lr = legs[leg]
         diag = lr.diagnostics
+        n_gait = 0 if diag is None else diag.gait_strides
+        if leg in gait_legs and n_gait >= min_gait_strides:
+            continue
+        few = leg in gait_legs
+        if few:
+            lr = lr.without(set(range(len(lr.strides))))
+            diag = lr.diagnostics
         if diag is not None:
             diag = dataclasses.replace(diag, trace_withheld=TRACE_WITHHELD_NO_GAIT)
         out[leg] = dataclasses.replace(lr, angle_deg=np.full_like(lr.angle_deg, np.nan),
                                        estimator=np.full(lr.estimator.shape, "", dtype=lr.estimator.dtype),
                                        diagnostics=diag)
-        warnings.append(f"{leg} leg: no knee angle: no gait stride in the session to learn the knee axes and the "
-                        "angle's zero from (exercises or sitting alone, or strides the other leg's swings contradict: "
-                        "jumps, squats, or that leg's sensors not worn); the trace is withheld (trace_withheld)")
+        if few:
+            warnings.append(f"{leg} leg: no knee angle: only {n_gait} gait stride(s) in the session, too few to learn "
+                            f"the knee axes and the angle's zero from (at least {min_gait_strides}: a turn on the "
+                            "spot or a single step, not a walk); its strides and trace are withheld (trace_withheld)")
+        else:
+            warnings.append(f"{leg} leg: no knee angle: no gait stride in the session to learn the knee axes and the "
+                            "angle's zero from (exercises or sitting alone, or strides the other leg's swings "
+                            "contradict: jumps, squats, or that leg's sensors not worn); the trace is withheld "
+                            "(trace_withheld)")
     return out
 
 

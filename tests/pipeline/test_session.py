@@ -158,6 +158,21 @@ def test_an_exercise_session_without_gait_withholds_the_trace(kw: dict) -> None:
     assert sum("no knee angle" in w for w in res.warnings) == 2
 
 
+@pytest.mark.parametrize(("n_strides", "anchored"), [(4, False), (5, True)])
+def test_too_few_gait_strides_anchor_no_angle(n_strides: int, anchored: bool) -> None:
+    """A single walk of 4 steps leaves 2 gait strides per leg (the bout's edges are no strides): too few to learn
+    the axes' signs and the zero from (``AxesParams.min_gait_strides``), so the leg shows no angle and keeps no
+    stride; 5 steps leave 3 and anchor it."""
+    sim = simulate_session(SimConfig(seed=0, n_strides=n_strides, bout_strides=n_strides, activities=("standing",)))
+    res = process_session(sim.streams, activity=sim.activity)
+    for lr in res.legs.values():
+        assert lr.diagnostics is not None
+        assert (lr.diagnostics.trace_withheld is None) is anchored
+        assert bool(lr.strides) is anchored
+        assert bool(np.isfinite(lr.angle_deg).any()) is anchored
+    assert any("too few" in w for w in res.warnings) is not anchored
+
+
 def test_a_stair_only_session_keeps_its_trace() -> None:
     """Stair gait turns the knee about the same axis as walking: the trace stays, although no stride is kept (the
     level-walking rule drops them)."""
