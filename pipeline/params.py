@@ -597,9 +597,16 @@ class QualityParams:
     default_penalty: float = 0.1
     """Quality lost for a reason not listed."""
     untrusted: tuple[str, ...] = ("peak_in_gap", "long_gap", "clock_disagreement", "side_in_doubt",
-                                   "level_wander", "mounting_changed", "sensors_handled")
+                                   "level_wander", "mounting_changed", "sensors_handled", "leg_mismatch")
     """Reasons that leave the stride's metrics unobserved or unmeasurable: quality is capped below the trend
     threshold."""
+    leg_mismatch_share: float = 0.5
+    """A leg whose strides fail ``go_cf_mismatch`` at least this often (of ``leg_mismatch_min_strides`` or more)
+    keeps every stride out of trends (``leg_mismatch``): the failure is the leg's, not the strides'. An independent
+    simulator's uncorrected 39 ms thigh-shank clock offset left 27 of 30 strides mismatched and the other 3, 12 deg
+    high like them, in trends."""
+    leg_mismatch_min_strides: int = 6
+    """Fewest strides a leg's mismatch share is judged on."""
     untrusted_cap: float = 0.3
     """Quality ceiling of a stride with an untrusted reason."""
     peak_lead_s: float = 0.15

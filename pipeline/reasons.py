@@ -19,6 +19,10 @@ REASONS: dict[str, str] = {
                     "one in this stride (RunningParams.level_wander_deg): the accelerometer updates dragged it "
                     "(out of trends)",
     "go_cf_mismatch": "the gyroscope-only and complementary-filter estimates disagree in shape (out of trends)",
+    "leg_mismatch": "most of the leg's strides fail the gyroscope-only / complementary-filter agreement "
+                    "(QualityParams.leg_mismatch_share): a fault common to the whole leg (its thigh-shank timing or "
+                    "axes) that the check catches only where it shows most, so none of its strides is vouched for "
+                    "(out of trends)",
     "cf_fallback": "the complementary filter was used instead of the gyroscope-only estimate",
     "bridged_gap": "a short data gap inside the stride was bridged",
     "event_in_gap": "a heel strike or toe-off fell inside a bridged gap",

@@ -598,6 +598,8 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
     leg_reasons = (("clock_disagreement",) if clock_unknown else ()) + (("mounting_changed",) if mounting.changed
                                                                          else ())
     strides = _strides(leg, data, result, leg_reasons)
+    if _mostly_mismatched(strides, data.params.quality):
+        strides = _strides(leg, data, result, (*leg_reasons, "leg_mismatch"))
     n_gait = len(data.running_cycles) if data.running_cycles else \
         len(gait_strides(data.prep.t_s, data.events.strides, data.events.ms, other))
     diagnostics = dataclasses.replace(_diagnostics(data, synced, result, strides, running, calibration,
@@ -607,6 +609,12 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
                      estimator=result.estimator, strides=strides, gaps_s=list(data.prep.gaps_s),
                      walking_s=float(sum(s.duration_s for s in strides)), activity=data.activity,
                      diagnostics=diagnostics), data.prep.t_s[data.events.ms]
+
+
+def _mostly_mismatched(strides: list[StrideMetrics], params: QualityParams) -> bool:
+    """Whether ``params.leg_mismatch_share`` or more of the leg's strides fail ``go_cf_mismatch``."""
+    failed = sum("go_cf_mismatch" in s.quality_reasons for s in strides)
+    return len(strides) >= params.leg_mismatch_min_strides and failed >= params.leg_mismatch_share * len(strides)
 
 
 def _strides(leg: str, data: LegInput, result: PolicyResult, leg_reasons: tuple[str, ...] = ()

@@ -34,6 +34,7 @@ REASONS = {
     "bridged_gap": "a short data gap was bridged",
     "go_cf_mismatch": "the two estimators disagree",
     "level_wander": "running: the angle's level strayed in this stride",
+    "leg_mismatch": "most of this leg's strides failed the agreement of the two estimators: none is trusted",
     "cf_fallback": "complementary filter used instead of the gyroscope-only estimator",
     "clock_disagreement": "the thigh and shank sensors' clocks ran apart: the angle's timing cannot be trusted",
     "side_in_doubt": "the left and right sensor labels look swapped: this stride may belong to the other knee",
