@@ -173,6 +173,22 @@ def test_too_few_gait_strides_anchor_no_angle(n_strides: int, anchored: bool) ->
     assert any("too few" in w for w in res.warnings) is not anchored
 
 
+def test_a_leg_whose_strides_mostly_mismatch_keeps_none_in_trends() -> None:
+    """A 60 ms thigh clock offset left uncorrected (the clock search switched off) makes GO and CF disagree on most
+    strides: the leg's fault, so every stride of it carries ``leg_mismatch`` and stays out of trends; the other leg
+    is untouched."""
+    sim = simulate_session(SimConfig(seed=2, n_strides=24, bout_strides=12, activities=("standing",)))
+    streams = [dataclasses.replace(s, t_s=s.t_s + 0.06) if (s.leg, s.segment) == ("left", "thigh") else s
+               for s in sim.streams]
+    no_search = dataclasses.replace(WALKING, sync=dataclasses.replace(WALKING.sync, max_lag_s=0.001,
+                                                                      wide_max_lag_s=0.001))
+    res = process_session(streams, params=no_search)
+    left, right = res.legs["left"].strides, res.legs["right"].strides
+    assert len(left) >= WALKING.quality.leg_mismatch_min_strides
+    assert all("leg_mismatch" in s.quality_reasons and s.quality < 0.5 for s in left)
+    assert right and not any("leg_mismatch" in s.quality_reasons for s in right)
+
+
 def test_a_stair_only_session_keeps_its_trace() -> None:
     """Stair gait turns the knee about the same axis as walking: the trace stays, although no stride is kept (the
     level-walking rule drops them)."""
