@@ -411,7 +411,7 @@ def stride_clock_runaway(t_s: np.ndarray, thigh_sag_dps: np.ndarray, ms: np.ndar
     cannot make once a drift smears a window's lag beyond the search range (beyond ~1000 ppm in 40 s windows), nor
     after a wrong correction. True when the 95 % interval lies wholly beyond ``limit``."""
     seen = stride_timing_drift(t_s, thigh_sag_dps, ms, fs_hz, params)
-    return seen is not None and seen.beyond(params.max_drift if limit is None else limit)
+    return seen is not None and bool(seen.beyond(params.max_drift if limit is None else limit))
 
 
 def _leg_stride_drift(prep: PreparedLeg, axes: JointAxes, params: PipelineParams,

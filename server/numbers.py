@@ -16,7 +16,8 @@ def finite_round(x: float | None, nd: int | None = 4) -> float | None:
 
 
 def json_safe(value: object) -> object:
-    """Non-finite floats become None: PostgreSQL's JSON rejects NaN, and API clients cannot parse it either."""
+    """Non-finite floats become None: PostgreSQL's JSON rejects NaN, and API clients cannot parse it either. numpy
+    scalars become Python ones (the JSON encoder knows neither ``np.float64`` nor ``np.bool_``)."""
     if isinstance(value, dict):
         return {k: json_safe(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
@@ -25,4 +26,6 @@ def json_safe(value: object) -> object:
         return float(value) if math.isfinite(value) else None
     if isinstance(value, np.integer):
         return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
     return value
