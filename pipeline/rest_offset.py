@@ -70,14 +70,8 @@ def posture_clusters(blocks: np.ndarray, params: PostureParams = WALKING.posture
         label[free[0]] = label[join] = n_groups  # the first block always: rounding may put u.u just below cos_tol
         n_groups += 1
     counts = np.bincount(label, minlength=n_groups)
-    # the median: a minority of blocks that are still but not at rest (a vehicle) cannot move it. Taken apart, as the
-    # median length along the median direction: a component-wise median of readings spread over an arc lies inside
-    # the sphere by up to g (1 - cos) of the spread (0.6 m/s^2 over +-20 deg: slow exercises pass for rests), which
-    # the sphere fit would read as an offset
-    groups = [blocks[label == c] for c in range(n_groups)]
-    dirs = np.array([np.median(u[label == c], axis=0) for c in range(n_groups)])
-    dirs /= row_norm(dirs)[:, None]
-    return np.array([np.median(row_norm(g)) for g in groups])[:, None] * dirs, counts
+    # the median: a minority of blocks that are still but not at rest (a vehicle) cannot move it
+    return np.array([np.median(blocks[label == c], axis=0) for c in range(n_groups)]), counts
 
 
 def _sphere_fit(m: np.ndarray, w: np.ndarray, ridge: float) -> np.ndarray:

@@ -98,17 +98,6 @@ def test_rest_blocks_come_from_still_runs_only() -> None:
     assert np.allclose(blocks, [0.0, 0.0, G_MPS2])
 
 
-def test_a_posture_spread_over_an_arc_reads_no_offset() -> None:
-    """Rest blocks spread evenly over +-20 deg about one direction, on the sphere (no offset): the posture's
-    representative stays on the sphere (a component-wise median lies 0.6 m/s^2 inside it), so no offset is fitted."""
-    ang = np.radians(np.linspace(-20.0, 20.0, 41))
-    blocks = G_MPS2 * np.column_stack([np.sin(ang), np.zeros_like(ang), np.cos(ang)])
-    reps, counts = posture_clusters(blocks)
-    assert counts.tolist() == [41] or counts.sum() == 41
-    assert np.allclose(np.linalg.norm(reps, axis=1), G_MPS2)
-    assert np.linalg.norm(fit_rest_offset(blocks)) < 0.05
-
-
 def _session(acc_bias: float):
     return simulate_session(SimConfig(pattern="normal", seed=7, duration_s=80.0, bout_strides=12, legs=("left",),
                                       acc_bias_ms2=acc_bias))
