@@ -599,7 +599,7 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
                                                                          else ())
     strides = _strides(leg, data, result, leg_reasons)
     if _mostly_mismatched(strides, data.params.quality):
-        strides = _strides(leg, data, result, (*leg_reasons, "leg_mismatch"))
+        strides = with_reason(strides, "leg_mismatch", data.params.quality)
     n_gait = len(data.running_cycles) if data.running_cycles else \
         len(gait_strides(data.prep.t_s, data.events.strides, data.events.ms, other))
     diagnostics = dataclasses.replace(_diagnostics(data, synced, result, strides, running, calibration,

@@ -21,7 +21,7 @@ from pipeline.filter_inputs import debiased_rate, run_per_segment, update_mask
 from pipeline.leg_input import EstimatorDiagnostics, LegInput
 from pipeline.params import WALKING
 from pipeline.posture import in_bouts, leg_quiet, standing_reference
-from pipeline.signal_utils import true_runs
+from pipeline.signal_utils import segment_sums, true_runs
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -63,9 +63,9 @@ def walking_cf(leg: LegInput) -> np.ndarray:
     rate, acc, valid = leg.rate_dps, leg.acc_angle_deg, leg.prep.valid
     fs, tau = leg.fs_hz, leg.params.cf.tau_s
     second = max(int(fs), 1)
-    quiet = np.concatenate(([0], np.cumsum(leg_quiet(leg))))
-    ends = np.minimum(np.arange(quiet.size - 1) + second, quiet.size - 1)
-    mostly_quiet = quiet[ends] - quiet[:-1] >= leg.params.cf.restart_quiet_share * second
+    starts = np.arange(valid.shape[0])
+    quiet_after = segment_sums(leg_quiet(leg), starts, np.minimum(starts + second, valid.shape[0]))
+    mostly_quiet = quiet_after >= leg.params.cf.restart_quiet_share * second
     return run_per_segment(leg, lambda a, b: complementary_filter(rate[a:b], acc[a:b], fs, valid[a:b], tau),
                            valid & np.isfinite(acc), restart_ok=mostly_quiet)
 
