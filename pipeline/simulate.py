@@ -182,6 +182,11 @@ class SimConfig:
     # "ringing": the shank shock rings 3 x longer at a lower frequency and rocks the sensor about a random axis
     # (the gyro sees it too), as a loosely strapped sensor would; "default": the model above
     impact_model: Literal["default", "ringing"] = "default"
+    # True: every shock and soft-tissue jolt replaces part of the slowing down before it, so the sensor's velocity
+    # over a gait cycle returns, as Newton has it (_balanced). False: the damped sine added to the accelerometer alone,
+    # which leaves the sensor ~0.07 m/s per g of shock faster along the shank after every strike (no real sensor reads
+    # that unless it clips or rectifies)
+    impact_balanced: bool = True
     move_reps: int = 3  # repetitions of each jump, step-up or sit-to-stand block between bouts
     # per-axis sensitivity (gain) errors, SD of the relative error (uncalibrated MEMS: 1-3 %); 0: exact gains
     gyro_gain_sd: float = 0.0
@@ -353,6 +358,7 @@ _EXTENSION_KNEE_DEG = 10.0  # the knee's angle at the top of the lift (a knee af
 _IMPACT_FREQ_HZ, _IMPACT_TAU_S = 28.0, 0.012  # heel-strike shock: damped sine on the accelerometers
 # With an absolute impact_g, the shank sensor's transient rotation grows with the shock up to running's default.
 _IMPACT_ROT_MAX_DEG = 3.0
+_SHOCK_LEAD_S = 0.015  # the time constant of the slowing before a shock that the shock replaces (impact_balanced)
 _OFF_BODY_MOVE_S = 2.0  # taking a sensor off its strap and laying it on a table
 _OFF_BODY_NEXT_S = 1.0  # between laying one sensor down and taking the next one off
 
@@ -362,6 +368,33 @@ def _damped_sine_peak(freq_hz: float, tau_s: float) -> float:
     w = 2 * np.pi * freq_hz
     u = np.arctan(w * tau_s) / w
     return float(np.exp(-u / tau_s) * np.sin(w * u))
+
+
+def _balanced(pulse: np.ndarray, t: np.ndarray, onsets: np.ndarray, r_sensor: np.ndarray, d_sensor: np.ndarray
+              ) -> np.ndarray:
+    """Specific force (N, 3) in the sensor frame of a shock train ``pulse`` (N,) [m/s^2] along ``d_sensor`` as it
+    points at each onset, held fixed in the world (``r_sensor`` (N, 3, 3): sensor to world), with the shock's velocity
+    change taken away over the ``_SHOCK_LEAD_S`` before it (a lobe ``u exp(u/tau)``). The smooth gait kinematics slow
+    the shank down before heel contact; in truth much of that happens at contact, in the shock, so the shock's velocity
+    change replaces part of theirs and the sensor's velocity over a gait cycle returns (Newton)."""
+    out = np.zeros((t.size, 3))
+    if len(onsets) == 0:
+        return out
+    dt = np.diff(t, append=t[-1])
+    starts = np.searchsorted(t, onsets)
+    stops = np.searchsorted(t, np.append(onsets[1:], np.inf))
+    for i0, i1, t0 in zip(starts, stops, onsets, strict=True):
+        if i1 <= i0:
+            continue
+        dv = float(np.sum(pulse[i0:i1] * dt[i0:i1]))
+        j0 = int(np.searchsorted(t, t0 - 8 * _SHOCK_LEAD_S))
+        lobe = -(t[j0:i0] - t0) * np.exp((t[j0:i0] - t0) / _SHOCK_LEAD_S)
+        area = float(np.sum(lobe * dt[j0:i0]))
+        d_w = r_sensor[i0] @ d_sensor
+        if area > 0:
+            out[j0:i0] -= (dv / area) * lobe[:, None] * np.einsum("nji,j->ni", r_sensor[j0:i0], d_w)
+        out[i0:i1] += pulse[i0:i1, None] * np.einsum("nji,j->ni", r_sensor[i0:i1], d_w)
+    return out
 
 
 def _keyframes(grid: np.ndarray, t0: float, frames: np.ndarray) -> np.ndarray:
@@ -1187,12 +1220,16 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
                 acc = np.einsum("nji,nj->ni", rw, acc)
             if tr_amp > 0 and len(hs):
                 tdir = rng.standard_normal(3)
-                acc += _transient(t_true, hs, tr_amp, 9.0, 0.07, deriv=2)[:, None] * (tdir / np.linalg.norm(tdir))
+                tdir = tdir / np.linalg.norm(tdir)
+                jolt = _transient(t_true, hs, tr_amp, 9.0, 0.07, deriv=2)
+                acc += _balanced(jolt, t_true, hs, r_sensor, tdir) if cfg.impact_balanced else jolt[:, None] * tdir
             if imp_g > 0 and len(hs):
                 # Heel-strike shock travels up the segment (mostly along its long axis, some anterior).
                 d_seg = np.array([rng.uniform(0.1, 0.4), 0.0, 1.0])
                 d_sensor = r_mount.T @ (d_seg / np.linalg.norm(d_seg))
-                acc += _transient(t_true, hs, imp_g * GRAVITY_MS2, imp_freq, imp_tau)[:, None] * d_sensor
+                shock = _transient(t_true, hs, imp_g * GRAVITY_MS2, imp_freq, imp_tau)
+                acc += _balanced(shock, t_true, hs, r_sensor, d_sensor) if cfg.impact_balanced else \
+                    shock[:, None] * d_sensor
             off: dict = {}
             if cfg.off_body == "all" or cfg.off_body == leg:
                 # the sensors sit on the segment's lateral side (lever arms above)
