@@ -98,6 +98,8 @@ _SHORT = {"sync_offset_ms": 0.0, "clock_drift_ppm": 0.0, "standing_s": 1.0}
 
 _BURSTY = {"loss_model": "bursty"}
 _RUN = {"pattern": "running", "fs_hz": 200.0, "activities": ("standing",)}
+# one run of ~190 strides with quiet standing only before and after it
+_LONG_RUN = {**_RUN, "duration_s": 150.0, "bout_strides": 200}
 _RUN_LOSS = {**_RUN, "fs_hz": 128.0, "impact_g": 6.0, "packet_samples": 20, **_BURSTY}
 AXES: dict[str, Axis] = {
     "standing": Axis("Standing knee flexion (the pipeline's absolute zero; gait curve unchanged)", (
@@ -126,7 +128,15 @@ AXES: dict[str, Axis] = {
            **{**_RUN, "standing_s": 0.5, "bout_strides": 1000}),
         _v("6 g, ringing impacts on the gyro too", RUNNING_TARGETS, impact_g=6.0, impact_model="ringing", **_RUN),
         _v("10 g, ringing, no quiet standing", RUNNING_TARGETS, impact_g=10.0, impact_model="ringing",
-           **{**_RUN, "standing_s": 0.5, "bout_strides": 1000})),
+           **{**_RUN, "standing_s": 0.5, "bout_strides": 1000}),
+        _v("6 g, one 150 s run between standing (too long for the bridge)", RUNNING_TARGETS, impact_g=6.0,
+           **_LONG_RUN),
+        _v("6 g, 150 s run, 3-D hip and knee x1", RUNNING_TARGETS, impact_g=6.0, knee_3d=1.0, hip_3d=1.0,
+           **_LONG_RUN),
+        _v("10 g, 150 s run, ringing, sensors 5 cm off the segment axes", RUNNING_TARGETS, impact_g=10.0,
+           impact_model="ringing", lever_offaxis_m=0.05, **_LONG_RUN),
+        _v("6 g, 150 s run, shocks that leave the sensor faster (not balanced)", RUNNING_TARGETS, impact_g=6.0,
+           impact_balanced=False, **_LONG_RUN)),
         note="Targets for running: |peak bias| <= 2 deg, RMSE <= 4 deg (issue 9)."),
     "running_loss": Axis("Running (128 Hz, 6 g) with bursty packet loss per sensor (20-sample packets, mean burst 4 "
                          "packets)", (

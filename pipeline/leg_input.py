@@ -36,6 +36,9 @@ class LegInput:
     acc_update_mask: np.ndarray | None = None  # further restricts accelerometer updates (running: impact-free)
     quiet_mask: np.ndarray | None = None  # precomputed :func:`pipeline.posture.quiet_mask` (running)
     prefiltered: bool = False  # ``prep``'s signals are already low-passed: the filters must not filter again
+    # running: the leg before that low-pass (the cycle-mean gravity integrates the gyro through the swing, whose
+    # rates reach 600-1000 deg/s with content up to ~20 Hz; pipeline.cycle_gravity)
+    unfiltered: PreparedLeg | None = None
 
     @property
     def fs_hz(self) -> float:

@@ -710,6 +710,13 @@ class RunningParams:
     content up to ~20 Hz, and at 50 Hz the integral between rests drifted by several deg per run (accuracy bench,
     running at 50 Hz, tune seeds 0-9: |check| up to 8.3 deg with the filter's level right; none above 3 at 100 and
     200 Hz)."""
+    gravity_tol_mps2: float = 1.0
+    """A running cycle gives its level from gravity (:mod:`pipeline.cycle_gravity`) only where the mean specific
+    force over it lies within this [m/s^2] of g on both sensors: the velocity returned at the cycle's end (a start,
+    a stop, a jump does not) and the gyros carried the frame through it. On the simulator's runs the norms lie within
+    0.5 of g (5th-95th percentile, 100-200 Hz, 3-D hip and knee x2); 1 m/s^2 along the vertical is 6 % of g."""
+    gravity_min_cycles: int = 3
+    """Fewer running cycles with a gravity level leave the filter's level as it is."""
     no_reference_quality: float = 0.4
     """Stride quality without a quiet-standing zero: the level is then GO's (zero at the minimum before swing),
     which a running knee never reaches (it stays 10-25 deg flexed), so peak and minimum flexion may be off by that

@@ -11,17 +11,20 @@ interpolated between stride centres so the trace is continuous. Without standing
 (Allseits' assumption) and the stride says so (``no_absolute_reference``). The trace is GO inside the strides that
 kept it, CF (shifted to the same zero) elsewhere: fallback strides, bout edges, standing, sitting, transitions.
 
-**Running**: the EKF of Rhudy et al. Eq. 22-24 with the running inputs (impact-free 40-80 % updates, per-stride
-gyro de-biasing, quiet-standing anchoring, automatic tuning; :mod:`pipeline.filter_inputs`,
-:mod:`pipeline.tuning`). GO's zero-angle update does not apply: a running knee never straightens (minimum ~15-25
-deg). Rhudy et al. found KF and CF slightly better than their EKF (Table 2, Vicon-tuned). With these inputs and no
-reference tuning the EKF came out best on the simulator (bench/accuracy.py, running, TUNE seeds 0-9 at 100 and
-200 Hz: RMSE EKF 2.17, KF 2.57, CF 3.35 deg; per-stride peak LoA EKF -6.9..5.0, KF -5.5..7.5): its update
-``P |a| |b| / (P |a|^2 + r) sin(alpha_acc - x)`` bounds the pull of a large accelerometer-angle error (the sine)
-and weighs it by the acceleration magnitudes. Without quiet standing in the session the EKF's level would be the
-joint-plane frames' (10-30 deg off, and different at every mounting); its curve then takes GO's level per stride
-(:func:`go_levelled`, reason ``go_level``), which does not depend on the mounting, with a quality below the trend
-threshold: a running knee never straightens, so GO's zero leaves the absolute level unknown by 10-25 deg.
+**Running**: the EKF of Rhudy et al. Eq. 22-24 with the running inputs (impact-free 40-80 % updates, per-stride gyro
+de-biasing, quiet-standing anchoring, automatic tuning; :mod:`pipeline.filter_inputs`, :mod:`pipeline.tuning`), its
+level then taken per cycle from the cycle-mean gravity (:func:`gravity_levelled`, :mod:`pipeline.cycle_gravity`):
+the filter's own level in motion follows the accelerometer angle through the joint centres, and over a long run it
+wandered by up to 6 deg per leg on the simulator (150 s runs) and trend peaks read 3-10 deg high on an independent
+one. GO's zero-angle update does not apply: a running knee never straightens (minimum ~15-25 deg). Rhudy et al.
+found KF and CF slightly better than their EKF (Table 2, Vicon-tuned). With these inputs and no reference tuning the
+EKF came out best on the simulator (bench/accuracy.py, running, TUNE seeds 0-9 at 100 and 200 Hz: RMSE EKF 2.17, KF
+2.57, CF 3.35 deg; per-stride peak LoA EKF -6.9..5.0, KF -5.5..7.5): its update ``P |a| |b| / (P |a|^2 + r)
+sin(alpha_acc - x)`` bounds the pull of a large accelerometer-angle error (the sine) and weighs it by the
+acceleration magnitudes. Without quiet standing in the session the EKF's level would be the joint-plane frames'
+(10-30 deg off, and different at every mounting); its curve then takes GO's level per stride (:func:`go_levelled`,
+reason ``go_level``), which does not depend on the mounting, with a quality below the trend threshold: a running
+knee never straightens, so GO's zero leaves the absolute level unknown by 10-25 deg.
 
 **Both**: an angle outside ``PostureParams.plausible_knee_deg`` is masked (:func:`mask_implausible`), and every
 stride whose standing flexion was assumed rather than measured says so (``assumed_level``).
@@ -33,6 +36,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from pipeline.cycle_gravity import cycle_knee_deg
 from pipeline.estimators import get_estimator
 from pipeline.estimators.cf import walking_cf
 from pipeline.estimators.go import GoDiagnostics, go_relative
@@ -83,6 +87,9 @@ class PolicyResult:
     # quiet upright standing mask it was anchored on, which the mounting check reuses (pipeline.mounting.level_step)
     stance_levels_deg: np.ndarray | None = None
     standing: np.ndarray | None = None
+    # running auto: the median shift [deg] that moved the filter's curve to the cycle-mean gravity level
+    # (:func:`gravity_levelled`), None where that level was not found
+    gravity_shift_deg: float | None = None
 
 
 def _reference(ref: float | None) -> AbsoluteReference:
@@ -157,12 +164,17 @@ def running_auto(leg: LegInput) -> PolicyResult:
     levelled = go_levelled(leg, angle, go_rel) if ref is None and go_rel is not None else None
     if levelled is not None:
         angle = levelled
-    check, bridged_level = None, False
-    if ref is not None and leg.fs_hz >= rp.bridge_min_fs_hz:
-        # the filter's level rests on the accelerometer angle in motion (joint centres, clock); the quiet standing
-        # around each run checks it (pipeline.quiet_bridge), as walking's
+    gravity_shift, check, bridged_level = None, None, False
+    standing = standing_mask(leg) if ref is not None else None
+    if standing is not None:
+        # the filter's level in motion rests on the accelerometer angle, which the joint centres and the axes' fit
+        # carry; the cycle-mean gravity needs neither (pipeline.cycle_gravity)
+        angle, gravity_shift = gravity_levelled(leg, angle, standing)
+    if ref is not None and standing is not None and leg.fs_hz >= rp.bridge_min_fs_hz:
+        # the quiet standing around each run checks the level again (pipeline.quiet_bridge), as walking's: where
+        # no whole cycle gave gravity's level, the filter's own is all there was
         fp = leg.params.fusion
-        check = level_check(leg, angle, ref - leg.params.posture.standing_knee_deg, fp, standing_mask(leg))
+        check = level_check(leg, angle, ref - leg.params.posture.standing_knee_deg, fp, standing)
         if check is not None and abs(check) > rp.bridge_disagree_deg:
             angle = angle + check
             bridged_level = True
@@ -182,7 +194,42 @@ def running_auto(leg: LegInput) -> PolicyResult:
                         choices=tuple(wander if w else choice for w in wandered),
                         absolute_reference=_reference(ref), standing_ref_deg=None if ref is None else round(ref, 2),
                         tuning=_tuning(diag), bridge_check_deg=None if check is None else round(check, 2),
-                        level_bridged=bridged_level)
+                        level_bridged=bridged_level,
+                        gravity_shift_deg=None if gravity_shift is None else round(gravity_shift, 2))
+
+
+def gravity_levelled(leg: LegInput, angle: np.ndarray, standing: np.ndarray) -> tuple[np.ndarray, float | None]:
+    """``angle`` (N,) [deg] moved, within the running cycles, to the level of the cycle-mean gravity
+    (:func:`pipeline.cycle_gravity.cycle_knee_deg`), and the median shift [deg].
+
+    Each cycle's gravity angle at its foot strike is carried through the cycle by the knee rate (``leg.rate_dps``,
+    the filter's own input), and the cycle's shift is the mean of that path minus ``angle`` over it: a comparison at
+    the strike alone would read the filter's lag where the knee flexes fastest. The shifts are smoothed over
+    neighbouring cycles (``FusionParams.offset_smooth``, as walking's mid-stance levels) and interpolated between
+    cycle centres; towards each period of quiet standing (``standing``) they fall to zero, where the filter's own
+    level is the static angle. Fewer than ``RunningParams.gravity_min_cycles`` cycles with a level leave ``angle``
+    as it is (shift None)."""
+    rp = leg.params.running
+    lo, hi, knee = cycle_knee_deg(leg, standing, rp.gravity_tol_mps2)
+    if lo.size < rp.gravity_min_cycles:
+        return angle, None
+    rate = np.nan_to_num(leg.rate_dps) / leg.fs_hz
+    path = np.concatenate(([0.0], np.cumsum(rate)))[:-1]  # the rate's integral up to each sample
+    d = path - angle
+    ok = np.isfinite(d)
+    n_ok = segment_sums(ok, lo, hi)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shift = knee - path[lo] + segment_sums(np.where(ok, d, 0.0), lo, hi) / n_ok
+    good = np.isfinite(shift) & (n_ok > 0)
+    if good.sum() < rp.gravity_min_cycles:
+        return angle, None
+    centres = 0.5 * (lo + hi)[good]
+    shift = _running_median(shift[good], leg.params.fusion.offset_smooth)
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], standing.astype(np.int8), [0])))).reshape(-1, 2)
+    at = np.concatenate((centres, edges[:, 0], edges[:, 1] - 1))
+    value = np.concatenate((shift, np.zeros(edges.size)))
+    order = np.argsort(at, kind="stable")
+    return angle + np.interp(np.arange(angle.shape[0]), at[order], value[order]), float(np.median(shift))
 
 
 def _wandering(offsets: np.ndarray, limit_deg: float) -> list[bool]:

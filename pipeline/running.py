@@ -319,7 +319,8 @@ def build_running_leg_input(prep: PreparedLeg, params: PipelineParams, cycles: R
     update = (fit_mask | quiet) & ~impacts
     leg = LegInput(prep=filt, axes=axes, centres=centres, rate_dps=rate, acc_angle_deg=acc_angle,
                    shank_sag_dps=shank_sag, events=events, params=params, activity="running",
-                   running_cycles=cycles.cycles, acc_update_mask=update, quiet_mask=quiet, prefiltered=True)
+                   running_cycles=cycles.cycles, acc_update_mask=update, quiet_mask=quiet, prefiltered=True,
+                   unfiltered=prep)
     diag = RunningDiagnostics(foot_strikes=int(cycles.strikes.size), cycles=cycles.n_cycles,
                               stride_s=None if np.isnan(cycles.stride_s) else round(cycles.stride_s, 3),
                               impact_g=round(cycles.impact_g, 2),

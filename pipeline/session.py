@@ -675,7 +675,7 @@ def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, stride
         o1_m=tuple(np.round(centres.o1, 4).tolist()), o2_m=tuple(np.round(centres.o2, 4).tolist()),
         cf_shift_deg=result.cf_shift_deg, offset_median_deg=result.offset_median_deg,
         bridge_check_deg=result.bridge_check_deg, level_bridged=result.level_bridged,
-        fallback_bridge_check_deg=result.fallback_bridge_check_deg,
+        fallback_bridge_check_deg=result.fallback_bridge_check_deg, gravity_shift_deg=result.gravity_shift_deg,
         tau_s=None if result.tuning is None else result.tuning.tau_s, running=running,
         standing_knee_deg=data.params.posture.standing_knee_deg,
         level_source="calibration" if calibration is not None else "assumed",

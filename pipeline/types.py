@@ -147,6 +147,9 @@ class LegDiagnostics:
     bridge_check_deg: float | None = None
     level_bridged: bool = False
     fallback_bridge_check_deg: float | None = None  # the check on the CF fallback strides alone (walking auto)
+    # running auto: the median shift [deg] that moved the filter's curve to the level of the cycle-mean gravity
+    # (pipeline.cycle_gravity); None where no such level was found (no standing, too few whole cycles)
+    gravity_shift_deg: float | None = None
     tau_s: float | None = None  # KF/EKF fusion time constant when tuned
     running: RunningDiagnostics | None = None
     # the standing knee flexion the level rests on, and whether it was measured ("calibration") or "assumed"

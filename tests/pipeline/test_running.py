@@ -304,19 +304,11 @@ def test_holes_filled_from_neighbouring_strides_do_not_move_the_filters_level() 
         assert np.abs(err - np.median(err)).max() < 8.0, (leg, np.abs(err - np.median(err)).max())
 
 
-def test_a_running_filter_dragged_off_its_level_leaves_the_trends(running_sim: SimSession,
-                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
-    """From 60 % of the run on the filter's angle drifts towards extension at 4 deg/s (its accelerometer updates
-    dragging it, as on an independent simulator). GO's zero comes back every stride, so the filter's level against
-    GO strays: those strides go out of trends (``level_wander``); the strides before, and every stride of the run
-    without the drift, stay."""
+def _dragged_estimators(monkeypatch: pytest.MonkeyPatch, t_drift: float) -> None:
+    """Every estimator's angle drifts towards extension at 4 deg/s from ``t_drift`` on (its accelerometer updates
+    dragging it, as on an independent simulator)."""
     import pipeline.policy as policy
-    from pipeline.types import KneeCalibration
 
-    cal = {"left": KneeCalibration(standing_knee_deg=running_sim.truth["left"].stand_knee_deg)}
-    clean = process_session(running_sim.streams, activity="running", calibration=cal).legs["left"]
-    assert clean.strides and not any("level_wander" in s.quality_reasons for s in clean.strides)
-    t_drift = clean.t_s[0] + 0.6 * (clean.t_s[-1] - clean.t_s[0])
     real = policy.get_estimator
 
     def dragged(name: str):  # noqa: ANN202
@@ -328,8 +320,43 @@ def test_a_running_filter_dragged_off_its_level_leaves_the_trends(running_sim: S
         return run
 
     monkeypatch.setattr(policy, "get_estimator", dragged)
-    strides = process_session(running_sim.streams, activity="running", calibration=cal).legs["left"].strides
+
+
+def test_a_running_filter_dragged_off_its_level_leaves_the_trends(running_sim: SimSession,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """From 60 % of the run on the filter's angle drifts towards extension at 4 deg/s. Without the cycle-mean
+    gravity's level (``gravity_min_cycles`` out of reach, as where whole cycles are missing) GO's zero comes back every
+    stride, so the filter's level against GO strays: those strides go out of trends (``level_wander``); the strides
+    before, and every stride of the run without the drift, stay."""
+    from pipeline.types import KneeCalibration
+
+    params = replace(RUNNING, running=replace(RUNNING.running, gravity_min_cycles=10**9))
+    cal = {"left": KneeCalibration(standing_knee_deg=running_sim.truth["left"].stand_knee_deg)}
+    clean = process_session(running_sim.streams, activity="running", calibration=cal, params=params).legs["left"]
+    assert clean.strides and not any("level_wander" in s.quality_reasons for s in clean.strides)
+    t_drift = clean.t_s[0] + 0.6 * (clean.t_s[-1] - clean.t_s[0])
+    _dragged_estimators(monkeypatch, t_drift)
+    strides = process_session(running_sim.streams, activity="running", calibration=cal,
+                              params=params).legs["left"].strides
     late = [s for s in strides if s.t_start_s > t_drift + 3.0]
     early = [s for s in strides if s.t_end_s < t_drift]
     assert late and all("level_wander" in s.quality_reasons and s.quality < 0.5 for s in late)
     assert early and not any("level_wander" in s.quality_reasons for s in early)
+
+
+def test_the_cycle_mean_gravity_pulls_a_dragged_filter_back(running_sim: SimSession,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same drift with the cycle-mean gravity's level (the default): every whole cycle's level comes from
+    gravity, so the late strides keep their peaks (typically within 1 deg of the undisturbed run where the drift
+    reaches 10-60 deg; a stride next to a cycle without a level, or at the run's end where the shift falls towards the
+    standing after it, by up to 2.8 deg per cycle at this drift) instead of leaving the trends."""
+    clean = process_session(running_sim.streams, activity="running").legs["left"]
+    t_drift = clean.t_s[0] + 0.6 * (clean.t_s[-1] - clean.t_s[0])
+    _dragged_estimators(monkeypatch, t_drift)
+    leg = process_session(running_sim.streams, activity="running").legs["left"]
+    by_start = {round(s.t_start_s, 2): s for s in clean.strides}
+    late = [(s, by_start[round(s.t_start_s, 2)]) for s in leg.strides
+            if s.t_start_s > t_drift + 3.0 and round(s.t_start_s, 2) in by_start]
+    assert len(late) >= 5
+    diffs = np.abs([s.peak_swing_flexion_deg - c.peak_swing_flexion_deg for s, c in late])
+    assert np.median(diffs) < 1.0 and diffs.max() < 5.0

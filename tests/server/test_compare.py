@@ -94,7 +94,9 @@ def test_compare_running_session_over_http(api: Api, monkeypatch: pytest.MonkeyP
     assert 85.0 <= kf["peak_swing_flexion_deg"]["median"] <= 125.0
     assert leg["estimators"]["auto"]["stride_estimators"] == {"ekf": leg["estimators"]["auto"]["n_strides"]}
     pairs = {frozenset((p["a"], p["b"])): p for p in leg["pairs"]}
-    assert pairs[frozenset(("auto", "ekf"))]["rms_deg"] == 0.0  # auto is the EKF for running
+    # auto is the EKF for running, moved to the cycle-mean gravity's level (pipeline.cycle_gravity): the same curve,
+    # a few degrees apart at most
+    assert 0.0 < pairs[frozenset(("auto", "ekf"))]["rms_deg"] < 5.0
     kf_ekf = pairs[frozenset(("kf", "ekf"))]
     assert kf_ekf["rms_deg"] < 10.0 and kf_ekf["n_samples"] > 1000
 

@@ -1,0 +1,102 @@
+"""Gravity over whole gait cycles: each segment's inclination at every foot strike, free of impacts and lever arms.
+
+Over one gait cycle of steady locomotion every point of a segment returns to the same velocity, so its linear
+acceleration integrates to zero and the mean specific force over the cycle, expressed in a frame that does not rotate,
+is gravity alone (Newton: ``mean(f) = mean(a) + g = (v(T) - v(0)) / T + g``). The gyroscope carries the sensor frame of
+the cycle's first sample through the cycle (strapdown integration; over one cycle a 1 deg/s bias turns it by less than
+a degree), so the mean of ``R(t) f(t)`` is the direction of "up" in the sensor frame at the foot strike. Impacts,
+lever-arm (tangential and centripetal) accelerations and soft-tissue ringing are all part of ``a`` and cancel; no joint
+centre is needed. A change of pace tilts the estimate of both segments by the same world angle, which cancels in the
+knee angle (the difference of the two segments' rotations about the joint axis).
+
+The knee angle at the strike follows from the two segments' rotations about their joint axes since quiet standing
+(Seel et al. 2014, Eq. 6-7: the angle between the two segments' gravity directions in the joint plane, here with
+gravity taken from the cycle mean instead of the instantaneous reading).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from pipeline.constants import G_MPS2
+from pipeline.leg_input import LegInput
+from pipeline.signal_utils import row_norm
+
+
+def cycle_up(gyr_rps: np.ndarray, acc_mps2: np.ndarray, fs_hz: float, starts: np.ndarray, ends: np.ndarray
+             ) -> np.ndarray:
+    """Per cycle ``[starts[k], ends[k])`` the mean specific force over the cycle in the sensor frame of its first
+    sample, (K, 3) [m/s^2] (module docstring). ``gyr_rps`` (N, 3), ``acc_mps2`` (N, 3) on a uniform grid at
+    ``fs_hz``; the cycles must hold finite samples only. All cycles are integrated together, one sample of phase at a
+    time (the loop runs over the longest cycle's samples, not over the session)."""
+    starts = np.asarray(starts, dtype=int)
+    ends = np.asarray(ends, dtype=int)
+    k = starts.size
+    out = np.zeros((k, 3))
+    if k == 0:
+        return out
+    lengths = ends - starts
+    dt = 1.0 / fs_hz
+    rot = Rotation.identity(k)
+    for i in range(int(lengths.max())):
+        active = i < lengths
+        idx = np.minimum(starts + i, ends - 1)
+        out[active] += rot[active].apply(acc_mps2[idx[active]])
+        nxt = np.minimum(idx + 1, ends - 1)
+        # the mean rate over the interval (trapezoid): the rotation from the frame at i+1 to the frame at i
+        step = Rotation.from_rotvec(0.5 * (gyr_rps[idx] + gyr_rps[nxt]) * dt)
+        rot = rot * step
+    return out / np.maximum(lengths, 1)[:, None]
+
+
+def plane_angle_rad(up: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Angle (K,) [rad] of the vectors ``up`` (K, 3) about the unit axis ``j`` (3,), from a fixed direction normal
+    to it: a rotation of the segment by +x about ``j`` turns the world's up in the sensor frame by -x."""
+    e1 = np.cross(j, [1.0, 0.0, 0.0] if abs(j[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(j, e1)
+    u = np.atleast_2d(up)
+    return np.arctan2(u @ e2, u @ e1)
+
+
+def knee_from_gravity_deg(up_thigh: np.ndarray, up_shank: np.ndarray, stand_thigh: np.ndarray,
+                          stand_shank: np.ndarray, j1: np.ndarray, j2: np.ndarray, standing_knee_deg: float
+                          ) -> np.ndarray:
+    """Knee flexion (K,) [deg] from each segment's up direction (K, 3) and its quiet-standing up direction (3,):
+    the thigh's rotation about ``j1`` since standing minus the shank's about ``j2``, plus the standing flexion (the
+    sign convention of the knee rate ``g1.j1 - g2.j2``)."""
+    def turned(up: np.ndarray, stand: np.ndarray, j: np.ndarray) -> np.ndarray:
+        d = plane_angle_rad(stand, j)[0] - plane_angle_rad(up, j)
+        return np.angle(np.exp(1j * d))
+
+    valid = (row_norm(np.atleast_2d(up_thigh)) > 0) & (row_norm(np.atleast_2d(up_shank)) > 0)
+    knee = np.rad2deg(turned(up_thigh, stand_thigh, j1) - turned(up_shank, stand_shank, j2)) + standing_knee_deg
+    return np.where(valid, knee, np.nan)
+
+
+def cycle_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per running cycle of ``leg`` whose samples are all measured (no fill, no saturation): its first sample and
+    the knee flexion there from the cycle-mean gravity [deg] (:func:`knee_from_gravity_deg`, quiet standing's
+    ``standing`` mask giving each sensor's standing up direction). A cycle whose mean specific force differs from g by
+    more than ``max_off_g_mps2`` on either sensor (a start, a stop, a jump) gives none."""
+    prep = leg.prep if leg.unfiltered is None else leg.unfiltered
+    cyc = np.asarray(leg.running_cycles, dtype=int).reshape(-1, 2)
+    stand = standing & prep.valid
+    if cyc.size == 0 or not stand.any():
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros(0)
+    a, b = cyc[:, 0], cyc[:, 1]
+    bad = np.concatenate(([0], np.cumsum(prep.saturated | ~prep.valid)))
+    keep = bad[b] == bad[a]
+    for g0, g1 in prep.filled_s:
+        i0, i1 = np.searchsorted(prep.t_s, [g0, g1])
+        keep &= (b <= i0) | (a >= i1)
+    a, b = a[keep], b[keep]
+    up1 = cycle_up(prep.gyr_thigh_rps, prep.acc_thigh_mps2, prep.fs_hz, a, b)
+    up2 = cycle_up(prep.gyr_shank_rps, prep.acc_shank_mps2, prep.fs_hz, a, b)
+    ok = (np.abs(row_norm(up1) - G_MPS2) <= max_off_g_mps2) & (np.abs(row_norm(up2) - G_MPS2) <= max_off_g_mps2)
+    knee = knee_from_gravity_deg(up1[ok], up2[ok], prep.acc_thigh_mps2[stand].mean(axis=0),
+                                 prep.acc_shank_mps2[stand].mean(axis=0), leg.axes.j1, leg.axes.j2,
+                                 leg.params.posture.standing_knee_deg)
+    return a[ok], b[ok], knee
