@@ -202,9 +202,10 @@ def gravity_levelled(leg: LegInput, angle: np.ndarray, standing: np.ndarray) -> 
     """``angle`` (N,) [deg] moved, within the running cycles, to the level of the cycle-mean gravity
     (:func:`pipeline.cycle_gravity.cycle_knee_deg`), and the median shift [deg].
 
-    Each cycle's gravity angle at its foot strike is carried through the cycle by the knee rate (``leg.rate_dps``,
-    the filter's own input), and the cycle's shift is the mean of that path minus ``angle`` over it: a comparison at
-    the strike alone would read the filter's lag where the knee flexes fastest. The shifts are smoothed over
+    Each cycle's gravity angle at its foot strike is carried through the cycle by the knee rate of the same,
+    unfiltered signals (``leg.unfiltered``; the 7 Hz low-pass rounds the knee's turn at the strike, where the angle
+    is read), and the cycle's shift is the mean of that path minus ``angle`` over it: a cycle's mean survives the
+    filter, a single sample where the knee flexes fastest does not. The shifts are smoothed over
     neighbouring cycles (``FusionParams.offset_smooth``, as walking's mid-stance levels) and interpolated between
     cycle centres; towards each period of quiet standing (``standing``) they fall to zero, where the filter's own
     level is the static angle. Fewer than ``RunningParams.gravity_min_cycles`` cycles with a level leave ``angle``
@@ -213,8 +214,10 @@ def gravity_levelled(leg: LegInput, angle: np.ndarray, standing: np.ndarray) -> 
     lo, hi, knee = cycle_knee_deg(leg, standing, rp.gravity_tol_mps2)
     if lo.size < rp.gravity_min_cycles:
         return angle, None
-    rate = np.nan_to_num(leg.rate_dps) / leg.fs_hz
-    path = np.concatenate(([0.0], np.cumsum(rate)))[:-1]  # the rate's integral up to each sample
+    raw = leg.unfiltered
+    rate_dps = leg.rate_dps if raw is None else np.rad2deg(raw.gyr_thigh_rps @ leg.axes.j1
+                                                           - raw.gyr_shank_rps @ leg.axes.j2)
+    path = np.concatenate(([0.0], np.cumsum(np.nan_to_num(rate_dps) / leg.fs_hz)))[:-1]  # its integral so far
     d = path - angle
     ok = np.isfinite(d)
     n_ok = segment_sums(ok, lo, hi)
