@@ -18,7 +18,8 @@ integrating the relative sagittal gyro reproduces the true knee angle to numeric
 
 Sensor effects: arbitrary mounting rotation (random per sensor, mirrored between legs), lever arms from the knee
 joint centre, gravity, gyro bias and white noise, accelerometer noise, heel-strike impacts (damped oscillations on
-the accelerometers, a small transient rotation on the shank gyro), soft-tissue wobble of the thigh sensor (a
+the accelerometers that replace part of the slowing before them, so the sensor's velocity returns
+(``impact_balanced``); a small transient rotation on the shank gyro), soft-tissue wobble of the thigh sensor (a
 damped transient rotation and translation: it integrates back to zero, as real wobble does), packet loss (dropped
 BLE packets and longer outages), per-sensor start offset, timestamp sync error and clock drift.
 
