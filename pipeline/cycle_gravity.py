@@ -18,9 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.axes import mean_up
 from pipeline.constants import G_MPS2
 from pipeline.leg_input import LegInput
-from pipeline.signal_utils import row_norm
+from pipeline.signal_utils import row_norm, segment_sums
 
 
 def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -100,11 +101,11 @@ def cycle_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float
     prep = leg.prep if leg.unfiltered is None else leg.unfiltered
     cyc = np.asarray(leg.running_cycles, dtype=int).reshape(-1, 2)
     stand = standing & prep.valid
-    if cyc.size == 0 or not stand.any():
+    stand_thigh, stand_shank = mean_up(prep.acc_thigh_mps2, stand), mean_up(prep.acc_shank_mps2, stand)
+    if cyc.size == 0 or stand_thigh is None or stand_shank is None:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros(0)
     a, b = cyc[:, 0], cyc[:, 1]
-    bad = np.concatenate(([0], np.cumsum(prep.saturated | ~prep.valid)))
-    keep = bad[b] == bad[a]
+    keep = segment_sums(prep.saturated | ~prep.valid, a, b) == 0
     for g0, g1 in prep.filled_s:
         i0, i1 = np.searchsorted(prep.t_s, [g0, g1])
         keep &= (b <= i0) | (a >= i1)
@@ -112,7 +113,6 @@ def cycle_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float
     up1 = cycle_up(prep.gyr_thigh_rps, prep.acc_thigh_mps2, prep.fs_hz, a, b)
     up2 = cycle_up(prep.gyr_shank_rps, prep.acc_shank_mps2, prep.fs_hz, a, b)
     ok = (np.abs(row_norm(up1) - G_MPS2) <= max_off_g_mps2) & (np.abs(row_norm(up2) - G_MPS2) <= max_off_g_mps2)
-    knee = knee_from_gravity_deg(up1[ok], up2[ok], prep.acc_thigh_mps2[stand].mean(axis=0),
-                                 prep.acc_shank_mps2[stand].mean(axis=0), leg.axes.j1, leg.axes.j2,
+    knee = knee_from_gravity_deg(up1[ok], up2[ok], stand_thigh, stand_shank, leg.axes.j1, leg.axes.j2,
                                  leg.params.posture.standing_knee_deg)
     return a[ok], b[ok], knee

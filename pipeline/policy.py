@@ -39,7 +39,7 @@ import numpy as np
 from pipeline.cycle_gravity import cycle_knee_deg
 from pipeline.estimators import get_estimator
 from pipeline.estimators.cf import walking_cf
-from pipeline.estimators.go import GoDiagnostics, go_relative
+from pipeline.estimators.go import GoDiagnostics, go_relative, integrate_runs
 from pipeline.estimators.kf import FilterDiagnostics
 from pipeline.leg_input import EstimatorDiagnostics, LegInput
 from pipeline.params import FusionParams, QualityParams
@@ -217,10 +217,9 @@ def gravity_levelled(leg: LegInput, angle: np.ndarray, standing: np.ndarray) -> 
     raw = leg.unfiltered
     rate_dps = leg.rate_dps if raw is None else np.rad2deg(raw.gyr_thigh_rps @ leg.axes.j1
                                                            - raw.gyr_shank_rps @ leg.axes.j2)
-    # its integral so far, by the trapezoid: a left sum would sit half a sample's turn low at the strike, where the
-    # knee flexes at 200-400 deg/s (+1 deg at 100 Hz)
-    r = np.nan_to_num(rate_dps)
-    path = np.concatenate(([0.0], np.cumsum(0.5 * (r[1:] + r[:-1]) / leg.fs_hz)))
+    # its integral by the trapezoid (a left sum would sit half a sample's turn low at the strike, where the knee
+    # flexes at 200-400 deg/s: +1 deg at 100 Hz); a cycle lies within one valid run, so only differences are read
+    path = integrate_runs(rate_dps, leg.fs_hz, leg.prep.valid & np.isfinite(rate_dps))
     d = path - angle
     ok = np.isfinite(d)
     n_ok = segment_sums(ok, lo, hi)
