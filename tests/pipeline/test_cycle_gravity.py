@@ -96,8 +96,8 @@ def test_knee_from_gravity_follows_the_segments_about_the_hinge() -> None:
 
 def test_a_long_run_keeps_its_level() -> None:
     """150 s of running at 200 Hz, quiet standing only before and after: too long for the bridge from standing
-    (``FusionParams.bridge_max_span_s``). On this seed the filter's level alone put the right leg's peaks 8.0 deg
-    high (its minima 7.2); the cycle-mean gravity holds both legs within 3 deg."""
+    (``FusionParams.bridge_max_span_s``). On this seed the filter's level alone put the left leg's peaks 5.9 deg
+    high (its minima 8.3); the cycle-mean gravity holds both legs within 3 deg (-1.8 and -1.0)."""
     sim = simulate_session(SimConfig(pattern="running", fs_hz=200.0, seed=0, impact_g=6.0, duration_s=150.0,
                                      bout_strides=200, activities=("standing",)))
     res = process_session(sim.streams, activity="running")
