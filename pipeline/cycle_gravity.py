@@ -22,49 +22,23 @@ from pipeline.axes import mean_up
 from pipeline.constants import G_MPS2
 from pipeline.leg_input import LegInput
 from pipeline.signal_utils import row_norm, segment_sums
-
-
-def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton products (M, 4) of unit quaternions ``(w, x, y, z)`` (M, 4)."""
-    aw, av, bw, bv = a[:, 0], a[:, 1:], b[:, 0], b[:, 1:]
-    w = aw * bw - np.einsum("ij,ij->i", av, bv)
-    return np.column_stack([w, aw[:, None] * bv + bw[:, None] * av + np.cross(av, bv)])
+from pipeline.strapdown import cycle_frames, rotate
 
 
 def cycle_up(gyr_rps: np.ndarray, acc_mps2: np.ndarray, fs_hz: float, starts: np.ndarray, ends: np.ndarray
              ) -> np.ndarray:
     """Per cycle ``[starts[k], ends[k])`` the mean specific force over the cycle in the sensor frame of its first
-    sample, (K, 3) [m/s^2] (module docstring). ``gyr_rps`` (N, 3), ``acc_mps2`` (N, 3) on a uniform grid at
-    ``fs_hz``; the cycles must hold finite samples only and may not overlap. Each sample's frame in the first one's
-    is the ordered product of the turns over the intervals before it (unit quaternions, the mean rate over each
-    interval), found for all cycles at once by a segmented prefix scan: log2 of the longest cycle passes over the
-    cycles' samples."""
+    sample, (K, 3) [m/s^2] (module docstring; each sample's frame from :func:`pipeline.strapdown.cycle_frames`).
+    ``gyr_rps`` (N, 3), ``acc_mps2`` (N, 3) on a uniform grid at ``fs_hz``; the cycles must hold finite samples only
+    and may not overlap."""
     starts = np.asarray(starts, dtype=int)
     ends = np.asarray(ends, dtype=int)
     out = np.zeros((starts.size, 3))
-    if starts.size == 0:
+    q, idx, owner = cycle_frames(gyr_rps, fs_hz, starts, ends)
+    if owner.size == 0:
         return out
-    lengths = ends - starts
-    owner = np.repeat(np.arange(starts.size), lengths)
-    first = np.repeat(starts, lengths)
-    idx = first + (np.arange(owner.size) - np.repeat(np.cumsum(lengths) - lengths, lengths))
-    # the turn over the interval before each sample (none before a cycle's first one)
-    half = 0.25 * (gyr_rps[np.maximum(idx - 1, 0)] + gyr_rps[idx]) / fs_hz
-    half[idx == first] = 0.0
-    angle = np.sqrt(np.einsum("ij,ij->i", half, half))
-    sinc = np.where(angle > 1e-12, np.sin(angle) / np.maximum(angle, 1e-12), 1.0)
-    q = np.column_stack([np.cos(angle), half * sinc[:, None]])
-    pos = idx - first  # samples since the cycle's first
-    d = 1
-    while d < int(lengths.max()):
-        later = np.flatnonzero(pos >= d)
-        q[later] = _qmul(q[later - d], q[later])
-        d *= 2
-    w, u, v = q[:, 0], q[:, 1:], acc_mps2[idx]
-    uv = np.cross(u, v)
-    rotated = v + 2.0 * (w[:, None] * uv + np.cross(u, uv))  # v turned into the cycle's first frame
-    np.add.at(out, owner, rotated)
-    return out / np.maximum(lengths, 1)[:, None]
+    np.add.at(out, owner, rotate(q, acc_mps2[idx]))  # each sample's force turned into the cycle's first frame
+    return out / np.maximum(ends - starts, 1)[:, None]
 
 
 def plane_angle_rad(up: np.ndarray, j: np.ndarray) -> np.ndarray:

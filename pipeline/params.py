@@ -597,7 +597,7 @@ class QualityParams:
     default_penalty: float = 0.1
     """Quality lost for a reason not listed."""
     untrusted: tuple[str, ...] = ("peak_in_gap", "long_gap", "clock_disagreement", "side_in_doubt",
-                                   "level_wander", "mounting_changed", "sensors_handled", "leg_mismatch")
+                                   "level_wander", "mounting_changed", "sensors_handled", "leg_mismatch", "turning")
     """Reasons that leave the stride's metrics unobserved or unmeasurable: quality is capped below the trend
     threshold."""
     leg_mismatch_share: float = 0.5
@@ -633,6 +633,15 @@ class QualityParams:
     centred 0-0.2 s before the peak: steps of ~0.10 s moved it by <= 1.5 deg (max), 0.11-0.12 s by <= 2.5 deg,
     0.13-0.14 s by <= 3.9 deg (p95 3.5); the uncut strides of the same runs moved by <= 0.4-1.5 deg. The knee's
     swing peak itself is a smooth maximum: a hole centred on it moves it no more than the uncut strides move."""
+    max_turn_deg: float = 30.0
+    """A stride over which the thigh and the shank both turn by more than this [deg] (heel strike to heel strike,
+    :func:`pipeline.strapdown.cycle_turn_deg`: the body's change of heading) is a turning stride (``turning``, out of
+    trends). Turning steps are another task than straight gait: the inner knee flexes less in swing, pivots and
+    shuffle steps make stride-like curves that are no stride, and the knee moves most out of its hinge there; gait
+    laboratories leave turns out of the strides they compare. On the simulator (tune seeds 0-1, 100 Hz) straight
+    strides turn by 0.2-5 deg (p95), 18 at most next to a turn; strides of a 180 deg turn over 2.5 strides turn by
+    18-123 deg, of three 90 deg turns per bout 30-92. A 400 m track's bend turns a running stride by ~5 deg, a
+    corridor's corner by 45-90."""
     unmeasured_level: tuple[str, ...] = ("assumed_level",)
     """Reasons that leave the stride's absolute level an assumption (no calibration): its shape and ROM are
     measured, its peak and minimum flexion carry the unknown standing flexion (0-15 deg in patients), so it may

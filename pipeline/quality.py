@@ -16,7 +16,8 @@ reasons come from :mod:`pipeline.policy`; the data's reasons from here:
 - ``long_gap``: the stride touches a filled hole longer than ``QualityParams.trusted_fill_s`` (half a stride: a
   whole swing or stance phase may be the neighbours');
 - ``bout_edge``: the first or last stride of a bout is not steady (gait initiation and termination change stride
-  time and swing speed: Jian et al. 1993, steady state within ~2 strides).
+  time and swing speed: Jian et al. 1993, steady state within ~2 strides);
+- ``turning``: the body turned by more than ``QualityParams.max_turn_deg`` over the stride (:func:`turn_reasons`).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from pipeline.params import WALKING, QualityParams
+from pipeline.strapdown import cycle_turn_deg
 from pipeline.types import StrideMetrics
 
 
@@ -128,3 +130,17 @@ def with_reason(strides: Sequence[StrideMetrics], reason: str, params: QualityPa
     return [st if reason in st.quality_reasons else dataclasses.replace(
         st, quality_reasons=(*st.quality_reasons, reason),
         quality=min(st.quality, stride_quality((*st.quality_reasons, reason), params))) for st in strides]
+
+
+def turn_reasons(gyr_thigh_rps: np.ndarray, gyr_shank_rps: np.ndarray, fs_hz: float,
+                 strides: Sequence[tuple[int, int, int]], max_turn_deg: float) -> list[tuple[str, ...]]:
+    """``turning`` for each stride ``(hs, to, hs_next)`` (sample indices of the (N, 3) gyros [rad/s] at ``fs_hz``)
+    over which both segments turned by more than ``max_turn_deg`` [deg] from one heel strike to the next
+    (:func:`pipeline.strapdown.cycle_turn_deg`): both, so that one sensor's artefact does not take a stride out."""
+    if not strides:
+        return []
+    arr = np.asarray(strides, dtype=int)
+    a, b = arr[:, 0], arr[:, 2]
+    turn = np.minimum(cycle_turn_deg(np.nan_to_num(gyr_thigh_rps), fs_hz, a, b),
+                      cycle_turn_deg(np.nan_to_num(gyr_shank_rps), fs_hz, a, b))
+    return [("turning",) if x > max_turn_deg else () for x in turn]

@@ -31,6 +31,8 @@ REASONS: dict[str, str] = {
     "long_gap": "a gap longer than half a stride (QualityParams.trusted_fill_s) inside the stride was filled from "
                 "the neighbouring strides: a whole swing or stance phase may be theirs (out of trends)",
     "bout_edge": "first or last stride of a walking bout",
+    "turning": "the body turned by more than QualityParams.max_turn_deg over the stride (a turn, a pivot, a shuffle "
+               "step): not the straight gait that trends compare (out of trends)",
     "side_in_doubt": "both thighs shift their weight in early stance the way the other leg's would: the left and "
                      "right labels of the four sensors (or of the two thighs) look swapped, so the stride may "
                      "belong to the other knee (out of trends)",

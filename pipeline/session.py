@@ -43,7 +43,7 @@ from pipeline.phases import GaitEvents
 from pipeline.policy import PolicyResult, auto, single_estimator
 from pipeline.posture import thigh_upright_at
 from pipeline.prepare import SI, to_si
-from pipeline.quality import edge_reasons, gap_reasons, stride_quality, with_reason
+from pipeline.quality import edge_reasons, gap_reasons, stride_quality, turn_reasons, with_reason
 from pipeline.running import build_running_leg_input, detect_running
 from pipeline.sync import SyncedLeg, stride_clock_runaway, synchronised_leg
 from pipeline.types import (
@@ -620,8 +620,8 @@ def _mostly_mismatched(strides: list[StrideMetrics], params: QualityParams) -> b
 def _strides(leg: str, data: LegInput, result: PolicyResult, leg_reasons: tuple[str, ...] = ()
              ) -> list[StrideMetrics]:
     """Metrics of every stride whose angle is finite throughout, with the policy's choice for it and the data's
-    own reasons (:mod:`pipeline.quality`: filled gaps and long bridges, unsteady bout edges; ``leg_reasons``: those
-    of every stride of the leg)."""
+    own reasons (:mod:`pipeline.quality`: filled gaps and long bridges, unsteady bout edges, turns;
+    ``leg_reasons``: those of every stride of the leg)."""
     angle, t_s = result.angle_deg, data.prep.t_s
     events = data.events
     out: list[StrideMetrics] = []
@@ -638,9 +638,10 @@ def _strides(leg: str, data: LegInput, result: PolicyResult, leg_reasons: tuple[
     ks = [lobe[a] for a, _, _ in triples]
     swing_dps = data.shank_sag_dps[events.ms[np.asarray(ks, dtype=int) + 1]]
     edge = edge_reasons(triples, events.bout[np.asarray(ks, dtype=int)].tolist(), swing_dps)
+    turn = turn_reasons(data.prep.gyr_thigh_rps, data.prep.gyr_shank_rps, data.fs_hz, triples, qp.max_turn_deg)
     values = stride_values_many(angle, t_s, triples, data.params.metrics)
-    for (_, choice), g, e, v in zip(kept, gap, edge, values, strict=True):
-        extra = tuple(r for r in (*g, *e, *leg_reasons) if r not in choice.reasons)
+    for (_, choice), g, e, u, v in zip(kept, gap, edge, turn, values, strict=True):
+        extra = tuple(r for r in (*g, *e, *u, *leg_reasons) if r not in choice.reasons)
         reasons = (*choice.reasons, *extra)
         quality = min(float(choice.quality), stride_quality(reasons, qp)) if extra else float(choice.quality)
         out.append(StrideMetrics(leg=leg, index=len(out), estimator=choice.estimator, quality=quality,

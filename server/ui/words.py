@@ -25,6 +25,7 @@ REASONS = {
     "long_gap": "a long data gap was filled from the neighbouring strides",
     "event_in_gap": "a heel strike or toe-off fell in a data gap",
     "bout_edge": "first or last stride of a walk",
+    "turning": "a stride of a turn, not of straight walking",
     "no_absolute_reference": "no still moment to anchor the angle (thigh/shank never quiet)",
     "few_quiet_samples": "few still moments to anchor the angle",
     "no_go_estimate": "gyroscope-only estimate incomplete",

@@ -1,13 +1,16 @@
-"""pipeline.quality: penalties, the cap of strides that cannot be vouched for, gap and bout-edge reasons."""
+"""pipeline.quality: penalties, the cap of strides that cannot be vouched for, gap, bout-edge and turn reasons."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from bench.matching import match_strides
 from pipeline.params import WALKING, FusionParams
 from pipeline.policy import _choose, _StrideFlags
 from pipeline.quality import edge_reasons, gap_reasons, stride_quality
+from pipeline.session import process_session
+from pipeline.simulate import SimConfig, simulate_session
 
 
 def test_untrusted_reasons_stay_below_the_trend_threshold() -> None:
@@ -103,3 +106,23 @@ def test_a_fill_longer_than_half_a_stride_keeps_the_stride_out_of_trends() -> No
     assert out[1] == ("bridged_gap", "long_gap")
     assert out[2] == ()
     assert stride_quality(out[0]) >= 0.5 > stride_quality(out[1])
+
+
+def test_strides_of_a_turn_stay_out_of_trends_straight_ones_do_not() -> None:
+    sim = simulate_session(SimConfig(seed=1, duration_s=90.0, turns_per_bout=3, turn_strides=1.0,
+                                     turn_angle_deg=90.0))
+    res = process_session(sim.streams, activity=sim.activity)
+    flagged = straight_flagged = turning_true = turning_found = 0
+    for leg, truth in sim.truth.items():
+        strides = res.legs[leg].strides
+        for i, j in match_strides(strides, truth.strides):
+            s, t = strides[i], truth.strides[j]
+            turning = "turning" in s.quality_reasons
+            flagged += turning
+            straight_flagged += turning and not t.turning
+            turning_true += t.turning
+            turning_found += turning and t.turning
+            if turning:
+                assert s.quality < 0.5
+    assert straight_flagged == 0
+    assert turning_true >= 6 and turning_found >= 0.8 * turning_true, (turning_found, turning_true)
