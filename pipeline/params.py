@@ -518,8 +518,12 @@ class PostureParams:
     """Shortest quiet run [s] (and least total standing for a zero): a second of stillness outlasts the settling
     after a movement stops and averages the accelerometer noise below a degree."""
     upright_deg: float = 45.0
-    """Upright: gravity within this angle [deg] of its direction during gait. Sitting puts the thigh ~90 deg off;
-    running leaves the shank ~30 deg off on average."""
+    """Upright: gravity within this angle [deg] of its direction during gait (:func:`pipeline.posture.
+    gait_up_directions`: the thigh's mean over the strides, the shank's at the foot strikes). Sitting puts the thigh
+    ~90 deg off; the shank stands within ~20 deg of vertical at a strike, walking or running."""
+    up_cycles: int = 64
+    """Strides, evenly spread over the session, whose foot strikes give the shank's direction during gait: bounds
+    the cost whatever the session length (one strapdown pass over each)."""
     bout_margin_s: float = 1.0
     """Samples within this time [s] of a bout's first/last mid-swing are walking, not standing."""
     standing_knee_deg: float = 4.0

@@ -28,10 +28,11 @@ import numpy as np
 
 from pipeline.axes import JointAxes
 from pipeline.constants import G_MPS2
+from pipeline.cycle_gravity import cycle_up
 from pipeline.leg_input import LegInput
 from pipeline.params import WALKING, PostureParams
 from pipeline.prepare import PreparedLeg
-from pipeline.signal_utils import long_runs, ranges_mask, slower_than
+from pipeline.signal_utils import long_runs, ranges_mask, segment_sums, slower_than
 
 
 def _norm(x: np.ndarray) -> np.ndarray:
@@ -132,26 +133,48 @@ def _gait_up_directions(leg: LegInput) -> list[np.ndarray] | None:
     return gait_up_directions(leg.prep, leg.axes, leg.filter_strides)
 
 
-def gait_up_directions(prep: PreparedLeg, axes: JointAxes, strides: Sequence[tuple[int, ...]]
-                       ) -> list[np.ndarray] | None:
-    """Per segment, the in-plane direction of the mean specific force over whole strides (``(start, ..., stop)``
-    sample indices; pointing up): over a gait cycle the segment's mean acceleration is zero (its velocity is
-    periodic), so this is gravity at the segment's mean orientation during gait, near its long axis (walking and
-    running alike; stance alone is dominated by the foot-strike shocks in running). Needs no joint-centre geometry
-    (whose sensor->knee directions can be off by tens of degrees). None without strides or a consistent
-    direction."""
+def gait_up_directions(prep: PreparedLeg, axes: JointAxes, strides: Sequence[tuple[int, ...]],
+                       max_cycles: int = WALKING.posture.up_cycles) -> list[np.ndarray] | None:
+    """Per segment (thigh, shank), the in-plane direction of gravity during gait, pointing up, from whole strides
+    (``(start, ..., stop)`` sample indices, ``start`` a foot strike); no joint-centre geometry (whose sensor->knee
+    directions can be off by tens of degrees). None without strides or a consistent direction.
+
+    The thigh's: the mean specific force over the strides. Over a gait cycle a segment's mean acceleration is zero
+    (its velocity is periodic), so this is gravity at the thigh's mean orientation, near its long axis (it swings
+    about as far forward as back). The shank's: gravity at the foot strikes (:func:`pipeline.cycle_gravity.cycle_up`
+    over up to ``max_cycles`` measured strides, evenly spread), where the shank stands within ~20 deg of vertical in
+    walking and running alike. Its mean over the cycle leans back with the swing: in running, where the knee flexes
+    to 90-130 deg, 24-48 deg off the shank's standing direction on an independent simulator, so that quiet standing
+    failed the 45 deg upright test on one leg in sixteen and the leg lost its zero (25 deg low, its calibration
+    unused)."""
     if not strides:
         return None
     arr = np.asarray([(s[0], s[-1]) for s in strides])
     sel = ranges_mask(prep.n, arr[:, 0], arr[:, 1]) & prep.valid
+    thigh = prep.acc_thigh_mps2[sel].mean(axis=0) / G_MPS2 if sel.any() else np.zeros(3)
+    shank = _strike_up(prep, arr, max_cycles)
     out = []
-    for acc, j in ((prep.acc_thigh_mps2, axes.j1), (prep.acc_shank_mps2, axes.j2)):
-        m = acc[sel].mean(axis=0) if sel.any() else np.zeros(3)
+    for m, j in ((thigh, axes.j1), (shank, axes.j2)):
         m = m - (m @ j) * j
-        if np.linalg.norm(m) < 0.5 * G_MPS2:  # no consistent direction: not gait
+        if np.linalg.norm(m) < 0.5:  # no consistent direction (in g, or a mean of unit vectors): not gait
             return None
         out.append(m / np.linalg.norm(m))
     return out
+
+
+def _strike_up(prep: PreparedLeg, cycles: np.ndarray, max_cycles: int) -> np.ndarray:
+    """The shank's mean unit gravity direction (3,) at the first sample of up to ``max_cycles`` of the ``cycles``
+    ((K, 2) start/stop indices) measured throughout; zeros without one."""
+    a, b = cycles[:, 0], cycles[:, 1]
+    ok = (b > a) & (segment_sums(~prep.valid | prep.saturated, a, b) == 0)
+    a, b = a[ok], b[ok]
+    if a.size == 0:
+        return np.zeros(3)
+    pick = np.unique(np.linspace(0, a.size - 1, min(a.size, max_cycles)).round().astype(int))
+    up = cycle_up(prep.gyr_shank_rps, prep.acc_shank_mps2, prep.fs_hz, a[pick], b[pick])
+    norm = _norm(up)
+    up = up[norm > 0] / norm[norm > 0, None]
+    return up.mean(axis=0) if up.size else np.zeros(3)
 
 
 def thigh_upright_at(prep: PreparedLeg, axes: JointAxes, strides: Sequence[tuple[int, ...]], idx: np.ndarray,

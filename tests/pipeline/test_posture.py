@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.params import WALKING
-from pipeline.posture import posture_labels, standing_reference
+from pipeline.params import RUNNING, WALKING
+from pipeline.posture import gait_up_directions, posture_labels, quiet_mask, standing_mask, standing_reference
+from pipeline.running import build_running_leg_input
+from pipeline.signal_utils import ranges_mask
 from pipeline.simulate import SimConfig, simulate_session
 from pipeline.sync import synchronised_leg
 from pipeline.walking import build_walking_leg_input
@@ -37,3 +39,31 @@ def test_without_quiet_standing_there_is_no_zero() -> None:
     _, leg = _leg(activities=("turn",), standing_s=0.5, bout_strides=1000)
     assert not np.any(posture_labels(leg) == "standing")
     assert standing_reference(leg, leg.acc_angle_deg) is None
+
+
+def test_the_shank_stands_near_its_direction_at_the_foot_strikes_in_running() -> None:
+    """The shank's mean specific force over a running cycle leans back with the swing (the knee flexes past 90 deg),
+    far from its standing direction; at the foot strikes it stands near vertical, as in quiet standing."""
+    sim = simulate_session(SimConfig(pattern="running", fs_hz=200.0, seed=2, n_strides=30, bout_strides=15,
+                                     legs=("left",)))
+    by = {s.segment: s for s in sim.streams}
+    synced = synchronised_leg("left", by["thigh"], by["shank"], RUNNING)
+    leg, _ = build_running_leg_input(synced.prep, RUNNING, None)
+    prep, j2 = leg.prep, leg.axes.j2
+    standing = np.zeros(prep.n, dtype=bool)
+    for a, b in sim.truth["left"].bouts_s:
+        standing |= (prep.t_s > b + 2.0) & (prep.t_s < b + 3.0)  # the standing after each run
+    standing &= quiet_mask(prep, RUNNING.posture)
+    assert standing.sum() > 100
+
+    def in_plane_deg(u: np.ndarray, v: np.ndarray) -> float:
+        u, v = u - (u @ j2) * j2, v - (v @ j2) * j2
+        return float(np.degrees(np.arccos(u @ v / (np.linalg.norm(u) * np.linalg.norm(v)))))
+
+    stand_up = prep.acc_shank_mps2[standing].mean(axis=0)
+    cycles = np.asarray(leg.filter_strides)
+    cycle_mean = prep.acc_shank_mps2[ranges_mask(prep.n, cycles[:, 0], cycles[:, 1])].mean(axis=0)
+    shank_up = gait_up_directions(prep, leg.axes, leg.filter_strides)[1]
+    assert in_plane_deg(cycle_mean, stand_up) > 25.0
+    assert in_plane_deg(shank_up, stand_up) < 20.0
+    assert standing_mask(leg)[standing].mean() > 0.9

@@ -217,4 +217,7 @@ def test_a_pivot_on_one_foot_is_no_handling() -> None:
     res = process_session(streams)
     left = res.legs["left"]
     assert left.diagnostics.not_worn_s == () and left.diagnostics.handled_s == ()
-    assert sum(s.quality >= 0.5 for s in left.strides) == len(left.strides) > 50
+    assert len(left.strides) > 50
+    # only the walks' own 180 deg turns leave the trends
+    assert all(s.quality >= 0.5 for s in left.strides if "turning" not in s.quality_reasons)
+    assert sum("turning" in s.quality_reasons for s in left.strides) <= 0.15 * len(left.strides)
