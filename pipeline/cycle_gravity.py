@@ -1,4 +1,5 @@
-"""Gravity over whole gait cycles: each segment's inclination at every foot strike, free of impacts and lever arms.
+"""Gravity over whole gait cycles: each segment's inclination at every foot strike, free of impacts and lever arms
+(walking strides and running cycles alike).
 
 Over one gait cycle of steady locomotion every point of a segment returns to the same velocity, so its linear
 acceleration integrates to zero and the mean specific force over the cycle, expressed in a frame that does not rotate,
@@ -66,14 +67,15 @@ def knee_from_gravity_deg(up_thigh: np.ndarray, up_shank: np.ndarray, stand_thig
     return np.where(valid, knee, np.nan)
 
 
-def cycle_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per running cycle of ``leg`` whose samples are all measured (no fill, no saturation): its first sample and
-    the knee flexion there from the cycle-mean gravity [deg] (:func:`knee_from_gravity_deg`, quiet standing's
-    ``standing`` mask giving each sensor's standing up direction). A cycle whose mean specific force differs from g by
-    more than ``max_off_g_mps2`` on either sensor (a start, a stop, a jump) gives none."""
+def cycle_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float,
+                   cycles: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per gait cycle of ``leg`` whose samples are all measured (no fill, no saturation): its first sample, its stop
+    and the knee flexion at the first from the cycle-mean gravity [deg] (:func:`knee_from_gravity_deg`, quiet
+    standing's ``standing`` mask giving each sensor's standing up direction). ``cycles``: (K, 2) ``[start, stop)``
+    sample ranges from foot strike to foot strike (default: the leg's running cycles). A cycle whose mean specific
+    force differs from g by more than ``max_off_g_mps2`` on either sensor (a start, a stop, a jump) gives none."""
     prep = leg.prep if leg.unfiltered is None else leg.unfiltered
-    cyc = np.asarray(leg.running_cycles, dtype=int).reshape(-1, 2)
+    cyc = np.asarray(leg.running_cycles if cycles is None else cycles, dtype=int).reshape(-1, 2)
     stand = standing & prep.valid
     stand_thigh, stand_shank = mean_up(prep.acc_thigh_mps2, stand), mean_up(prep.acc_shank_mps2, stand)
     if cyc.size == 0 or stand_thigh is None or stand_shank is None:

@@ -3,10 +3,13 @@
 **Walking**: GO (Allseits et al. 2018) made ABSOLUTE per stride, with a complementary-filter (Seel et al. 2014,
 Rhudy et al. 2024 Eq. 17) fallback for strides where GO's assumptions fail. No paper does this part. GO's
 zero-angle update assumes the knee is straight at the minimum before swing, so a crouch or contracture knee that
-never extends would read 0 deg there. Each stride's GO curve is therefore shifted by the mean of (accelerometer
-angle - GO) over the calm samples of its stance (Seel Eq. 6-7 angle), with the accelerometer angle's zero from quiet
-upright standing (:func:`pipeline.posture.standing_reference`). The per-stride offsets are smoothed with a running
-median over neighbouring strides (the accelerometer angle is noisy, the true minimum flexion changes slowly) and
+never extends would read 0 deg there. Each stride's GO curve is therefore made absolute: by the knee angle at its
+heel strike from the cycle-mean gravity (:func:`gravity_shifts`, :mod:`pipeline.cycle_gravity`: over a stride each
+segment's velocity returns, so its mean specific force is gravity, free of joint-centre, lever-arm, impact and
+soft-tissue terms) carried through the stride by the knee rate; where the stride gives none (a start, a stop, a
+hole), by the mean of (accelerometer angle - GO) over the calm samples of its mid-stance (Seel Eq. 6-7 angle).
+Both take their zero from quiet upright standing (:func:`pipeline.posture.standing_reference`). The per-stride
+offsets are smoothed with a running median over neighbouring strides (the true minimum flexion changes slowly) and
 interpolated between stride centres so the trace is continuous. Without standing in the session the offset stays 0
 (Allseits' assumption) and the stride says so (``no_absolute_reference``). The trace is GO inside the strides that
 kept it, CF (shifted to the same zero) elsewhere: fallback strides, bout edges, standing, sitting, transitions.
@@ -198,27 +201,19 @@ def running_auto(leg: LegInput) -> PolicyResult:
                         gravity_shift_deg=None if gravity_shift is None else round(gravity_shift, 2))
 
 
-def gravity_levelled(leg: LegInput, angle: np.ndarray, standing: np.ndarray) -> tuple[np.ndarray, float | None]:
-    """``angle`` (N,) [deg] moved, within the running cycles, to the level of the cycle-mean gravity
-    (:func:`pipeline.cycle_gravity.cycle_knee_deg`), and the median shift [deg].
-
-    Each cycle's gravity angle at its foot strike is carried through the cycle by the knee rate of the same,
-    unfiltered signals (``leg.unfiltered``; the 7 Hz low-pass rounds the knee's turn at the strike, where the angle
-    is read), and the cycle's shift is the mean of that path minus ``angle`` over it: a cycle's mean survives the
-    filter, a single sample where the knee flexes fastest does not. The shifts are smoothed over
-    neighbouring cycles (``FusionParams.offset_smooth``, as walking's mid-stance levels) and interpolated between
-    cycle centres; towards each period of quiet standing (``standing``) they fall to zero, where the filter's own
-    level is the static angle. Fewer than ``RunningParams.gravity_min_cycles`` cycles with a level leave ``angle``
-    as it is (shift None)."""
-    rp = leg.params.running
-    lo, hi, knee = cycle_knee_deg(leg, standing, rp.gravity_tol_mps2)
-    if lo.size < rp.gravity_min_cycles:
-        return angle, None
-    raw = leg.unfiltered
-    rate_dps = leg.rate_dps if raw is None else np.rad2deg(raw.gyr_thigh_rps @ leg.axes.j1
-                                                           - raw.gyr_shank_rps @ leg.axes.j2)
-    # its integral by the trapezoid (a left sum would sit half a sample's turn low at the strike, where the knee
-    # flexes at 200-400 deg/s: +1 deg at 100 Hz); a cycle lies within one valid run, so only differences are read
+def gravity_shifts(leg: LegInput, angle: np.ndarray, standing: np.ndarray, cycles: np.ndarray,
+                   rate_dps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per cycle ``[start, stop)`` of ``cycles`` (K, 2) that gives a level from the cycle-mean gravity
+    (:func:`pipeline.cycle_gravity.cycle_knee_deg`, ``FusionParams.gravity_tol_mps2``): its first sample, its stop
+    and the shift [deg] that moves ``angle`` (N,) onto that level. The gravity angle at the foot strike is carried
+    through the cycle by the knee rate ``rate_dps`` (N,), integrated by the trapezoid (a left sum would sit half a
+    sample's turn low at the strike, where the knee flexes at 200-400 deg/s: +1 deg at 100 Hz; a cycle lies within
+    one valid run, so only differences are read); the shift is the mean of that path minus ``angle`` over the cycle:
+    a cycle's mean survives a low-pass filter and GO's drift line, a single sample does not. ``standing``: quiet
+    standing, whose up directions are the zero."""
+    lo, hi, knee = cycle_knee_deg(leg, standing, leg.params.fusion.gravity_tol_mps2, cycles)
+    if lo.size == 0:
+        return lo, hi, np.zeros(0)
     path = integrate_runs(rate_dps, leg.fs_hz, leg.prep.valid & np.isfinite(rate_dps))
     d = path - angle
     ok = np.isfinite(d)
@@ -226,10 +221,31 @@ def gravity_levelled(leg: LegInput, angle: np.ndarray, standing: np.ndarray) -> 
     with np.errstate(invalid="ignore", divide="ignore"):
         shift = knee - path[lo] + segment_sums(np.where(ok, d, 0.0), lo, hi) / n_ok
     good = np.isfinite(shift) & (n_ok > 0)
-    if good.sum() < rp.gravity_min_cycles:
+    return lo[good], hi[good], shift[good]
+
+
+def gravity_levelled(leg: LegInput, angle: np.ndarray, standing: np.ndarray) -> tuple[np.ndarray, float | None]:
+    """``angle`` (N,) [deg] moved, within the running cycles, to the level of the cycle-mean gravity
+    (:func:`gravity_shifts`), and the median shift [deg].
+
+    The knee rate is that of the unfiltered signals (``leg.unfiltered``; the 7 Hz low-pass rounds the knee's turn at
+    the strike, where the angle is read). The shifts are smoothed over neighbouring cycles
+    (``FusionParams.offset_smooth``, as walking's levels) and interpolated between cycle centres; towards each period
+    of quiet standing (``standing``) they fall to zero, where the filter's own level is the static angle. Fewer than
+    ``FusionParams.gravity_min_cycles`` cycles with a level, or ``gravity_level`` off, leave ``angle`` as it is
+    (shift None)."""
+    fp = leg.params.fusion
+    if not fp.gravity_level:
         return angle, None
-    centres = 0.5 * (lo + hi)[good]
-    shift = _running_median(shift[good], leg.params.fusion.offset_smooth)
+    raw = leg.unfiltered
+    rate_dps = leg.rate_dps if raw is None else np.rad2deg(raw.gyr_thigh_rps @ leg.axes.j1
+                                                           - raw.gyr_shank_rps @ leg.axes.j2)
+    lo, hi, shift = gravity_shifts(leg, angle, standing, np.asarray(leg.running_cycles, dtype=int).reshape(-1, 2),
+                                   rate_dps)
+    if lo.size < fp.gravity_min_cycles:
+        return angle, None
+    centres = 0.5 * (lo + hi)
+    shift = _running_median(shift, fp.offset_smooth)
     edges = np.flatnonzero(np.diff(np.concatenate(([0], standing.astype(np.int8), [0])))).reshape(-1, 2)
     at = np.concatenate((centres, edges[:, 0], edges[:, 1] - 1))
     value = np.concatenate((shift, np.zeros(edges.size)))
@@ -369,19 +385,19 @@ def _go_failures(go_diag: GoDiagnostics, p: FusionParams, lo: np.ndarray, hi: np
 
 
 def _choose(flags: _StrideFlags, k: int, absolute_ok: bool, quiet_count: int, p: FusionParams,
-            q: QualityParams, level_reasons: tuple[str, ...] = ()) -> StrideChoice:
-    """GO or the CF fallback for stride ``k``, its quality and reasons."""
+            q: QualityParams, level_reasons: tuple[str, ...] = (), gravity: bool = False) -> StrideChoice:
+    """GO or the CF fallback for stride ``k``, its quality and reasons. ``gravity``: GO's level in the stride comes
+    from the cycle-mean gravity, which needs no calm mid-stance samples (the CF's level does)."""
+    failed = [reason for flag, reason in ((not flags.go_complete[k], "no_go_estimate"),
+                                          (flags.no_crossing[k], "no_zero_crossing"), (flags.drifted[k], "drift"),
+                                          (flags.saturated[k], "saturation")) if flag]
+    use_go = not failed
     reasons: list[str] = list(level_reasons)
     if not absolute_ok:
         reasons.append("no_absolute_reference")
-    elif quiet_count < p.min_quiet_samples:
+    elif quiet_count < p.min_quiet_samples and not (gravity and use_go):
         reasons.append("few_quiet_samples")
-    use_go = True
-    for flag, reason in ((not flags.go_complete[k], "no_go_estimate"), (flags.no_crossing[k], "no_zero_crossing"),
-                         (flags.drifted[k], "drift"), (flags.saturated[k], "saturation")):
-        if flag:
-            reasons.append(reason)
-            use_go = False
+    reasons += failed
     if flags.bridged[k]:
         reasons.append("bridged_gap")
     if flags.mismatch[k]:
@@ -410,6 +426,15 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     check, bridged_level, bridged_ang = None, False, None
     arr = np.asarray(strides, dtype=int).reshape(-1, 3)
     lo, hi = arr[:, 0], arr[:, 2] + 1
+    gravity = np.zeros(len(strides), dtype=bool)  # strides levelled by the cycle-mean gravity
+    if absolute_ok and strides and p.gravity_level:
+        # the cycle-mean gravity at each heel strike, where the stride gives it: no joint centre, lever arm or
+        # soft tissue enters it (pipeline.cycle_gravity); its strides need no calm mid-stance samples
+        starts, _, shift = gravity_shifts(leg, go_rel, standing, arr[:, [0, 2]], leg.rate_dps)
+        k = np.searchsorted(lo, starts)
+        offs = offs.copy()
+        offs[k] = shift
+        gravity[k] = True
     if absolute_ok and strides:
         # the level the gyros carry from the quiet standing around each walk (quiet_bridge), against the mid-stance
         # level of the strides whose GO holds (a GO that found no zero crossing or drifted has no level to check)
@@ -446,11 +471,12 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     level = _level_reasons(leg)
     # a choice depends on the stride only through its flags: one per distinct combination, shared (frozen)
     keys = np.column_stack([getattr(flags, f.name) for f in fields(_StrideFlags)]
-                           + [quiet_counts < p.min_quiet_samples]).tolist()
+                           + [quiet_counts < p.min_quiet_samples, gravity]).tolist()
     made: dict[tuple[bool, ...], StrideChoice] = {}
     for k, key in enumerate(map(tuple, keys)):
         if key not in made:
-            made[key] = _choose(flags, k, absolute_ok, int(quiet_counts[k]), p, leg.params.quality, level)
+            made[key] = _choose(flags, k, absolute_ok, int(quiet_counts[k]), p, leg.params.quality, level,
+                                bool(gravity[k]))
     choices = tuple(made[key] for key in map(tuple, keys))
     use = np.array([c.estimator == "go" for c in choices])
     # GO inside the strides that kept it; extending it to the bout edges (gait initiation and termination, where

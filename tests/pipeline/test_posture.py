@@ -51,7 +51,7 @@ def test_the_shank_stands_near_its_direction_at_the_foot_strikes_in_running() ->
     leg, _ = build_running_leg_input(synced.prep, RUNNING, None)
     prep, j2 = leg.prep, leg.axes.j2
     standing = np.zeros(prep.n, dtype=bool)
-    for a, b in sim.truth["left"].bouts_s:
+    for _, b in sim.truth["left"].bouts_s:
         standing |= (prep.t_s > b + 2.0) & (prep.t_s < b + 3.0)  # the standing after each run
     standing &= quiet_mask(prep, RUNNING.posture)
     assert standing.sum() > 100

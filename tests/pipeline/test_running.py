@@ -325,12 +325,12 @@ def _dragged_estimators(monkeypatch: pytest.MonkeyPatch, t_drift: float) -> None
 def test_a_running_filter_dragged_off_its_level_leaves_the_trends(running_sim: SimSession,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """From 60 % of the run on the filter's angle drifts towards extension at 4 deg/s. Without the cycle-mean
-    gravity's level (``gravity_min_cycles`` out of reach, as where whole cycles are missing) GO's zero comes back every
+    gravity's level (``FusionParams.gravity_level`` off, as where whole cycles are missing) GO's zero comes back every
     stride, so the filter's level against GO strays: those strides go out of trends (``level_wander``); the strides
     before, and every stride of the run without the drift, stay."""
     from pipeline.types import KneeCalibration
 
-    params = replace(RUNNING, running=replace(RUNNING.running, gravity_min_cycles=10**9))
+    params = replace(RUNNING, fusion=replace(RUNNING.fusion, gravity_level=False))
     cal = {"left": KneeCalibration(standing_knee_deg=running_sim.truth["left"].stand_knee_deg)}
     clean = process_session(running_sim.streams, activity="running", calibration=cal, params=params).legs["left"]
     assert clean.strides and not any("level_wander" in s.quality_reasons for s in clean.strides)
