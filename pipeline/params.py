@@ -63,6 +63,11 @@ class PrepareParams:
     """A gyro axis pinned at its extreme for this many samples in a row counts as saturated."""
     saturation_min_dps: float = 200.0
     """Only extremes above this rate [deg/s] can be a clipped sensor (gait peaks reach 300-1000 deg/s)."""
+    saturation_tol: float = 1e-4
+    """A sample is pinned at its axis' extreme within this share of it: a clipped sensor repeats its full-scale code
+    (one LSB of a 16-bit +-2000 deg/s gyro is 3e-5 of it). A smooth peak sampled at 200 Hz keeps three samples
+    within 0.1 % of its top (the earlier tolerance: an independent simulator's unclipped running strides were marked
+    ``saturation``), but within 0.01 % only below ~0.5 Hz, which no gait peak is."""
 
 
 @dataclass(frozen=True)

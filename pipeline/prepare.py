@@ -162,8 +162,8 @@ def find_gaps(t_s: np.ndarray, fs_hz: float, params: PrepareParams = WALKING.pre
 
 
 def saturation_mask(gyr: np.ndarray, params: PrepareParams = WALKING.prepare) -> np.ndarray:
-    """Samples where some gyro axis (``gyr`` (N, 3) [rad/s]) sits at its extreme value for ``saturation_run``
-    samples in a row (clipped sensor)."""
+    """Samples where some gyro axis (``gyr`` (N, 3) [rad/s]) sits at its extreme value (within
+    ``saturation_tol`` of it) for ``saturation_run`` samples in a row (clipped sensor)."""
     run_len = params.saturation_run
     out = np.zeros(gyr.shape[0], dtype=bool)
     # the peaks first: most recordings never come near a clipping range, and then no axis needs more. One column at
@@ -171,8 +171,8 @@ def saturation_mask(gyr: np.ndarray, params: PrepareParams = WALKING.prepare) ->
     # maximum is exact, so the same peaks)
     peaks = np.array([np.abs(gyr[:, axis]).max(initial=0.0) for axis in range(gyr.shape[1])])
     if saturated_runs is not None and gyr.shape[0] >= run_len:
-        # the axes worth testing get their threshold (peak * 0.999, as below), the others none
-        thr = np.where(np.rad2deg(peaks) < params.saturation_min_dps, np.nan, peaks * 0.999)
+        # the axes worth testing get their threshold (as below), the others none
+        thr = np.where(np.rad2deg(peaks) < params.saturation_min_dps, np.nan, peaks * (1.0 - params.saturation_tol))
         saturated_runs(gyr, thr, int(run_len), out)
         return out
     for axis in range(3):
@@ -180,7 +180,7 @@ def saturation_mask(gyr: np.ndarray, params: PrepareParams = WALKING.prepare) ->
         if np.rad2deg(peak) < params.saturation_min_dps:
             continue
         g = np.abs(gyr[:, axis])
-        at_peak = g >= peak * 0.999
+        at_peak = g >= peak * (1.0 - params.saturation_tol)
         run = np.convolve(at_peak.astype(int), np.ones(run_len, dtype=int), mode="same") >= run_len
         if run.any():
             out |= np.convolve(run.astype(int), np.ones(run_len, dtype=int), mode="same") > 0

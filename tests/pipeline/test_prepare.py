@@ -16,6 +16,7 @@ from pipeline.prepare import (
     periodic_fill,
     prepare_leg,
     prepare_leg_si,
+    saturation_mask,
     to_si,
 )
 from pipeline.session import process_session
@@ -307,3 +308,16 @@ def test_a_grid_sample_overwritten_between_two_holes_is_not_measured() -> None:
     assert not p.gaps_s
     between = np.flatnonzero(np.isclose(p.t_s, 5.11))
     assert between.size == 1 and not p.measured()[between[0]]
+
+
+def test_a_broad_unclipped_peak_is_no_saturation_a_clipped_one_is() -> None:
+    """At 200 Hz a smooth swing peak keeps three samples within 0.1 % of its top; a clipped sensor repeats its
+    full-scale value exactly."""
+    t = np.arange(400) / 200.0
+    swing = np.zeros((t.size, 3))
+    swing[:, 1] = np.deg2rad(400.0) * np.sin(2 * np.pi * 0.9 * t)  # a broad peak, no noise (the hardest case)
+    assert not saturation_mask(swing).any()
+    clipped = swing.copy()
+    clipped[:, 1] = np.clip(clipped[:, 1], -np.deg2rad(380.0), np.deg2rad(380.0))
+    mask = saturation_mask(clipped)
+    assert mask.any() and mask[np.abs(clipped[:, 1]) >= np.deg2rad(380.0)].all()
