@@ -32,14 +32,35 @@ def cycle_up(gyr_rps: np.ndarray, acc_mps2: np.ndarray, fs_hz: float, starts: np
     sample, (K, 3) [m/s^2] (module docstring; each sample's frame from :func:`pipeline.strapdown.cycle_frames`).
     ``gyr_rps`` (N, 3), ``acc_mps2`` (N, 3) on a uniform grid at ``fs_hz``; the cycles must hold finite samples only
     and may not overlap."""
+    return _cycle_gravity(gyr_rps, acc_mps2, fs_hz, starts, ends)[0]
+
+
+def _cycle_gravity(gyr_rps: np.ndarray, acc_mps2: np.ndarray, fs_hz: float, starts: np.ndarray, ends: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`cycle_up` and the frames it was found with (:func:`pipeline.strapdown.cycle_frames`)."""
     starts = np.asarray(starts, dtype=int)
     ends = np.asarray(ends, dtype=int)
     out = np.zeros((starts.size, 3))
     q, idx, owner = cycle_frames(gyr_rps, fs_hz, starts, ends)
     if owner.size == 0:
-        return out
+        return out, q, idx, owner
     np.add.at(out, owner, rotate(q, acc_mps2[idx]))  # each sample's force turned into the cycle's first frame
-    return out / np.maximum(ends - starts, 1)[:, None]
+    return out / np.maximum(ends - starts, 1)[:, None], q, idx, owner
+
+
+def up_at_samples(gyr_rps: np.ndarray, acc_mps2: np.ndarray, fs_hz: float, starts: np.ndarray, ends: np.ndarray,
+                  lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The cycle-mean gravity of each cycle ``[starts[k], ends[k])`` carried by the gyro to each of its samples in
+    ``[lo[k], hi[k])``: ``(up, idx, owner, norm)``, gravity in each such sample's sensor frame (M, 3) [m/s^2], the
+    sample indices (M,), the cycle each belongs to (M,) and the norm of each cycle's mean force (K,) (as
+    :func:`cycle_up`)."""
+    up0, q, idx, owner = _cycle_gravity(gyr_rps, acc_mps2, fs_hz, starts, ends)
+    norm = row_norm(up0)
+    if owner.size == 0:
+        return np.zeros((0, 3)), idx, owner, norm
+    sel = (idx >= np.asarray(lo)[owner]) & (idx < np.asarray(hi)[owner])
+    inverse = q[sel] * np.array([1.0, -1.0, -1.0, -1.0])  # the first frame turned into each sample's
+    return rotate(inverse, up0[owner[sel]]), idx[sel], owner[sel], norm
 
 
 def plane_angle_rad(up: np.ndarray, j: np.ndarray) -> np.ndarray:
@@ -92,3 +113,33 @@ def cycle_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float,
     knee = knee_from_gravity_deg(up1[ok], up2[ok], stand_thigh, stand_shank, leg.axes.j1, leg.axes.j2,
                                  leg.params.posture.standing_knee_deg)
     return a[ok], b[ok], knee
+
+
+def window_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float, cycles: np.ndarray,
+                    lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(N,) knee flexion [deg] from the cycle-mean gravity on the samples ``[lo[k], hi[k])`` of each cycle
+    ``cycles[k]`` (``[start, stop)`` from foot strike to foot strike) whose samples are all measured and whose mean
+    force lies within ``max_off_g_mps2`` of g on both sensors; NaN elsewhere. Each sample's gravity direction is the
+    cycle's, carried there by the gyro (:func:`up_at_samples`); read where both segments stand near vertical (walking's
+    mid-stance) the angle between their joint-plane projections is least coupled to the hip's and knee's rotations
+    out of the sagittal plane (at a heel strike the thigh leans 20-30 deg forward, and a 10-15 deg ab/adduction or
+    axial rotation then moves its projected inclination by 0.3-0.8 deg)."""
+    prep = leg.prep
+    out = np.full(prep.n, np.nan)
+    cyc = np.asarray(cycles, dtype=int).reshape(-1, 2)
+    stand = standing & prep.valid
+    stand_thigh, stand_shank = mean_up(prep.acc_thigh_mps2, stand), mean_up(prep.acc_shank_mps2, stand)
+    if cyc.size == 0 or stand_thigh is None or stand_shank is None:
+        return out
+    a, b = cyc[:, 0], cyc[:, 1]
+    keep = segment_sums(prep.saturated | ~prep.valid, a, b) == 0
+    for g0, g1 in prep.filled_s:
+        i0, i1 = np.searchsorted(prep.t_s, [g0, g1])
+        keep &= (b <= i0) | (a >= i1)
+    a, b, lo, hi = a[keep], b[keep], np.asarray(lo)[keep], np.asarray(hi)[keep]
+    up1, idx, owner, n1 = up_at_samples(prep.gyr_thigh_rps, prep.acc_thigh_mps2, prep.fs_hz, a, b, lo, hi)
+    up2, _, _, n2 = up_at_samples(prep.gyr_shank_rps, prep.acc_shank_mps2, prep.fs_hz, a, b, lo, hi)
+    ok = ((np.abs(n1 - G_MPS2) <= max_off_g_mps2) & (np.abs(n2 - G_MPS2) <= max_off_g_mps2))[owner]
+    out[idx[ok]] = knee_from_gravity_deg(up1[ok], up2[ok], stand_thigh, stand_shank, leg.axes.j1, leg.axes.j2,
+                                         leg.params.posture.standing_knee_deg)
+    return out

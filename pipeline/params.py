@@ -555,12 +555,14 @@ class FusionParams:
     min_quiet_samples: int = 5
     """A stride with fewer calm stance samples uses its whole stance for the offset (and gets a note)."""
     gravity_level: bool = True
-    """Level each stride (walking) or running cycle from the cycle-mean gravity at its foot strike
-    (:mod:`pipeline.cycle_gravity`, :func:`pipeline.policy.gravity_shifts`): no joint centre, impact, lever arm or
-    soft-tissue term enters it. Walking strides without one (a start, a stop, a hole) keep the mid-stance
-    accelerometer level. On an independent simulator (3-D knee and hip, thigh soft tissue, 50-200 Hz, true standing
-    flexion given) the walking legs' peak bias SD 0.7-1.3 -> 0.4-0.6 deg, legs beyond 1 deg 3-9 -> 0-2 of 16; on
-    this repository's (tune seeds, calibrated) fast walking -0.42 +- 0.33 -> -0.10 +- 0.20, normal unchanged."""
+    """Level each walking stride over its mid-stance, each running cycle at its foot strike, from the cycle-mean
+    gravity (:mod:`pipeline.cycle_gravity`; :func:`pipeline.policy.gravity_shifts` for running): no joint centre,
+    impact, lever arm or soft-tissue term enters it. Walking strides without one (a start, a stop, a hole) keep the
+    mid-stance accelerometer level. On an independent simulator (3-D knee and hip, thigh soft tissue, 50-200 Hz,
+    true standing flexion given) the walking legs' peak bias SD 0.7-1.3 -> 0.4-0.6 deg, legs beyond 1 deg 3-9 -> 0-3
+    of 16; on this repository's (tune seeds 0-3, calibrated) fast walking -0.42 +- 0.33 -> -0.07 +- 0.21, normal
+    unchanged, 3-D hip and knee x2 with a 6 deg varus -0.41 +- 1.67 -> -0.57 +- 1.16 (read at the heel strike
+    instead, where the thigh leans 20-30 deg: -0.84 +- 1.60)."""
     gravity_tol_mps2: float = 1.0
     """A stride or cycle gives its level from gravity only where the mean specific force over it lies within this
     [m/s^2] of g on both sensors: the velocity returned at the cycle's end (a start, a stop, a jump does not) and the

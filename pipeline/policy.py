@@ -3,11 +3,12 @@
 **Walking**: GO (Allseits et al. 2018) made ABSOLUTE per stride, with a complementary-filter (Seel et al. 2014,
 Rhudy et al. 2024 Eq. 17) fallback for strides where GO's assumptions fail. No paper does this part. GO's
 zero-angle update assumes the knee is straight at the minimum before swing, so a crouch or contracture knee that
-never extends would read 0 deg there. Each stride's GO curve is therefore made absolute: by the knee angle at its
-heel strike from the cycle-mean gravity (:func:`gravity_shifts`, :mod:`pipeline.cycle_gravity`: over a stride each
-segment's velocity returns, so its mean specific force is gravity, free of joint-centre, lever-arm, impact and
-soft-tissue terms) carried through the stride by the knee rate; where the stride gives none (a start, a stop, a
-hole), by the mean of (accelerometer angle - GO) over the calm samples of its mid-stance (Seel Eq. 6-7 angle).
+never extends would read 0 deg there. Each stride's GO curve is therefore made absolute: by the mean of (gravity
+knee - GO) over its mid-stance, the gravity knee being the angle between the two segments' gravity directions in the
+joint plane with gravity from the stride's mean specific force (:mod:`pipeline.cycle_gravity`: over a stride each
+segment's velocity returns, so that mean is gravity, free of joint-centre, lever-arm, impact and soft-tissue terms)
+carried to each sample by the gyros; where the stride gives none (a start, a stop, a hole), by the mean of
+(accelerometer angle - GO) over the calm samples of its mid-stance (Seel Eq. 6-7 angle).
 Both take their zero from quiet upright standing (:func:`pipeline.posture.standing_reference`). The per-stride
 offsets are smoothed with a running median over neighbouring strides (the true minimum flexion changes slowly) and
 interpolated between stride centres so the trace is continuous. Without standing in the session the offset stays 0
@@ -39,7 +40,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from pipeline.cycle_gravity import cycle_knee_deg
+from pipeline.cycle_gravity import cycle_knee_deg, window_knee_deg
 from pipeline.estimators import get_estimator
 from pipeline.estimators.cf import walking_cf
 from pipeline.estimators.go import GoDiagnostics, go_relative, integrate_runs
@@ -308,6 +309,19 @@ def _running_median(x: np.ndarray, width: int) -> np.ndarray:
     return np.median(np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1), axis=1)
 
 
+def _window_gravity_offsets(leg: LegInput, go_rel: np.ndarray, standing: np.ndarray, strides: np.ndarray,
+                            p: FusionParams) -> tuple[np.ndarray, np.ndarray]:
+    """Per stride ``(hs, to, hs_next)`` (K, 3) the mean of (gravity knee - GO) [deg] over its mid-stance
+    (``FusionParams.midstance_window``; :func:`pipeline.cycle_gravity.window_knee_deg`), and whether it has one."""
+    lo, hi = midstance_bounds(strides.tolist(), p.midstance_window)
+    knee = window_knee_deg(leg, standing, p.gravity_tol_mps2, strides[:, [0, 2]], lo, hi)
+    d = knee - go_rel
+    ok = np.isfinite(d)
+    n = segment_sums(ok, lo, hi)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return segment_sums(np.where(ok, d, 0.0), lo, hi) / np.maximum(n, 1), n > 0
+
+
 def stance_offsets(leg: LegInput, go_rel: np.ndarray, strides: list[tuple[int, int, int]]
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Mean of (accelerometer angle - GO) [deg] over the calm mid-stance samples of each stride, and the calm-sample
@@ -430,11 +444,8 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     if absolute_ok and strides and p.gravity_level:
         # the cycle-mean gravity at each heel strike, where the stride gives it: no joint centre, lever arm or
         # soft tissue enters it (pipeline.cycle_gravity); its strides need no calm mid-stance samples
-        starts, _, shift = gravity_shifts(leg, go_rel, standing, arr[:, [0, 2]], leg.rate_dps)
-        k = np.searchsorted(lo, starts)
-        offs = offs.copy()
-        offs[k] = shift
-        gravity[k] = True
+        shift, gravity = _window_gravity_offsets(leg, go_rel, standing, arr, p)
+        offs = np.where(gravity, shift, offs)
     if absolute_ok and strides:
         # the level the gyros carry from the quiet standing around each walk (quiet_bridge), against the mid-stance
         # level of the strides whose GO holds (a GO that found no zero crossing or drifted has no level to check)
