@@ -22,6 +22,7 @@ import numpy as np
 from pipeline.axes import mean_up
 from pipeline.constants import G_MPS2
 from pipeline.leg_input import LegInput
+from pipeline.prepare import PreparedLeg
 from pipeline.signal_utils import row_norm, segment_sums
 from pipeline.strapdown import cycle_frames, rotate
 
@@ -88,6 +89,22 @@ def knee_from_gravity_deg(up_thigh: np.ndarray, up_shank: np.ndarray, stand_thig
     return np.where(valid, knee, np.nan)
 
 
+def _standing_ups(prep: PreparedLeg, standing: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Each sensor's up direction in quiet standing (``standing`` mask), or None (:func:`pipeline.axes.mean_up`)."""
+    stand = standing & prep.valid
+    return mean_up(prep.acc_thigh_mps2, stand), mean_up(prep.acc_shank_mps2, stand)
+
+
+def _measured(prep: PreparedLeg, cycles: np.ndarray) -> np.ndarray:
+    """(K,) bool per ``[start, stop)`` cycle (K, 2): all its samples measured (valid, not saturated, not filled)."""
+    a, b = cycles[:, 0], cycles[:, 1]
+    keep = segment_sums(prep.saturated | ~prep.valid, a, b) == 0
+    for g0, g1 in prep.filled_s:
+        i0, i1 = np.searchsorted(prep.t_s, [g0, g1])
+        keep &= (b <= i0) | (a >= i1)
+    return keep
+
+
 def cycle_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float,
                    cycles: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per gait cycle of ``leg`` whose samples are all measured (no fill, no saturation): its first sample, its stop
@@ -97,16 +114,11 @@ def cycle_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float,
     force differs from g by more than ``max_off_g_mps2`` on either sensor (a start, a stop, a jump) gives none."""
     prep = leg.prep if leg.unfiltered is None else leg.unfiltered
     cyc = np.asarray(leg.running_cycles if cycles is None else cycles, dtype=int).reshape(-1, 2)
-    stand = standing & prep.valid
-    stand_thigh, stand_shank = mean_up(prep.acc_thigh_mps2, stand), mean_up(prep.acc_shank_mps2, stand)
+    stand_thigh, stand_shank = _standing_ups(prep, standing)
     if cyc.size == 0 or stand_thigh is None or stand_shank is None:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros(0)
-    a, b = cyc[:, 0], cyc[:, 1]
-    keep = segment_sums(prep.saturated | ~prep.valid, a, b) == 0
-    for g0, g1 in prep.filled_s:
-        i0, i1 = np.searchsorted(prep.t_s, [g0, g1])
-        keep &= (b <= i0) | (a >= i1)
-    a, b = a[keep], b[keep]
+    keep = _measured(prep, cyc)
+    a, b = cyc[keep, 0], cyc[keep, 1]
     up1 = cycle_up(prep.gyr_thigh_rps, prep.acc_thigh_mps2, prep.fs_hz, a, b)
     up2 = cycle_up(prep.gyr_shank_rps, prep.acc_shank_mps2, prep.fs_hz, a, b)
     ok = (np.abs(row_norm(up1) - G_MPS2) <= max_off_g_mps2) & (np.abs(row_norm(up2) - G_MPS2) <= max_off_g_mps2)
@@ -127,16 +139,11 @@ def window_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float, 
     prep = leg.prep
     out = np.full(prep.n, np.nan)
     cyc = np.asarray(cycles, dtype=int).reshape(-1, 2)
-    stand = standing & prep.valid
-    stand_thigh, stand_shank = mean_up(prep.acc_thigh_mps2, stand), mean_up(prep.acc_shank_mps2, stand)
+    stand_thigh, stand_shank = _standing_ups(prep, standing)
     if cyc.size == 0 or stand_thigh is None or stand_shank is None:
         return out
-    a, b = cyc[:, 0], cyc[:, 1]
-    keep = segment_sums(prep.saturated | ~prep.valid, a, b) == 0
-    for g0, g1 in prep.filled_s:
-        i0, i1 = np.searchsorted(prep.t_s, [g0, g1])
-        keep &= (b <= i0) | (a >= i1)
-    a, b, lo, hi = a[keep], b[keep], np.asarray(lo)[keep], np.asarray(hi)[keep]
+    keep = _measured(prep, cyc)
+    a, b, lo, hi = cyc[keep, 0], cyc[keep, 1], np.asarray(lo)[keep], np.asarray(hi)[keep]
     up1, idx, owner, n1 = up_at_samples(prep.gyr_thigh_rps, prep.acc_thigh_mps2, prep.fs_hz, a, b, lo, hi)
     up2, _, _, n2 = up_at_samples(prep.gyr_shank_rps, prep.acc_shank_mps2, prep.fs_hz, a, b, lo, hi)
     ok = ((np.abs(n1 - G_MPS2) <= max_off_g_mps2) & (np.abs(n2 - G_MPS2) <= max_off_g_mps2))[owner]
