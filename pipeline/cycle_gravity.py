@@ -95,7 +95,7 @@ def _standing_ups(prep: PreparedLeg, standing: np.ndarray) -> tuple[np.ndarray |
     return mean_up(prep.acc_thigh_mps2, stand), mean_up(prep.acc_shank_mps2, stand)
 
 
-def _measured(prep: PreparedLeg, cycles: np.ndarray) -> np.ndarray:
+def measured_cycles(prep: PreparedLeg, cycles: np.ndarray) -> np.ndarray:
     """(K,) bool per ``[start, stop)`` cycle (K, 2): all its samples measured (valid, not saturated, not filled)."""
     a, b = cycles[:, 0], cycles[:, 1]
     keep = segment_sums(prep.saturated | ~prep.valid, a, b) == 0
@@ -117,7 +117,7 @@ def cycle_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float,
     stand_thigh, stand_shank = _standing_ups(prep, standing)
     if cyc.size == 0 or stand_thigh is None or stand_shank is None:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros(0)
-    keep = _measured(prep, cyc)
+    keep = measured_cycles(prep, cyc)
     a, b = cyc[keep, 0], cyc[keep, 1]
     up1 = cycle_up(prep.gyr_thigh_rps, prep.acc_thigh_mps2, prep.fs_hz, a, b)
     up2 = cycle_up(prep.gyr_shank_rps, prep.acc_shank_mps2, prep.fs_hz, a, b)
@@ -142,7 +142,7 @@ def window_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float, 
     stand_thigh, stand_shank = _standing_ups(prep, standing)
     if cyc.size == 0 or stand_thigh is None or stand_shank is None:
         return out
-    keep = _measured(prep, cyc)
+    keep = measured_cycles(prep, cyc)
     a, b, lo, hi = cyc[keep, 0], cyc[keep, 1], np.asarray(lo)[keep], np.asarray(hi)[keep]
     up1, idx, owner, n1 = up_at_samples(prep.gyr_thigh_rps, prep.acc_thigh_mps2, prep.fs_hz, a, b, lo, hi)
     up2, _, _, n2 = up_at_samples(prep.gyr_shank_rps, prep.acc_shank_mps2, prep.fs_hz, a, b, lo, hi)

@@ -442,7 +442,7 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     lo, hi = arr[:, 0], arr[:, 2] + 1
     gravity = np.zeros(len(strides), dtype=bool)  # strides levelled by the cycle-mean gravity
     if absolute_ok and strides and p.gravity_level:
-        # the cycle-mean gravity at each heel strike, where the stride gives it: no joint centre, lever arm or
+        # the stride's mean gravity over its mid-stance, where the stride gives it: no joint centre, lever arm or
         # soft tissue enters it (pipeline.cycle_gravity); its strides need no calm mid-stance samples
         shift, gravity = _window_gravity_offsets(leg, go_rel, standing, arr, p)
         offs = np.where(gravity, shift, offs)

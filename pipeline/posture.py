@@ -28,11 +28,11 @@ import numpy as np
 
 from pipeline.axes import JointAxes
 from pipeline.constants import G_MPS2
-from pipeline.cycle_gravity import cycle_up
+from pipeline.cycle_gravity import cycle_up, measured_cycles
 from pipeline.leg_input import LegInput
 from pipeline.params import WALKING, PostureParams
 from pipeline.prepare import PreparedLeg
-from pipeline.signal_utils import long_runs, ranges_mask, segment_sums, slower_than
+from pipeline.signal_utils import long_runs, ranges_mask, slower_than
 
 
 def _norm(x: np.ndarray) -> np.ndarray:
@@ -165,9 +165,8 @@ def gait_up_directions(prep: PreparedLeg, axes: JointAxes, strides: Sequence[tup
 def _strike_up(prep: PreparedLeg, cycles: np.ndarray, max_cycles: int) -> np.ndarray:
     """The shank's mean unit gravity direction (3,) at the first sample of up to ``max_cycles`` of the ``cycles``
     ((K, 2) start/stop indices) measured throughout; zeros without one."""
-    a, b = cycles[:, 0], cycles[:, 1]
-    ok = (b > a) & (segment_sums(~prep.valid | prep.saturated, a, b) == 0)
-    a, b = a[ok], b[ok]
+    ok = (cycles[:, 1] > cycles[:, 0]) & measured_cycles(prep, cycles)
+    a, b = cycles[ok, 0], cycles[ok, 1]
     if a.size == 0:
         return np.zeros(3)
     pick = np.unique(np.linspace(0, a.size - 1, min(a.size, max_cycles)).round().astype(int))
