@@ -31,8 +31,8 @@ def cycle_up(gyr_rps: np.ndarray, acc_mps2: np.ndarray, fs_hz: float, starts: np
              ) -> np.ndarray:
     """Per cycle ``[starts[k], ends[k])`` the mean specific force over the cycle in the sensor frame of its first
     sample, (K, 3) [m/s^2] (module docstring; each sample's frame from :func:`pipeline.strapdown.cycle_frames`).
-    ``gyr_rps`` (N, 3), ``acc_mps2`` (N, 3) on a uniform grid at ``fs_hz``; the cycles must hold finite samples only
-    and may not overlap."""
+    ``gyr_rps`` (N, 3), ``acc_mps2`` (N, 3) on a uniform grid at ``fs_hz``; the cycles must hold finite samples
+    only."""
     return _cycle_gravity(gyr_rps, acc_mps2, fs_hz, starts, ends)[0]
 
 
@@ -96,13 +96,9 @@ def _standing_ups(prep: PreparedLeg, standing: np.ndarray) -> tuple[np.ndarray |
 
 
 def measured_cycles(prep: PreparedLeg, cycles: np.ndarray) -> np.ndarray:
-    """(K,) bool per ``[start, stop)`` cycle (K, 2): all its samples measured (valid, not saturated, not filled)."""
-    a, b = cycles[:, 0], cycles[:, 1]
-    keep = segment_sums(prep.saturated | ~prep.valid, a, b) == 0
-    for g0, g1 in prep.filled_s:
-        i0, i1 = np.searchsorted(prep.t_s, [g0, g1])
-        keep &= (b <= i0) | (a >= i1)
-    return keep
+    """(K,) bool per ``[start, stop)`` cycle (K, 2): all its samples measured (:meth:`PreparedLeg.measured`: valid,
+    not filled from the neighbouring strides) and none saturated."""
+    return segment_sums(prep.saturated | ~prep.measured(), cycles[:, 0], cycles[:, 1]) == 0
 
 
 def cycle_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float,
@@ -111,7 +107,8 @@ def cycle_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float,
     and the knee flexion at the first from the cycle-mean gravity [deg] (:func:`knee_from_gravity_deg`, quiet
     standing's ``standing`` mask giving each sensor's standing up direction). ``cycles``: (K, 2) ``[start, stop)``
     sample ranges from foot strike to foot strike (default: the leg's running cycles). A cycle whose mean specific
-    force differs from g by more than ``max_off_g_mps2`` on either sensor (a start, a stop, a jump) gives none."""
+    force differs from g by more than ``max_off_g_mps2`` on either sensor (a jump, a step up: the vertical velocity
+    did not return) gives none."""
     prep = leg.prep if leg.unfiltered is None else leg.unfiltered
     cyc = np.asarray(leg.running_cycles if cycles is None else cycles, dtype=int).reshape(-1, 2)
     stand_thigh, stand_shank = _standing_ups(prep, standing)

@@ -543,7 +543,8 @@ class PostureParams:
 
 @dataclass(frozen=True)
 class FusionParams:
-    """The walking ``auto`` policy: absolute GO with CF fallback (:mod:`pipeline.policy`)."""
+    """The walking ``auto`` policy: absolute GO with CF fallback (:mod:`pipeline.policy`), and the level from the
+    cycle-mean gravity that running uses too."""
 
     calm_dps: float = 90.0
     """Both segments slower than this [deg/s]: the accelerometer angle is usable (small lever-arm terms)."""
@@ -553,21 +554,23 @@ class FusionParams:
     foot, so the heel-strike shock and its ringing (loading response, 0-10 %) and the push-off are outside, the
     shank is near vertical and both segments rotate slowly (small lever-arm terms of Seel Eq. 6)."""
     min_quiet_samples: int = 5
-    """A stride with fewer calm stance samples uses its whole stance for the offset (and gets a note)."""
+    """A stride with fewer calm stance samples uses its whole stance for the accelerometer level (and, unless its
+    GO level comes from gravity, gets a note: ``few_quiet_samples``)."""
     gravity_level: bool = True
-    """Level each walking stride over its mid-stance, each running cycle at its foot strike, from the cycle-mean
-    gravity (:mod:`pipeline.cycle_gravity`; :func:`pipeline.policy.gravity_shifts` for running): no joint centre,
-    impact, lever arm or soft-tissue term enters it. Walking strides without one (a start, a stop, a hole) keep the
-    mid-stance accelerometer level. On an independent simulator (3-D knee and hip, thigh soft tissue, 50-200 Hz,
-    true standing flexion given) the walking legs' peak bias SD 0.7-1.3 -> 0.4-0.6 deg, legs beyond 1 deg 3-9 -> 0-3
-    of 16; on this repository's (tune seeds 0-3, calibrated) fast walking -0.42 +- 0.33 -> -0.07 +- 0.21, normal
-    unchanged, 3-D hip and knee x2 with a 6 deg varus -0.41 +- 1.67 -> -0.57 +- 1.16 (read at the heel strike
+    """Level each walking stride over its mid-stance, each running cycle at its foot strike, from the cycle-mean gravity
+    (:mod:`pipeline.cycle_gravity`; :func:`pipeline.policy.gravity_shifts` for running): no joint centre, impact, lever
+    arm or soft-tissue term enters it. Walking strides without one (a hole, a clipped sample, a mean force off g: a
+    jump, a step) keep the mid-stance accelerometer level. On an independent simulator (3-D knee and hip, thigh soft
+    tissue, 50-200 Hz, true standing flexion given) the walking legs' peak bias SD 0.7-1.3 -> 0.4-0.6 deg, legs beyond 1
+    deg 3-9 -> 0-3 of 16; on this repository's (tune seeds 0-3, calibrated) fast walking -0.42 +- 0.33 -> -0.07 +- 0.21,
+    normal unchanged, 3-D hip and knee x2 with a 6 deg varus -0.41 +- 1.67 -> -0.57 +- 1.16 (read at the heel strike
     instead, where the thigh leans 20-30 deg: -0.84 +- 1.60)."""
     gravity_tol_mps2: float = 1.0
     """A stride or cycle gives its level from gravity only where the mean specific force over it lies within this
-    [m/s^2] of g on both sensors: the velocity returned at the cycle's end (a start, a stop, a jump does not) and the
-    gyros carried the frame through it. On the simulator's runs the norms lie within 0.5 of g (5th-95th percentile,
-    100-200 Hz, 3-D hip and knee x2); 1 m/s^2 along the vertical is 6 % of g."""
+    [m/s^2] of g on both sensors: the velocity returned at the cycle's end (a jump or a step up does not; a start or a
+    stop changes mostly the horizontal velocity, which tilts both segments' gravity by the same world angle and cancels
+    in the knee) and the gyros carried the frame through it. On the simulator's runs the norms lie within 0.5 of g
+    (5th-95th percentile, 100-200 Hz, 3-D hip and knee x2); 1 m/s^2 along the vertical is 6 % of g."""
     gravity_min_cycles: int = 3
     """Fewer running cycles with a gravity level leave the filter's level as it is."""
     offset_smooth: int = 11
@@ -577,13 +580,14 @@ class FusionParams:
     mismatch_deg: float = 8.0
     """SD [deg] of GO minus CF over a stride beyond which the stride gets a mismatch note."""
     bridge_disagree_deg: float = 3.0
-    """The level carried from standing by the gyros (:mod:`pipeline.quiet_bridge`) checks the mid-stance
-    accelerometer level: where the two differ by more than this [deg] (median over the leg's strides that have both),
-    the leg takes the bridged level. The accelerometer's mid-stance level rests on the joint centres and the
-    thigh-shank clock and fails by 10-30 deg when they fail; the bridge rests on static angles only. Where nothing
-    failed the two agreed within 2.45 deg on every leg of the sweep's tune seeds (p95 1.0), so agreeing legs keep the
-    validated mid-stance level. 4 deg before the bridges stopped at turns (max 3.4 then); 3 deg was better than 4 on
-    the independent simulator's tune seeds and on its held-out ones (README, Accuracy)."""
+    """The level carried from standing by the gyros (:mod:`pipeline.quiet_bridge`) checks the strides' mid-stance level
+    (from each stride's gravity, else the accelerometer angle): where the two differ by more than this [deg] (median
+    over the leg's strides that have both), the leg takes the bridged level. The accelerometer's mid-stance level rests
+    on the joint centres and the thigh-shank clock and fails by 10-30 deg when they fail; gravity's rests on the axes
+    and the clock only; the bridge on static angles only. Where nothing failed the bridge and the accelerometer level
+    agreed within 2.45 deg on every leg of the sweep's tune seeds (p95 1.0), so agreeing legs keep the validated
+    mid-stance level. 4 deg before the bridges stopped at turns (max 3.4 then); 3 deg was better than 4 on the
+    independent simulator's tune seeds and on its held-out ones (README, Accuracy)."""
     bridge_min_strides: int = 3
     """Strides with both levels that the check needs."""
     bridge_anchor_s: float = 0.5

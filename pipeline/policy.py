@@ -7,7 +7,7 @@ never extends would read 0 deg there. Each stride's GO curve is therefore made a
 knee - GO) over its mid-stance, the gravity knee being the angle between the two segments' gravity directions in the
 joint plane with gravity from the stride's mean specific force (:mod:`pipeline.cycle_gravity`: over a stride each
 segment's velocity returns, so that mean is gravity, free of joint-centre, lever-arm, impact and soft-tissue terms)
-carried to each sample by the gyros; where the stride gives none (a start, a stop, a hole), by the mean of
+carried to each sample by the gyros; where the stride gives none (a hole, a clipped sample, a jump), by the mean of
 (accelerometer angle - GO) over the calm samples of its mid-stance (Seel Eq. 6-7 angle).
 Both take their zero from quiet upright standing (:func:`pipeline.posture.standing_reference`). The per-stride
 offsets are smoothed with a running median over neighbouring strides (the true minimum flexion changes slowly) and
@@ -80,8 +80,8 @@ class PolicyResult:
     offset_median_deg: float | None = None
     tuning: TuningDiagnostics | None = None
     masked_implausible_samples: int = 0  # samples outside ``PostureParams.plausible_knee_deg``, set to NaN
-    # the gyro-bridged level minus the mid-stance accelerometer level [deg] (median over strides), and whether the
-    # bridged one was taken (FusionParams.bridge_disagree_deg)
+    # the gyro-bridged level minus the strides' mid-stance level (gravity's or the accelerometer's) [deg] (median over
+    # strides), and whether the bridged one was taken (FusionParams.bridge_disagree_deg)
     bridge_check_deg: float | None = None
     level_bridged: bool = False
     # the same check on the CF fallback strides alone (their level follows the accelerometer in motion), and whether

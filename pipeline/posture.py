@@ -12,9 +12,10 @@ the same way. No paper gives the detection rules below.
   accelerometer's rest offset already removed in preparation, :mod:`pipeline.rest_offset`), for at least
   ``quiet_min_s`` (any posture: standing, sitting, lying); the filters trust the accelerometer angle more there;
 * standing (:func:`standing_mask`): quiet, away from walking bouts, and upright: in each joint plane gravity within
-  ``upright_deg`` of that segment's mean stance direction during the session's strides (roughly its long axis).
-  Sitting fails on the thigh (horizontal), lying on both. The order of postures in the session does not matter
-  (the stance directions come from the strides, wherever they are);
+  ``upright_deg`` of that segment's direction during the session's strides (:func:`gait_up_directions`: the thigh's
+  mean, the shank's at the foot strikes; roughly their long axes). Sitting fails on the thigh (horizontal), lying
+  on both. The order of postures in the session does not matter (the directions come from the strides, wherever
+  they are);
 * the zero (:func:`standing_reference`, :func:`acc_zero_deg`): the median accelerometer angle over standing, used
   by the walking policy, the CF, the KF and the EKF alike. Without standing in the session there is no zero (None):
   the callers then fall back to GO's straight-knee-before-swing level and say so.
@@ -105,9 +106,9 @@ def posture_labels(leg: LegInput, quiet: np.ndarray | None = None) -> np.ndarray
 
 
 def upright_segments(leg: LegInput) -> tuple[np.ndarray, np.ndarray] | None:
-    """(N,) bool per segment (thigh, shank): its specific force within ``upright_deg`` of the segment's mean stance
-    direction in its joint plane (:func:`standing_mask`'s test on every sample); None without strides to learn the
-    directions from."""
+    """(N,) bool per segment (thigh, shank): its specific force within ``upright_deg`` of the segment's direction
+    during gait in its joint plane (:func:`gait_up_directions`; :func:`standing_mask`'s test on every sample); None
+    without strides to learn the directions from."""
     ups = _gait_up_directions(leg)
     if ups is None:
         return None
@@ -130,7 +131,7 @@ def acc_zero_deg(leg: LegInput, quiet: np.ndarray | None = None) -> tuple[float,
 
 def _gait_up_directions(leg: LegInput) -> list[np.ndarray] | None:
     """:func:`gait_up_directions` over the leg's :attr:`pipeline.leg_input.LegInput.filter_strides`."""
-    return gait_up_directions(leg.prep, leg.axes, leg.filter_strides)
+    return gait_up_directions(leg.prep, leg.axes, leg.filter_strides, leg.params.posture.up_cycles)
 
 
 def gait_up_directions(prep: PreparedLeg, axes: JointAxes, strides: Sequence[tuple[int, ...]],
@@ -139,22 +140,22 @@ def gait_up_directions(prep: PreparedLeg, axes: JointAxes, strides: Sequence[tup
     (``(start, ..., stop)`` sample indices, ``start`` a foot strike); no joint-centre geometry (whose sensor->knee
     directions can be off by tens of degrees). None without strides or a consistent direction.
 
-    The thigh's: the mean specific force over the strides. Over a gait cycle a segment's mean acceleration is zero
-    (its velocity is periodic), so this is gravity at the thigh's mean orientation, near its long axis (it swings
-    about as far forward as back). The shank's: gravity at the foot strikes (:func:`pipeline.cycle_gravity.cycle_up`
-    over up to ``max_cycles`` measured strides, evenly spread), where the shank stands within ~20 deg of vertical in
-    walking and running alike. Its mean over the cycle leans back with the swing: in running, where the knee flexes
-    to 90-130 deg, 24-48 deg off the shank's standing direction on an independent simulator, so that quiet standing
-    failed the 45 deg upright test on one leg in sixteen and the leg lost its zero (25 deg low, its calibration
-    unused)."""
+    The thigh's: the mean specific force over the strides (:func:`_mean_up`). Over a gait cycle a segment's mean
+    acceleration is zero (its velocity is periodic), so this is gravity at the thigh's mean orientation, near its long
+    axis (it swings about as far forward as back). The shank's: gravity at the foot strikes
+    (:func:`pipeline.cycle_gravity.cycle_up` over up to ``max_cycles`` measured strides, evenly spread), where the
+    shank stands within ~20 deg of vertical in walking and running alike. Its mean over the cycle leans back with the
+    swing: in running, where the knee flexes to 90-130 deg, 24-48 deg off the shank's standing direction on an
+    independent simulator, so that quiet standing failed the 45 deg upright test on one leg in sixteen and the leg
+    lost its zero (25 deg low, its calibration unused). Without a measured stride (every one holds a filled hole or
+    a clipped sample) the shank takes its mean over the strides too."""
     if not strides:
         return None
     arr = np.asarray([(s[0], s[-1]) for s in strides])
-    sel = ranges_mask(prep.n, arr[:, 0], arr[:, 1]) & prep.valid
-    thigh = prep.acc_thigh_mps2[sel].mean(axis=0) / G_MPS2 if sel.any() else np.zeros(3)
+    thigh = _mean_up(prep, prep.acc_thigh_mps2, arr)
     shank = _strike_up(prep, arr, max_cycles)
     out = []
-    for m, j in ((thigh, axes.j1), (shank, axes.j2)):
+    for m, j in ((thigh, axes.j1), (_mean_up(prep, prep.acc_shank_mps2, arr) if shank is None else shank, axes.j2)):
         m = m - (m @ j) * j
         if np.linalg.norm(m) < 0.5:  # no consistent direction (in g, or a mean of unit vectors): not gait
             return None
@@ -162,28 +163,37 @@ def gait_up_directions(prep: PreparedLeg, axes: JointAxes, strides: Sequence[tup
     return out
 
 
-def _strike_up(prep: PreparedLeg, cycles: np.ndarray, max_cycles: int) -> np.ndarray:
+def _mean_up(prep: PreparedLeg, acc_mps2: np.ndarray, cycles: np.ndarray) -> np.ndarray:
+    """A segment's mean specific force over the valid samples of the ``cycles`` ((K, 2) start/stop), in g (3,)."""
+    sel = ranges_mask(prep.n, cycles[:, 0], cycles[:, 1]) & prep.valid
+    return acc_mps2[sel].mean(axis=0) / G_MPS2 if sel.any() else np.zeros(3)
+
+
+def _strike_up(prep: PreparedLeg, cycles: np.ndarray, max_cycles: int) -> np.ndarray | None:
     """The shank's mean unit gravity direction (3,) at the first sample of up to ``max_cycles`` of the ``cycles``
-    ((K, 2) start/stop indices) measured throughout; zeros without one."""
+    ((K, 2) start/stop indices) measured throughout; None without one."""
     ok = (cycles[:, 1] > cycles[:, 0]) & measured_cycles(prep, cycles)
     a, b = cycles[ok, 0], cycles[ok, 1]
     if a.size == 0:
-        return np.zeros(3)
+        return None
     pick = np.unique(np.linspace(0, a.size - 1, min(a.size, max_cycles)).round().astype(int))
     up = cycle_up(prep.gyr_shank_rps, prep.acc_shank_mps2, prep.fs_hz, a[pick], b[pick])
     norm = _norm(up)
     up = up[norm > 0] / norm[norm > 0, None]
-    return up.mean(axis=0) if up.size else np.zeros(3)
+    return up.mean(axis=0) if up.size else None
 
 
 def thigh_upright_at(prep: PreparedLeg, axes: JointAxes, strides: Sequence[tuple[int, ...]], idx: np.ndarray,
                      params: PostureParams = WALKING.posture) -> np.ndarray | None:
     """Per sample index in ``idx``, whether the thigh's mean specific force over the second around it (a gait
     cycle: gravity at the thigh's mean orientation) lies within ``upright_deg`` of its direction during ``strides``
-    in the joint plane (:func:`gait_up_directions`); None without such a direction. Walking keeps a thigh near
-    upright; a seated or lying leg's thigh swings far from it."""
-    ups = gait_up_directions(prep, axes, strides)
-    if ups is None:
+    in the joint plane (the thigh's of :func:`gait_up_directions`); None without such a direction. Walking keeps a
+    thigh near upright; a seated or lying leg's thigh swings far from it."""
+    if not strides:
+        return None
+    up = _mean_up(prep, prep.acc_thigh_mps2, np.asarray([(s[0], s[-1]) for s in strides]))
+    up = up - (up @ axes.j1) * axes.j1
+    if np.linalg.norm(up) < 0.5:
         return None
     idx = np.asarray(idx, dtype=int)
     half = max(int(round(0.5 * prep.fs_hz)), 1)
@@ -191,7 +201,7 @@ def thigh_upright_at(prep: PreparedLeg, axes: JointAxes, strides: Sequence[tuple
     cum = np.concatenate((np.zeros((1, 3)), np.cumsum(acc, axis=0)))
     lo, hi = np.clip(idx - half, 0, prep.n), np.clip(idx + half + 1, 0, prep.n)
     mean = cum[hi] - cum[lo]
-    return _upright(mean, ups[0], axes.j1, params)
+    return _upright(mean, up / np.linalg.norm(up), axes.j1, params)
 
 
 def _upright(force: np.ndarray, up: np.ndarray, j: np.ndarray, params: PostureParams) -> np.ndarray:

@@ -18,8 +18,9 @@ Used where the run between the two standing periods is wholly measured (no maske
 neighbouring strides, whose integral is theirs), holds no turn, is shorter than ``FusionParams.bridge_max_span_s``
 and its drift stays below ``FusionParams.bridge_max_drift_deg``. Where a hole or a turn breaks it, up to
 ``FusionParams.bridge_one_sided_s`` from either end are integrated from that end alone (the drift of a few seconds
-is small); elsewhere the policy keeps the mid-stance accelerometer level, which this one checks
-(:func:`pipeline.policy.fuse`, :func:`level_check`).
+is small); elsewhere the policy keeps its strides' mid-stance levels (from each stride's gravity, or the
+accelerometer angle where a stride gives none), which this one checks (:func:`pipeline.policy.fuse`,
+:func:`level_check`).
 """
 
 from __future__ import annotations

@@ -2,9 +2,8 @@
 first sample, and the whole turn over each cycle.
 
 The turn over the interval before a sample is taken at the interval's mean rate (a unit quaternion; over a gait
-cycle a 1 deg/s bias turns the frame by less than a degree). The ordered products over every cycle at once come from a
-segmented prefix scan: log2 of the longest cycle passes over the cycles' samples (qmt's ``quatFromGyrStrapdown`` one
-sample at a time, here vectorised over many cycles).
+cycle a 1 deg/s bias turns the frame by less than a degree), and the turns are chained sample by sample as in qmt's
+``quatFromGyrStrapdown``, here for many cycles side by side.
 """
 
 from __future__ import annotations
@@ -23,29 +22,33 @@ def cycle_frames(gyr_rps: np.ndarray, fs_hz: float, starts: np.ndarray, ends: np
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For every sample of the cycles ``[starts[k], ends[k])`` its orientation in the frame of its cycle's first
     sample: ``(q, idx, owner)``, unit quaternions (M, 4) ``(w, x, y, z)`` turning a vector from the sample's frame
-    into the first one's, the sample index (M,) into ``gyr_rps`` and the cycle it belongs to (M,). ``gyr_rps``
-    (N, 3) on a uniform grid at ``fs_hz``, finite on the cycles; cycles may not overlap."""
+    into the first one's, the sample index (M,) into ``gyr_rps`` and the cycle it belongs to (M,), cycle by cycle
+    in order. ``gyr_rps`` (N, 3) on a uniform grid at ``fs_hz``, finite on the cycles.
+
+    All cycles are integrated side by side, one step per sample of the longest (shorter ones padded with no turn):
+    as many numpy passes as the longest cycle has samples, each over the K cycles, so the work is the samples'
+    and the Python overhead that of one cycle."""
     starts = np.asarray(starts, dtype=int)
     ends = np.asarray(ends, dtype=int)
     lengths = np.maximum(ends - starts, 0)
     owner = np.repeat(np.arange(starts.size), lengths)
     first = np.repeat(starts, lengths)
-    idx = first + (np.arange(owner.size) - np.repeat(np.cumsum(lengths) - lengths, lengths))
+    pos = np.arange(owner.size) - np.repeat(np.cumsum(lengths) - lengths, lengths)  # samples since the first
+    idx = first + pos
     if owner.size == 0:
         return np.zeros((0, 4)), idx, owner
-    # the turn over the interval before each sample (none before a cycle's first one)
-    half = 0.25 * (gyr_rps[np.maximum(idx - 1, 0)] + gyr_rps[idx]) / fs_hz
-    half[idx == first] = 0.0
-    angle = np.sqrt(np.einsum("ij,ij->i", half, half))
+    # the turn over the interval before each sample (none before a cycle's first one), on a (K, L) padded grid
+    half = np.zeros((starts.size, int(lengths.max()), 3))
+    later = pos > 0
+    half[owner[later], pos[later]] = 0.25 * (gyr_rps[idx[later] - 1] + gyr_rps[idx[later]]) / fs_hz
+    angle = np.sqrt(np.einsum("kli,kli->kl", half, half))
     sinc = np.where(angle > 1e-12, np.sin(angle) / np.maximum(angle, 1e-12), 1.0)
-    q = np.column_stack([np.cos(angle), half * sinc[:, None]])
-    pos = idx - first  # samples since the cycle's first
-    d = 1
-    while d < int(lengths.max()):
-        later = np.flatnonzero(pos >= d)
-        q[later] = _qmul(q[later - d], q[later])
-        d *= 2
-    return q, idx, owner
+    step = np.concatenate([np.cos(angle)[..., None], half * sinc[..., None]], axis=-1)
+    frames = np.empty_like(step)
+    frames[:, 0] = step[:, 0]
+    for j in range(1, step.shape[1]):
+        frames[:, j] = _qmul(frames[:, j - 1], step[:, j])
+    return frames[owner, pos], idx, owner
 
 
 def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:

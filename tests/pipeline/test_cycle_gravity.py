@@ -136,7 +136,7 @@ def test_the_gravity_knee_over_mid_stance_is_the_true_knee_whatever_the_mounting
     lo, hi = midstance_bounds(leg.events.strides, params.fusion.midstance_window)
     knee = window_knee_deg(leg, standing_mask(leg), params.fusion.gravity_tol_mps2, strides[:, [0, 2]], lo, hi)
     have = np.isfinite(knee)
-    assert have.sum() > 0.5 * (hi - lo).sum()  # the steady strides give it; starts and stops do not
+    assert have.sum() > 0.5 * (hi - lo).sum()  # every measured stride gives it, starts and stops too
     err = knee[have] - truth.angle_at(leg.prep.t_s[have])
     p95 = np.percentile(np.abs(err), 95)
     assert abs(np.median(err)) < 0.5 and p95 < 1.5, (np.median(err), p95)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from pipeline.params import RUNNING, WALKING
@@ -67,3 +69,17 @@ def test_the_shank_stands_near_its_direction_at_the_foot_strikes_in_running() ->
     assert in_plane_deg(cycle_mean, stand_up) > 25.0
     assert in_plane_deg(shank_up, stand_up) < 20.0
     assert standing_mask(leg)[standing].mean() > 0.9
+
+
+def test_without_a_measured_stride_the_shank_takes_its_mean_over_the_strides() -> None:
+    """Every stride holding a clipped sample leaves no foot strike to read the shank's gravity at; the shank's
+    direction during gait then falls back to its mean specific force, and standing is still found."""
+    _, leg = _leg()
+    clipped = dataclasses.replace(leg.prep, saturated=np.ones(leg.prep.n, dtype=bool))
+    ups = gait_up_directions(clipped, leg.axes, leg.filter_strides)
+    assert ups is not None
+    arr = np.asarray(leg.filter_strides)
+    mean = clipped.acc_shank_mps2[ranges_mask(clipped.n, arr[:, 0], arr[:, 1]) & clipped.valid].mean(axis=0)
+    mean -= (mean @ leg.axes.j2) * leg.axes.j2
+    np.testing.assert_allclose(ups[1], mean / np.linalg.norm(mean), atol=1e-9)
+    assert standing_mask(dataclasses.replace(leg, prep=clipped)).any()
