@@ -24,29 +24,25 @@ from pipeline.constants import G_MPS2
 from pipeline.leg_input import LegInput
 from pipeline.prepare import PreparedLeg
 from pipeline.signal_utils import row_norm, segment_sums
-from pipeline.strapdown import cycle_frames, rotate
+from pipeline.strapdown import CycleFrames, chained_frames, rotate, rotate_padded
 
 
 def cycle_up(gyr_rps: np.ndarray, acc_mps2: np.ndarray, fs_hz: float, starts: np.ndarray, ends: np.ndarray
              ) -> np.ndarray:
     """Per cycle ``[starts[k], ends[k])`` the mean specific force over the cycle in the sensor frame of its first
-    sample, (K, 3) [m/s^2] (module docstring; each sample's frame from :func:`pipeline.strapdown.cycle_frames`).
+    sample, (K, 3) [m/s^2] (module docstring; each sample's frame from :func:`pipeline.strapdown.chained_frames`).
     ``gyr_rps`` (N, 3), ``acc_mps2`` (N, 3) on a uniform grid at ``fs_hz``; the cycles must hold finite samples
     only."""
     return _cycle_gravity(gyr_rps, acc_mps2, fs_hz, starts, ends)[0]
 
 
 def _cycle_gravity(gyr_rps: np.ndarray, acc_mps2: np.ndarray, fs_hz: float, starts: np.ndarray, ends: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`cycle_up` and the frames it was found with (:func:`pipeline.strapdown.cycle_frames`)."""
-    starts = np.asarray(starts, dtype=int)
-    ends = np.asarray(ends, dtype=int)
-    out = np.zeros((starts.size, 3))
-    q, idx, owner = cycle_frames(gyr_rps, fs_hz, starts, ends)
-    if owner.size == 0:
-        return out, q, idx, owner
-    np.add.at(out, owner, rotate(q, acc_mps2[idx]))  # each sample's force turned into the cycle's first frame
-    return out / np.maximum(ends - starts, 1)[:, None], q, idx, owner
+                   ) -> tuple[np.ndarray, CycleFrames]:
+    """:func:`cycle_up` and the frames it was found with (:func:`pipeline.strapdown.chained_frames`)."""
+    f = chained_frames(gyr_rps, fs_hz, starts, ends)
+    # each sample's force turned into its cycle's first frame, summed over the cycle (the padding adds nothing)
+    total = rotate_padded(f.q, f.padded(acc_mps2)).sum(axis=1).T
+    return total / np.maximum(f.lengths, 1)[:, None], f
 
 
 def up_at_samples(gyr_rps: np.ndarray, acc_mps2: np.ndarray, fs_hz: float, starts: np.ndarray, ends: np.ndarray,
@@ -55,13 +51,12 @@ def up_at_samples(gyr_rps: np.ndarray, acc_mps2: np.ndarray, fs_hz: float, start
     ``[lo[k], hi[k])``: ``(up, idx, owner, norm)``, gravity in each such sample's sensor frame (M, 3) [m/s^2], the
     sample indices (M,), the cycle each belongs to (M,) and the norm of each cycle's mean force (K,) (as
     :func:`cycle_up`)."""
-    up0, q, idx, owner = _cycle_gravity(gyr_rps, acc_mps2, fs_hz, starts, ends)
+    up0, f = _cycle_gravity(gyr_rps, acc_mps2, fs_hz, starts, ends)
     norm = row_norm(up0)
-    if owner.size == 0:
-        return np.zeros((0, 3)), idx, owner, norm
-    sel = (idx >= np.asarray(lo)[owner]) & (idx < np.asarray(hi)[owner])
-    inverse = q[sel] * np.array([1.0, -1.0, -1.0, -1.0])  # the first frame turned into each sample's
-    return rotate(inverse, up0[owner[sel]]), idx[sel], owner[sel], norm
+    sel = (f.idx >= np.asarray(lo)[f.owner]) & (f.idx < np.asarray(hi)[f.owner])
+    owner, pos = f.owner[sel], f.pos[sel]
+    inverse = f.q[:, pos, owner].T * np.array([1.0, -1.0, -1.0, -1.0])  # the first frame turned into each sample's
+    return rotate(inverse, up0[owner]), f.idx[sel], owner, norm
 
 
 def plane_angle_rad(up: np.ndarray, j: np.ndarray) -> np.ndarray:

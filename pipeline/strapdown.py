@@ -3,52 +3,70 @@ first sample, and the whole turn over each cycle.
 
 The turn over the interval before a sample is taken at the interval's mean rate (a unit quaternion; over a gait
 cycle a 1 deg/s bias turns the frame by less than a degree), and the turns are chained sample by sample as in qmt's
-``quatFromGyrStrapdown``, here for many cycles side by side.
+``quatFromGyrStrapdown``, here for many cycles side by side: one step per sample of the longest cycle (shorter ones
+padded with no turn), each over the K cycles, so the work is the samples' and the Python overhead that of one cycle.
+Quaternions are ``(w, x, y, z)``; on the padded grid each component is its own (L, K) array, so that every step
+works on contiguous rows.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 
-def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton products (M, 4) of unit quaternions ``(w, x, y, z)`` (M, 4)."""
-    aw, av, bw, bv = a[:, 0], a[:, 1:], b[:, 0], b[:, 1:]
-    w = aw * bw - np.einsum("ij,ij->i", av, bv)
-    return np.column_stack([w, aw[:, None] * bv + bw[:, None] * av + np.cross(av, bv)])
+@dataclass(frozen=True)
+class CycleFrames:
+    """The orientations of :func:`chained_frames` on a padded grid.
+
+    ``q``: (4, L, K) components of the unit quaternion turning a vector from the frame of sample ``l`` of cycle
+    ``k`` into the frame of its first sample (past a cycle's end its last frame, held); ``lengths``: (K,) samples
+    per cycle; ``pos``, ``owner``, ``idx``: (M,) for every sample of the cycles, in order, its place in its cycle,
+    its cycle and its index into the input arrays."""
+
+    q: np.ndarray
+    lengths: np.ndarray
+    pos: np.ndarray
+    owner: np.ndarray
+    idx: np.ndarray
+
+    def padded(self, x: np.ndarray) -> np.ndarray:
+        """(3, L, K) of the rows of ``x`` (N, 3) at the cycles' samples, zeros on the padding."""
+        out = np.zeros((3, *self.q.shape[1:]))
+        out[:, self.pos, self.owner] = x[self.idx].T
+        return out
 
 
-def cycle_frames(gyr_rps: np.ndarray, fs_hz: float, starts: np.ndarray, ends: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For every sample of the cycles ``[starts[k], ends[k])`` its orientation in the frame of its cycle's first
-    sample: ``(q, idx, owner)``, unit quaternions (M, 4) ``(w, x, y, z)`` turning a vector from the sample's frame
-    into the first one's, the sample index (M,) into ``gyr_rps`` and the cycle it belongs to (M,), cycle by cycle
-    in order. ``gyr_rps`` (N, 3) on a uniform grid at ``fs_hz``, finite on the cycles.
-
-    All cycles are integrated side by side, one step per sample of the longest (shorter ones padded with no turn):
-    as many numpy passes as the longest cycle has samples, each over the K cycles, so the work is the samples'
-    and the Python overhead that of one cycle."""
+def chained_frames(gyr_rps: np.ndarray, fs_hz: float, starts: np.ndarray, ends: np.ndarray) -> CycleFrames:
+    """Each sample's orientation in the frame of its cycle's first sample, for the cycles ``[starts[k], ends[k])``
+    (module docstring). ``gyr_rps`` (N, 3) on a uniform grid at ``fs_hz``, finite on the cycles."""
     starts = np.asarray(starts, dtype=int)
     ends = np.asarray(ends, dtype=int)
     lengths = np.maximum(ends - starts, 0)
     owner = np.repeat(np.arange(starts.size), lengths)
-    first = np.repeat(starts, lengths)
     pos = np.arange(owner.size) - np.repeat(np.cumsum(lengths) - lengths, lengths)  # samples since the first
-    idx = first + pos
-    if owner.size == 0:
-        return np.zeros((0, 4)), idx, owner
-    # the turn over the interval before each sample (none before a cycle's first one), on a (K, L) padded grid
-    half = np.zeros((starts.size, int(lengths.max()), 3))
+    idx = np.repeat(starts, lengths) + pos
+    steps = int(lengths.max()) if lengths.size else 0
+    # the turn over the interval before each sample (none before a cycle's first one)
+    half = np.zeros((3, steps, starts.size))
     later = pos > 0
-    half[owner[later], pos[later]] = 0.25 * (gyr_rps[idx[later] - 1] + gyr_rps[idx[later]]) / fs_hz
-    angle = np.sqrt(np.einsum("kli,kli->kl", half, half))
+    half[:, pos[later], owner[later]] = (0.25 * (gyr_rps[idx[later] - 1] + gyr_rps[idx[later]]) / fs_hz).T
+    angle = np.sqrt(half[0] ** 2 + half[1] ** 2 + half[2] ** 2)
     sinc = np.where(angle > 1e-12, np.sin(angle) / np.maximum(angle, 1e-12), 1.0)
-    step = np.concatenate([np.cos(angle)[..., None], half * sinc[..., None]], axis=-1)
-    frames = np.empty_like(step)
-    frames[:, 0] = step[:, 0]
-    for j in range(1, step.shape[1]):
-        frames[:, j] = _qmul(frames[:, j - 1], step[:, j])
-    return frames[owner, pos], idx, owner
+    step = np.stack([np.cos(angle), half[0] * sinc, half[1] * sinc, half[2] * sinc])
+    q = np.empty_like(step)
+    if steps:
+        q[:, 0] = step[:, 0]
+    w, x, y, z = q
+    sw, sx, sy, sz = step
+    for j in range(1, steps):  # the frame so far, then the step (Hamilton product)
+        aw, ax, ay, az, bw, bx, by, bz = w[j - 1], x[j - 1], y[j - 1], z[j - 1], sw[j], sx[j], sy[j], sz[j]
+        w[j] = aw * bw - ax * bx - ay * by - az * bz
+        x[j] = aw * bx + ax * bw + ay * bz - az * by
+        y[j] = aw * by - ax * bz + ay * bw + az * bx
+        z[j] = aw * bz + ax * by - ay * bx + az * bw
+    return CycleFrames(q=q, lengths=lengths, pos=pos, owner=owner, idx=idx)
 
 
 def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -58,17 +76,24 @@ def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     return v + 2.0 * (w[:, None] * uv + np.cross(u, uv))
 
 
+def rotate_padded(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """:func:`rotate` on the padded grid: ``v`` (3, L, K) turned by ``q`` (4, L, K)."""
+    w, ux, uy, uz = q
+    vx, vy, vz = v
+    cx, cy, cz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx  # u x v
+    return np.stack([vx + 2.0 * (w * cx + uy * cz - uz * cy),
+                     vy + 2.0 * (w * cy + uz * cx - ux * cz),
+                     vz + 2.0 * (w * cz + ux * cy - uy * cx)])
+
+
 def cycle_turn_deg(gyr_rps: np.ndarray, fs_hz: float, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
     """Per cycle ``[starts[k], ends[k]]`` (the end sample included) the angle (K,) [deg] the sensor turned by from
-    its first sample to its last, whatever the axis (:func:`cycle_frames`). Over a gait cycle, from one foot
+    its first sample to its last, whatever the axis (:func:`chained_frames`). Over a gait cycle, from one foot
     strike to the next, a segment returns to its posture relative to the body, so this is the body's turn: its
     change of heading."""
-    starts = np.asarray(starts, dtype=int)
-    ends = np.asarray(ends, dtype=int) + 1
-    out = np.zeros(starts.size)
-    q, _, owner = cycle_frames(gyr_rps, fs_hz, starts, ends)
-    if owner.size == 0:
-        return out
-    last = np.flatnonzero(np.r_[owner[1:] != owner[:-1], True])
-    out[owner[last]] = np.degrees(2.0 * np.arccos(np.clip(np.abs(q[last, 0]), 0.0, 1.0)))
+    f = chained_frames(gyr_rps, fs_hz, starts, np.asarray(ends, dtype=int) + 1)
+    out = np.zeros(f.lengths.size)
+    some = f.lengths > 0
+    w_last = f.q[0, f.lengths[some] - 1, np.flatnonzero(some)]
+    out[some] = np.degrees(2.0 * np.arccos(np.clip(np.abs(w_last), 0.0, 1.0)))
     return out

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.strapdown import cycle_frames, cycle_turn_deg, rotate
+from pipeline.strapdown import chained_frames, cycle_turn_deg, rotate, rotate_padded
 
 FS = 100.0
 
@@ -16,14 +16,20 @@ def test_a_steady_turn_is_integrated_to_its_angle_whatever_the_axis() -> None:
     np.testing.assert_allclose(turn, [90.0, 135.0, 45.0], atol=1e-6)
     # an angle, not a winding count: three quarters of a turn one way is a quarter the other
     assert abs(cycle_turn_deg(gyr, FS, np.array([0]), np.array([300]))[0] - 90.0) < 1e-6
-    q, idx, owner = cycle_frames(gyr, FS, np.array([0]), np.array([101]))
+    f = chained_frames(gyr, FS, np.array([0, 101]), np.array([101, 151]))
+    assert f.owner.tolist() == [0] * 101 + [1] * 50 and f.idx.tolist() == list(range(151))
     # the last sample's frame, seen from the first: turned by 90 deg about the axis
     e = np.cross(axis, [1.0, 0.0, 0.0])
     e /= np.linalg.norm(e)
-    turned = rotate(q[-1:], e[None, :])[0]
+    q_last = f.q[:, 100, 0][None, :]
+    turned = rotate(q_last, e[None, :])[0]
     # a quarter turn about the axis, in its positive sense (right-hand rule)
     np.testing.assert_allclose(turned, np.cross(axis, e), atol=1e-6)
-    assert owner.tolist() == [0] * 101 and idx.tolist() == list(range(101))
+    # the padded grid's rotation is the same; past the shorter cycle's end its last frame is held
+    v = np.random.default_rng(1).standard_normal((151, 3))
+    padded = rotate_padded(f.q, f.padded(v))[:, f.pos, f.owner].T
+    np.testing.assert_allclose(padded, rotate(f.q[:, f.pos, f.owner].T, v), atol=1e-12)
+    np.testing.assert_allclose(f.q[:, 50:, 1], f.q[:, 49:50, 1] * np.ones((4, 51)), atol=1e-15)
 
 
 def test_a_swing_that_returns_turns_by_nothing_a_heading_change_by_its_angle() -> None:
