@@ -24,7 +24,7 @@ from pipeline.constants import G_MPS2
 from pipeline.leg_input import LegInput
 from pipeline.prepare import PreparedLeg
 from pipeline.signal_utils import row_norm, segment_sums
-from pipeline.strapdown import CycleFrames, chained_frames, rotate, rotate_padded
+from pipeline.strapdown import CycleFrames, chained_frames, cycle_blocks, rotate_padded
 
 
 def cycle_up(gyr_rps: np.ndarray, acc_mps2: np.ndarray, fs_hz: float, starts: np.ndarray, ends: np.ndarray
@@ -33,7 +33,12 @@ def cycle_up(gyr_rps: np.ndarray, acc_mps2: np.ndarray, fs_hz: float, starts: np
     sample, (K, 3) [m/s^2] (module docstring; each sample's frame from :func:`pipeline.strapdown.chained_frames`).
     ``gyr_rps`` (N, 3), ``acc_mps2`` (N, 3) on a uniform grid at ``fs_hz``; the cycles must hold finite samples
     only."""
-    return _cycle_gravity(gyr_rps, acc_mps2, fs_hz, starts, ends)[0]
+    starts = np.asarray(starts, dtype=int)
+    ends = np.asarray(ends, dtype=int)
+    out = np.zeros((starts.size, 3))
+    for group in cycle_blocks(starts, ends):
+        out[group] = _cycle_gravity(gyr_rps, acc_mps2, fs_hz, starts[group], ends[group])[0]
+    return out
 
 
 def _cycle_gravity(gyr_rps: np.ndarray, acc_mps2: np.ndarray, fs_hz: float, starts: np.ndarray, ends: np.ndarray
@@ -51,12 +56,20 @@ def up_at_samples(gyr_rps: np.ndarray, acc_mps2: np.ndarray, fs_hz: float, start
     ``[lo[k], hi[k])``: ``(up, idx, owner, norm)``, gravity in each such sample's sensor frame (M, 3) [m/s^2], the
     sample indices (M,), the cycle each belongs to (M,) and the norm of each cycle's mean force (K,) (as
     :func:`cycle_up`)."""
-    up0, f = _cycle_gravity(gyr_rps, acc_mps2, fs_hz, starts, ends)
-    norm = row_norm(up0)
-    sel = (f.idx >= np.asarray(lo)[f.owner]) & (f.idx < np.asarray(hi)[f.owner])
-    owner, pos = f.owner[sel], f.pos[sel]
-    inverse = f.q[:, pos, owner].T * np.array([1.0, -1.0, -1.0, -1.0])  # the first frame turned into each sample's
-    return rotate(inverse, up0[owner]), f.idx[sel], owner, norm
+    starts, ends = np.asarray(starts, dtype=int), np.asarray(ends, dtype=int)
+    lo, hi = np.asarray(lo, dtype=int), np.asarray(hi, dtype=int)
+    norm = np.zeros(starts.size)
+    ups, idxs, owners = [np.zeros((0, 3))], [np.zeros(0, dtype=int)], [np.zeros(0, dtype=int)]
+    for group in cycle_blocks(starts, ends):
+        up0, f = _cycle_gravity(gyr_rps, acc_mps2, fs_hz, starts[group], ends[group])
+        norm[group] = row_norm(up0)
+        sel = (f.idx >= lo[group][f.owner]) & (f.idx < hi[group][f.owner])
+        owner, pos = f.owner[sel], f.pos[sel]
+        inverse = f.q[:, pos, owner] * np.array([1.0, -1.0, -1.0, -1.0])[:, None]  # the first frame into each sample's
+        ups.append(rotate_padded(inverse, up0[owner].T).T)
+        idxs.append(f.idx[sel])
+        owners.append(group[owner])
+    return np.concatenate(ups), np.concatenate(idxs), np.concatenate(owners), norm
 
 
 def plane_angle_rad(up: np.ndarray, j: np.ndarray) -> np.ndarray:
@@ -96,16 +109,15 @@ def measured_cycles(prep: PreparedLeg, cycles: np.ndarray) -> np.ndarray:
     return segment_sums(prep.saturated | ~prep.measured(), cycles[:, 0], cycles[:, 1]) == 0
 
 
-def cycle_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float,
-                   cycles: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per gait cycle of ``leg`` whose samples are all measured (no fill, no saturation): its first sample, its stop
-    and the knee flexion at the first from the cycle-mean gravity [deg] (:func:`knee_from_gravity_deg`, quiet
-    standing's ``standing`` mask giving each sensor's standing up direction). ``cycles``: (K, 2) ``[start, stop)``
-    sample ranges from foot strike to foot strike (default: the leg's running cycles). A cycle whose mean specific
-    force differs from g by more than ``max_off_g_mps2`` on either sensor (a jump, a step up: the vertical velocity
-    did not return) gives none."""
+def cycle_knee_deg(leg: LegInput, standing: np.ndarray, max_off_g_mps2: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per running cycle of ``leg`` (``[start, stop)`` from foot strike to foot strike) whose samples are all
+    measured (no fill, no saturation): its first sample, its stop and the knee flexion at the first from the
+    cycle-mean gravity [deg] (:func:`knee_from_gravity_deg`, quiet standing's ``standing`` mask giving each sensor's
+    standing up direction). A cycle whose mean specific force differs from g by more than ``max_off_g_mps2`` on
+    either sensor (a jump, a step up: the vertical velocity did not return) gives none."""
     prep = leg.prep if leg.unfiltered is None else leg.unfiltered
-    cyc = np.asarray(leg.running_cycles if cycles is None else cycles, dtype=int).reshape(-1, 2)
+    cyc = np.asarray(leg.running_cycles, dtype=int).reshape(-1, 2)
     stand_thigh, stand_shank = _standing_ups(prep, standing)
     if cyc.size == 0 or stand_thigh is None or stand_shank is None:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros(0)

@@ -202,17 +202,17 @@ def running_auto(leg: LegInput) -> PolicyResult:
                         gravity_shift_deg=None if gravity_shift is None else round(gravity_shift, 2))
 
 
-def gravity_shifts(leg: LegInput, angle: np.ndarray, standing: np.ndarray, cycles: np.ndarray,
-                   rate_dps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per cycle ``[start, stop)`` of ``cycles`` (K, 2) that gives a level from the cycle-mean gravity
+def gravity_shifts(leg: LegInput, angle: np.ndarray, standing: np.ndarray, rate_dps: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per running cycle ``[start, stop)`` that gives a level from the cycle-mean gravity
     (:func:`pipeline.cycle_gravity.cycle_knee_deg`, ``FusionParams.gravity_tol_mps2``): its first sample, its stop
     and the shift [deg] that moves ``angle`` (N,) onto that level. The gravity angle at the foot strike is carried
     through the cycle by the knee rate ``rate_dps`` (N,), integrated by the trapezoid (a left sum would sit half a
     sample's turn low at the strike, where the knee flexes at 200-400 deg/s: +1 deg at 100 Hz; a cycle lies within
     one valid run, so only differences are read); the shift is the mean of that path minus ``angle`` over the cycle:
-    a cycle's mean survives a low-pass filter and GO's drift line, a single sample does not. ``standing``: quiet
+    a cycle's mean survives a low-pass filter, a single sample does not. ``standing``: quiet
     standing, whose up directions are the zero."""
-    lo, hi, knee = cycle_knee_deg(leg, standing, leg.params.fusion.gravity_tol_mps2, cycles)
+    lo, hi, knee = cycle_knee_deg(leg, standing, leg.params.fusion.gravity_tol_mps2)
     if lo.size == 0:
         return lo, hi, np.zeros(0)
     path = integrate_runs(rate_dps, leg.fs_hz, leg.prep.valid & np.isfinite(rate_dps))
@@ -241,8 +241,7 @@ def gravity_levelled(leg: LegInput, angle: np.ndarray, standing: np.ndarray) -> 
     raw = leg.unfiltered
     rate_dps = leg.rate_dps if raw is None else np.rad2deg(raw.gyr_thigh_rps @ leg.axes.j1
                                                            - raw.gyr_shank_rps @ leg.axes.j2)
-    lo, hi, shift = gravity_shifts(leg, angle, standing, np.asarray(leg.running_cycles, dtype=int).reshape(-1, 2),
-                                   rate_dps)
+    lo, hi, shift = gravity_shifts(leg, angle, standing, rate_dps)
     if lo.size < fp.gravity_min_cycles:
         return angle, None
     centres = 0.5 * (lo + hi)

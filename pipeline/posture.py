@@ -154,13 +154,16 @@ def gait_up_directions(prep: PreparedLeg, axes: JointAxes, strides: Sequence[tup
     arr = np.asarray([(s[0], s[-1]) for s in strides])
     thigh = _mean_up(prep, prep.acc_thigh_mps2, arr)
     shank = _strike_up(prep, arr, max_cycles)
-    out = []
-    for m, j in ((thigh, axes.j1), (_mean_up(prep, prep.acc_shank_mps2, arr) if shank is None else shank, axes.j2)):
-        m = m - (m @ j) * j
-        if np.linalg.norm(m) < 0.5:  # no consistent direction (in g, or a mean of unit vectors): not gait
-            return None
-        out.append(m / np.linalg.norm(m))
-    return out
+    out = [_in_plane(thigh, axes.j1),
+           _in_plane(_mean_up(prep, prep.acc_shank_mps2, arr) if shank is None else shank, axes.j2)]
+    return None if out[0] is None or out[1] is None else out
+
+
+def _in_plane(m: np.ndarray, j: np.ndarray) -> np.ndarray | None:
+    """The unit direction of ``m`` (3,) in the plane normal to ``j``; None where less than 0.5 of it lies there (in
+    g, or as a mean of unit vectors: no consistent direction, not gait)."""
+    m = m - (m @ j) * j
+    return None if np.linalg.norm(m) < 0.5 else m / np.linalg.norm(m)
 
 
 def _mean_up(prep: PreparedLeg, acc_mps2: np.ndarray, cycles: np.ndarray) -> np.ndarray:
@@ -191,9 +194,8 @@ def thigh_upright_at(prep: PreparedLeg, axes: JointAxes, strides: Sequence[tuple
     thigh near upright; a seated or lying leg's thigh swings far from it."""
     if not strides:
         return None
-    up = _mean_up(prep, prep.acc_thigh_mps2, np.asarray([(s[0], s[-1]) for s in strides]))
-    up = up - (up @ axes.j1) * axes.j1
-    if np.linalg.norm(up) < 0.5:
+    up = _in_plane(_mean_up(prep, prep.acc_thigh_mps2, np.asarray([(s[0], s[-1]) for s in strides])), axes.j1)
+    if up is None:
         return None
     idx = np.asarray(idx, dtype=int)
     half = max(int(round(0.5 * prep.fs_hz)), 1)
@@ -201,7 +203,7 @@ def thigh_upright_at(prep: PreparedLeg, axes: JointAxes, strides: Sequence[tuple
     cum = np.concatenate((np.zeros((1, 3)), np.cumsum(acc, axis=0)))
     lo, hi = np.clip(idx - half, 0, prep.n), np.clip(idx + half + 1, 0, prep.n)
     mean = cum[hi] - cum[lo]
-    return _upright(mean, up / np.linalg.norm(up), axes.j1, params)
+    return _upright(mean, up, axes.j1, params)
 
 
 def _upright(force: np.ndarray, up: np.ndarray, j: np.ndarray, params: PostureParams) -> np.ndarray:

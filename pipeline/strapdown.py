@@ -15,6 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+BLOCK_CELLS = 1 << 18
+"""Samples of one padded grid (cycles times the longest of them) integrated at once: ~2 MB per array, some twenty
+arrays; a 30-minute chunk at 200 Hz (~1800 strides of ~250 samples) in two groups."""
+
 
 @dataclass(frozen=True)
 class CycleFrames:
@@ -70,14 +74,13 @@ def chained_frames(gyr_rps: np.ndarray, fs_hz: float, starts: np.ndarray, ends: 
 
 
 def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """The vectors ``v`` (M, 3) turned by the unit quaternions ``q`` (M, 4)."""
-    w, u = q[:, 0], q[:, 1:]
-    uv = np.cross(u, v)
-    return v + 2.0 * (w[:, None] * uv + np.cross(u, uv))
+    """The vectors ``v`` (M, 3) turned by the unit quaternions ``q`` (M, 4) (:func:`rotate_padded` row-wise)."""
+    return rotate_padded(q.T, v.T).T
 
 
 def rotate_padded(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """:func:`rotate` on the padded grid: ``v`` (3, L, K) turned by ``q`` (4, L, K)."""
+    """The vectors ``v`` (3, ...) turned by the unit quaternions ``q`` (4, ...), components first (the padded grid's
+    (3, L, K) and (4, L, K) arrays, or (3, M) and (4, M))."""
     w, ux, uy, uz = q
     vx, vy, vz = v
     cx, cy, cz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx  # u x v
@@ -86,14 +89,34 @@ def rotate_padded(q: np.ndarray, v: np.ndarray) -> np.ndarray:
                      vz + 2.0 * (w * cz + ux * cy - uy * cx)])
 
 
+def cycle_blocks(starts: np.ndarray, ends: np.ndarray, max_cells: int = BLOCK_CELLS) -> list[np.ndarray]:
+    """The indices of the cycles ``[starts[k], ends[k])`` in groups to integrate together, shortest cycles first:
+    each group's padded grid (its cycle count times its longest cycle) holds at most ``max_cells`` samples, or one
+    cycle. Grouping by length keeps the padding small, and the cap keeps the memory of the frames bounded whatever
+    the number of cycles and however long the longest one is."""
+    lengths = np.maximum(np.asarray(ends, dtype=int) - np.asarray(starts, dtype=int), 0)
+    order = np.argsort(lengths, kind="stable")
+    groups: list[np.ndarray] = []
+    i = 0
+    while i < order.size:
+        span = np.arange(1, order.size - i + 1) * lengths[order[i:]]  # cells if the group ended at each cycle
+        j = i + max(int(np.searchsorted(span, max_cells, side="right")), 1)
+        groups.append(order[i:j])
+        i = j
+    return groups
+
+
 def cycle_turn_deg(gyr_rps: np.ndarray, fs_hz: float, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
     """Per cycle ``[starts[k], ends[k]]`` (the end sample included) the angle (K,) [deg] the sensor turned by from
     its first sample to its last, whatever the axis (:func:`chained_frames`). Over a gait cycle, from one foot
     strike to the next, a segment returns to its posture relative to the body, so this is the body's turn: its
     change of heading."""
-    f = chained_frames(gyr_rps, fs_hz, starts, np.asarray(ends, dtype=int) + 1)
-    out = np.zeros(f.lengths.size)
-    some = f.lengths > 0
-    w_last = f.q[0, f.lengths[some] - 1, np.flatnonzero(some)]
-    out[some] = np.degrees(2.0 * np.arccos(np.clip(np.abs(w_last), 0.0, 1.0)))
+    starts = np.asarray(starts, dtype=int)
+    ends = np.asarray(ends, dtype=int) + 1
+    out = np.zeros(starts.size)
+    for group in cycle_blocks(starts, ends):
+        f = chained_frames(gyr_rps, fs_hz, starts[group], ends[group])
+        some = f.lengths > 0
+        w_last = f.q[0, f.lengths[some] - 1, np.flatnonzero(some)]
+        out[group[some]] = np.degrees(2.0 * np.arccos(np.clip(np.abs(w_last), 0.0, 1.0)))
     return out

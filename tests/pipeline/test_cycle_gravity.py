@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from pipeline.constants import G_MPS2
-from pipeline.cycle_gravity import cycle_up, knee_from_gravity_deg, window_knee_deg
+from pipeline.cycle_gravity import cycle_up, knee_from_gravity_deg, up_at_samples, window_knee_deg
 from pipeline.params import WALKING
 from pipeline.phases import midstance_bounds
 from pipeline.posture import standing_mask
@@ -140,3 +140,21 @@ def test_the_gravity_knee_over_mid_stance_is_the_true_knee_whatever_the_mounting
     err = knee[have] - truth.angle_at(leg.prep.t_s[have])
     p95 = np.percentile(np.abs(err), 95)
     assert abs(np.median(err)) < 0.5 and p95 < 1.5, (np.median(err), p95)
+
+
+def test_cycle_gravity_is_the_same_in_any_grouping_of_the_cycles() -> None:
+    """Thousands of cycles are integrated in several groups (pipeline.strapdown.cycle_blocks); each cycle's mean
+    force and its carried gravity come out as when the cycle is integrated alone."""
+    rng = np.random.default_rng(4)
+    lengths = rng.integers(150, 260, size=2500)
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    ends = starts + lengths
+    gyr = rng.standard_normal((int(ends[-1]), 3))
+    acc = rng.standard_normal((int(ends[-1]), 3)) + [0.0, 0.0, G_MPS2]
+    lo, hi = starts + 20, starts + 60
+    up, idx, owner, norm = up_at_samples(gyr, acc, FS, starts, ends, lo, hi)
+    np.testing.assert_allclose(norm, np.linalg.norm(cycle_up(gyr, acc, FS, starts, ends), axis=1))
+    for k in (0, 1234, 2499):
+        up_k, idx_k, _, _ = up_at_samples(gyr, acc, FS, starts[k:k + 1], ends[k:k + 1], lo[k:k + 1], hi[k:k + 1])
+        np.testing.assert_allclose(up[owner == k], up_k, atol=1e-9)
+        assert idx[owner == k].tolist() == idx_k.tolist()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.strapdown import chained_frames, cycle_turn_deg, rotate, rotate_padded
+from pipeline.strapdown import chained_frames, cycle_blocks, cycle_turn_deg, rotate, rotate_padded
 
 FS = 100.0
 
@@ -40,3 +40,19 @@ def test_a_swing_that_returns_turns_by_nothing_a_heading_change_by_its_angle() -
     assert turn[0] < 0.5
     # the swing and the heading do not commute, so the body's 60 deg reach the sensor with a small error only
     assert abs(turn[1] - 60.0) < 6.0, turn
+
+
+def test_cycles_are_grouped_by_length_into_bounded_grids_and_the_groups_change_nothing() -> None:
+    rng = np.random.default_rng(2)
+    lengths = rng.integers(80, 140, size=3000)
+    lengths[7] = 2000  # one long cycle may not blow up the grid of all the others
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    ends = starts + lengths
+    groups = cycle_blocks(starts, ends, max_cells=1 << 16)
+    assert sorted(np.concatenate(groups).tolist()) == list(range(3000))
+    for g in groups:
+        assert g.size == 1 or g.size * lengths[g].max() <= 1 << 16
+    gyr = rng.standard_normal((int(ends[-1]), 3))
+    together = cycle_turn_deg(gyr, FS, starts, ends - 1)
+    alone = np.array([cycle_turn_deg(gyr, FS, starts[k:k + 1], ends[k:k + 1] - 1)[0] for k in range(0, 3000, 97)])
+    np.testing.assert_allclose(together[::97], alone, atol=1e-9)
