@@ -10,7 +10,8 @@ joint-centre constraint needs rigid segments, which a heel-strike shock ringing 
 ~0.1 s: those samples are left out (:func:`shock_mask`). Where the knee is a hinge, the hinge cue is the more precise
 of the two and is used wherever it speaks (out-of-plane motion: turns, hip ab/adduction). A tibia that turns as the
 knee flexes does not always make the hinge fit lean, so the joint-centre cue checks every hinge line: where the two
-disagree, the leg is re-stamped by both and the timing under which Eq. 5 fits better is kept (:func:`centre_misfit`).
+disagree by more than ``SyncParams.agree_s``, the joint centre's line is applied. Eq. 5 holds on any knee that turns
+about a centre, a hinge or not, while the hinge cue reads a gait-locked axial rotation as a lag.
 
 A 10-15 ms offset, common between two BLE sensors, would otherwise distort swing flexion by several degrees.
 
@@ -43,15 +44,11 @@ from pipeline.axes import (
     LagEstimate,
     angular_acceleration,
     axis_up,
-    centre_fit_step,
-    centre_residuals,
     estimate_centre_lag_s,
     fit_joint_axes,
-    fit_joint_centres,
     fit_margin_mask,
     hinge_rates,
     orient_thigh_on_gait,
-    select_fit_samples,
     sync_lag_estimate,
 )
 from pipeline.constants import G_MPS2
@@ -83,7 +80,7 @@ class ClockFit:
     drift: float = 0.0  # [s/s]
     disagreement: bool = False  # the window lags run apart faster than ``SyncParams.max_line_drift``: timing unknown
     # the joint-centre cue's line where it differs from this one (the hinge cue's) by more than ``agree_s`` at
-    # mid-session: :func:`synchronised_leg` keeps the one under which Seel's Eq. 5 holds better
+    # mid-session: :func:`synchronised_leg` applies it instead
     alternative: ClockFit | None = None
 
 
@@ -91,10 +88,12 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
                      si: tuple[SI, SI] | None = None) -> SyncedLeg:
     """Prepare a leg, fit its axes, and when the hinge constraint shows a thigh/shank clock offset larger than
     ``SyncParams.min_shift_samples`` of a sample, prepare it again with the shank's time stamps corrected (the axes
-    do not move with the lag). Where the window lags give no line the stride timing bears out, but the stride
-    timing shows a drift no pair of crystals has, the shank is re-stamped by that drift and the windows tried
-    again (:func:`_clock_after_stride_drift`). ``si``: both streams' :func:`pipeline.prepare.to_si` when the caller
-    has them (never modified). Raises ValueError with less than a second of usable samples."""
+    do not move with the lag); where the joint-centre cue disagrees with the hinge's line
+    (:attr:`ClockFit.alternative`), by the joint centre's line. Where the window lags give no line the stride timing
+    bears out, but the stride timing shows a drift no pair of crystals has, the shank is re-stamped by that drift
+    and the windows tried again (:func:`_clock_after_stride_drift`). ``si``: both streams'
+    :func:`pipeline.prepare.to_si` when the caller has them (never modified). Raises ValueError with less than a
+    second of usable samples."""
     si1, si2 = (to_si(thigh), to_si(shank)) if si is None else si
     fs1 = nominal_fs(thigh, si1[0]) if si1[0].size else 0.0
     fs2 = nominal_fs(shank, si2[0]) if si2[0].size else 0.0
@@ -105,16 +104,11 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     axes = _fitted_axes(prep, g1, g2, params)
     streams = _LegStreams(leg, (si1, si2), (fs1, fs2), prep, (g1, g2))
     clock = clock_model(prep, g1, g2, axes, params.sync, params.axes)
-    synced = None if clock.offset_s is None else _corrected(streams, axes, clock.offset_s, clock.drift, params)
-    alt = clock.alternative
-    if synced is not None and alt is not None and alt.offset_s is not None:
-        other = _corrected(streams, axes, alt.offset_s, alt.drift, params)
-        # both fits must stand: a centre fit that found no body-worn position gives no verdict
-        mine = centre_misfit(synced, params)
-        if other is not None and np.isfinite(mine) and centre_misfit(other, params) < mine:
-            return other
-    if synced is not None:
-        return synced
+    for line in (clock.alternative, clock):  # the joint centre's line first, where the cues disagree
+        if line is not None and line.offset_s is not None:
+            synced = _corrected(streams, axes, line.offset_s, line.drift, params)
+            if synced is not None:
+                return synced
     seen = _leg_stride_drift(prep, axes, params, (g1, g2))
     if seen is not None and seen.beyond(params.sync.max_drift):
         found = _clock_after_stride_drift(streams, seen.drift, params)
@@ -124,27 +118,6 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     # no line, or one the stride timing does not bear out (then the leg's timing is unknown)
     return SyncedLeg(prep, axes, None, None, (g1, g2),
                      clock_disagreement=clock.disagreement or clock.offset_s is not None)
-
-
-def centre_misfit(leg: SyncedLeg, params: PipelineParams) -> float:
-    """How well Seel's Eq. 5 holds on a leg as stamped [m/s^2]: the joint centres fitted on its fit samples
-    (:func:`pipeline.axes.fit_joint_centres`, shocks left out as for the centre cue), then the robust SD (scaled
-    median absolute deviation) of the residual on all of them. Eq. 5 holds on any knee that turns about a centre,
-    a hinge or not, so at the right thigh-shank timing the two accelerometers agree best; the robust scale keeps a
-    trimmed misfit from favouring a wrong fit."""
-    prep = leg.prep
-    g1, g2 = leg.fit_gyr if leg.fit_gyr is not None else fit_gyros(prep, params.axes.fit_cutoff_hz,
-                                                                   thigh=leg.thigh_fit)
-    a1, a2, gd1, gd2, far = _centre_inputs(prep, g1, g2, params.sync, params.axes)
-    idx = select_fit_samples(g1, g2, far, params.axes, step=centre_fit_step(prep.fs_hz, params.axes))
-    if idx.size < 50:
-        return float("inf")
-    fit = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx], leg.axes.j1, leg.axes.j2,
-                            params.axes)
-    if not (fit.o1.any() or fit.o2.any()):
-        return float("inf")  # no body-worn sensor position fits (beyond ``max_lever_m``): no verdict
-    resid = centre_residuals(fit, a1[idx], g1[idx], gd1[idx], a2[idx], g2[idx], gd2[idx])
-    return float(median_abs_deviation(resid, scale="normal"))
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from pipeline.axes import (
     fit_joint_axes,
     fit_margin_mask,
 )
-from pipeline.params import WALKING
+from pipeline.params import RUNNING, WALKING
 from pipeline.prepare import nominal_fs, prepare_leg_si, to_si
 from pipeline.session import process_session
 from pipeline.signal_utils import lowpass_runs_many
@@ -23,7 +23,6 @@ from pipeline.simulate import SimConfig, simulate_session
 from pipeline.sync import (
     ClockFit,
     _fitted_axes,
-    centre_misfit,
     clock_model,
     shock_mask,
     stride_clock_runaway,
@@ -547,8 +546,8 @@ def test_lost_packets_do_not_set_the_clock() -> None:
 def test_a_knee_that_turns_as_it_flexes_takes_the_joint_centres_timing(seed: int, leg: str) -> None:
     # A tibia that turns about its long axis as the knee flexes reads a lag of its own into the hinge cue (Seel Eq. 2);
     # with the hinge-lean test switched off nothing else tells such a knee from a hinge. The joint-centre cue (Eq. 5)
-    # holds on any knee that turns about a centre, so where the two disagree the timing under which Eq. 5 fits
-    # better is kept. Exact clocks: any lag is the cue's error.
+    # holds on any knee that turns about a centre, so where the two disagree the joint centre's timing is applied.
+    # Exact clocks: any lag is the cue's error.
     params = dataclasses.replace(WALKING, axes=dataclasses.replace(WALKING.axes, level_lean_deg=90.0))
     sim = simulate_session(SimConfig(seed=seed, duration_s=90.0, bout_strides=12, knee_3d=2.0, sync_offset_ms=0.0,
                                      clock_drift_ppm=0.0))
@@ -565,13 +564,17 @@ def test_a_knee_that_turns_as_it_flexes_takes_the_joint_centres_timing(seed: int
     assert synced.shank_lag_ms is not None and abs(synced.shank_lag_ms) < 4.0
 
 
-def test_a_centre_fit_without_a_body_worn_position_gives_no_timing_verdict(straight) -> None:
-    # sensors beyond WALKING.axes.max_lever_m: the fitted centres are dropped, and so is their misfit
-    params = dataclasses.replace(WALKING, axes=dataclasses.replace(WALKING.axes, max_lever_m=0.01))
-    thigh, shank = _leg_streams(straight.streams, "left")
-    leg = synchronised_leg("left", thigh, shank, WALKING)
-    assert np.isfinite(centre_misfit(leg, WALKING)) and centre_misfit(leg, WALKING) < 0.5
-    assert centre_misfit(leg, params) == np.inf
+@pytest.mark.parametrize(("seed", "leg"), [(1, "left"), (8, "right")])
+def test_a_running_knee_that_turns_as_it_flexes_keeps_its_clocks(seed: int, leg: str) -> None:
+    # Running with 3-D knees and hips and 6 g heel strikes, exact clocks: the hinge cue reads ~30 ms here (the swing
+    # peak would come out ~15 deg low) with the hinge fit not leaning; the joint-centre cue disagrees and is applied.
+    sim = simulate_session(SimConfig(pattern="running", fs_hz=200.0, activities=("standing",), seed=seed,
+                                     n_strides=120, knee_3d=2.0, hip_3d=1.0, impact_g=6.0, sync_offset_ms=0.0,
+                                     clock_drift_ppm=0.0))
+    thigh, shank = _leg_streams(sim.streams, leg)
+    synced = synchronised_leg(leg, thigh, shank, RUNNING)
+    assert not synced.axes.leaning
+    assert abs(synced.shank_lag_ms or 0.0) < 3.0, synced.shank_lag_ms
 
 
 @pytest.mark.parametrize(("seed", "lag_s"), [(3, 0.075), (2, -0.09), (0, -0.09)])
