@@ -188,6 +188,12 @@ class SyncParams:
     research_times: int = 2
     """Times the wide search reads a window again around the lag it read, where that lies more than ``agree_s``
     from where it searched: the joint-centre cue fits its centres at the searched lag and reads short of a far one."""
+    settle_reads: int = 4
+    """Times the joint-centre cue reads a window again around the lag it read, until it moves by less than
+    ``settle_s`` (:func:`pipeline.sync._reread`): it fits its centres at the lag it is searched around and reads
+    only part of the way from there."""
+    settle_s: float = 0.001
+    """A re-read joint-centre lag that moved by less than this [s] has settled (a fifth of a sample at 200 Hz)."""
     wide_max_se_s: float = 0.004
     """Largest standard error [s] of a hinge window's lag the wide search takes: over +-0.15 s the shallow cost curve
     of a window without a walk (a stair flight, exercises) has false minima 50 ms out (standard errors 5.5-8 ms on
@@ -215,7 +221,7 @@ class SyncParams:
     """Most windows the joint-centre cue is evaluated on, spread evenly over the session: each costs one centre fit
     and a Gauss-Newton step per candidate lag (13 at 100 Hz), and an offset with a drift needs only a few agreeing
     points, so the cost of a long recording without turns stays that of eight windows."""
-    check_centre_windows: int = 2
+    check_centre_windows: int = 3
     """Windows the joint-centre cue checks a hinge-cue line on (:func:`pipeline.sync.clock_model`), each searched
     around that line, once the middle window alone differed from it by more than ``agree_s`` (where the cues agree,
     one window per leg). Where the two lines differ by more than ``agree_s`` at mid-session, the joint centre's is

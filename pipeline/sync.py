@@ -230,16 +230,30 @@ def _checked_by_centre(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
                        axes_params: AxesParams, windows: list[slice], fit: ClockFit, wide: bool = False) -> ClockFit:
     """The hinge cue's line ``fit``, with the joint-centre cue's line as its ``alternative`` where the two differ
     by more than ``agree_s``: first the middle window alone, searched around the hinge line; where it differs, the
-    line on ``check_centre_windows`` windows (its centres handed on from the first fit)."""
+    line on ``check_centre_windows`` windows, each searched from the middle window's lag (with the hinge's drift;
+    its centres handed on from the first fit). Where those windows make no line and none of them, searched from
+    the hinge line, rests on it, the two cues disagree and neither is borne out: the timing is unknown
+    (``disagreement``)."""
     assert fit.offset_s is not None
     cue = _centre_lag_of(prep, g1, g2, axes, params, axes_params)
     mid, t_mid = windows[len(windows) // 2], float(prep.t_s[prep.n // 2])
-    expected = fit.offset_s + fit.drift * (_cue_time(prep, mid, cue[1]) - t_mid)
+    t_probe = _cue_time(prep, mid, cue[1])
+    expected = fit.offset_s + fit.drift * (t_probe - t_mid)
     probe = cue[0](mid, expected)
     if probe is None or abs(probe.lag_s - expected) <= params.agree_s:
         return fit
-    alt = _centre_line(prep, windows, params, cue, around=fit, max_windows=params.check_centre_windows, wide=wide)
-    if alt.offset_s is not None and abs(alt.offset_s - fit.offset_s) > params.agree_s:
+    around = ClockFit(probe.lag_s - fit.drift * (t_probe - t_mid), fit.drift)
+    alt = _centre_line(prep, windows, params, cue, around=around, max_windows=params.check_centre_windows, wide=wide)
+    if alt.offset_s is None:
+        # the centre's windows scatter (the cue has more than one resting place): the hinge line stands where one of
+        # them, searched from it, rests on it
+        for w in _spread(windows, params.check_centre_windows):
+            on_line = fit.offset_s + fit.drift * (_cue_time(prep, w, cue[1]) - t_mid)
+            est = cue[0](w, on_line)
+            if est is not None and abs(est.lag_s - on_line) <= params.agree_s:
+                return fit
+        return ClockFit(None, disagreement=True)
+    if abs(alt.offset_s - fit.offset_s) > params.agree_s:
         return ClockFit(fit.offset_s, fit.drift, alternative=alt)
     return fit
 
@@ -252,8 +266,6 @@ def _centre_line(prep: PreparedLeg, windows: list[slice], params: SyncParams, cu
     """The joint-centre cue's line (:func:`_line_model`; ``cue``: :func:`_centre_lag_of`) on at most
     ``max_windows`` (default ``max_centre_windows``) of ``windows``, spread evenly; with ``around``, each window
     searched around that line's lag at its time instead of the windows before it."""
-    count = params.max_centre_windows if max_windows is None else max_windows
-    pick = np.unique(np.linspace(0, len(windows) - 1, min(len(windows), count)).round())
     lag_of, weight = cue
     search = lag_of
     if around is not None and around.offset_s is not None:
@@ -261,7 +273,14 @@ def _centre_line(prep: PreparedLeg, windows: list[slice], params: SyncParams, cu
 
         def search(w: slice, _predicted: float) -> LagEstimate | None:
             return lag_of(w, offset + drift * (_cue_time(prep, w, weight) - t_mid))
-    return _line_model(prep, [windows[int(i)] for i in pick], params, search, weight=weight, wide=wide)
+    count = params.max_centre_windows if max_windows is None else max_windows
+    return _line_model(prep, _spread(windows, count), params, search, weight=weight, wide=wide)
+
+
+def _spread(windows: list[slice], count: int) -> list[slice]:
+    """At most ``count`` of ``windows``, spread evenly (the first and the last among them)."""
+    pick = np.unique(np.linspace(0, len(windows) - 1, min(len(windows), count)).round())
+    return [windows[int(i)] for i in pick]
 
 
 def _cue_time(prep: PreparedLeg, w: slice, weight: np.ndarray | None) -> float:
@@ -479,21 +498,25 @@ def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
 
 def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
                    axes_params: AxesParams) -> CentreCue:
-    """The joint-centre lag of one window (:func:`pipeline.axes.estimate_centre_lag_s`), its inputs prepared once,
-    and where in a window that lag is measured: (N,) the squared slope of the shank's acceleration on the fitted
-    samples (the knee-centre acceleration changes most sharply at heel strike)."""
+    """The joint-centre lag of one window (:func:`pipeline.axes.estimate_centre_lag_s`, read again until it settles:
+    :func:`_reread`), its inputs prepared once, and where in a window that lag is measured: (N,) the squared slope
+    of the shank's acceleration on the fitted samples (the knee-centre acceleration changes most sharply at heel
+    strike)."""
     fs = prep.fs_hz
     a1, a2, gd1, gd2, far = _centre_inputs(prep, g1, g2, params, axes_params)
     # the first window that fits centres hands them on: the others start from them (one fit, no restarts, each)
     centres: list[np.ndarray] = []
 
-    def lag_of(w: slice, centre_s: float) -> LagEstimate | None:
+    def read(w: slice, centre_s: float) -> LagEstimate | None:
         lag, fitted = estimate_centre_lag_s(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, far, fs, w,
                                             params.max_lag_s, axes_params, centres[0] if centres else None,
                                             centre_s)
         if fitted is not None and not centres:
             centres.append(fitted)
         return None if lag is None else LagEstimate(lag)
+
+    def lag_of(w: slice, centre_s: float) -> LagEstimate | None:
+        return _reread(read, w, centre_s, params.settle_reads, params.settle_s)
     return lag_of, row_norm(np.gradient(a2, axis=0)) ** 2 * far
 
 
@@ -540,18 +563,26 @@ def _predicted_lag(pts: list[tuple[float, float]], t: float, params: SyncParams)
 
 def _window_lag(lag_of: Callable[[slice, float], LagEstimate | None], w: slice, centre: float, params: SyncParams,
                 wide: bool) -> LagEstimate | None:
-    """``lag_of(w, centre)``; in the wide search read again around what it read (``research_times``: the joint-centre
-    cue fits its centres at the lag it is searched around and reads short of a far one, 75 ms as 42-49 ms from 0),
-    and None unless clear (``wide_max_se_s``: over the wide range a shallow curve finds false minima)."""
+    """``lag_of(w, centre)``; in the wide search read again around what it read (:func:`_reread`,
+    ``research_times``), and None unless clear (``wide_max_se_s``: over the wide range a shallow curve finds false
+    minima)."""
+    est = _reread(lag_of, w, centre, params.research_times if wide else 0, params.agree_s)
+    return None if wide and est is not None and est.se_s is not None and est.se_s > params.wide_max_se_s else est
+
+
+def _reread(lag_of: Callable[[slice, float], LagEstimate | None], w: slice, centre: float, reads: int, tol_s: float
+            ) -> LagEstimate | None:
+    """``lag_of(w, centre)``, read again around what it read while that lies more than ``tol_s`` [s] from where it
+    searched, at most ``reads`` more times. The joint-centre cue fits its centres at the lag it is searched around
+    and reads only part of the way from there (75 ms as 42-49 ms from 0; searched around a hinge line 33 ms off on
+    exact clocks, 14, 20 and 29 ms): read again from there, it comes to rest where its own fit puts it."""
     est = lag_of(w, centre)
-    if not wide:
-        return est
-    for _ in range(params.research_times):
-        if est is None or abs(est.lag_s - centre) <= params.agree_s:
+    for _ in range(reads):
+        if est is None or abs(est.lag_s - centre) <= tol_s:
             break
         centre = est.lag_s
         est = lag_of(w, centre)
-    return None if est is not None and est.se_s is not None and est.se_s > params.wide_max_se_s else est
+    return est
 
 
 def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,

@@ -115,8 +115,10 @@ def test_the_centre_cue_runs_on_a_bounded_number_of_windows(straight, monkeypatc
     prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
     params = dataclasses.replace(WALKING.sync, window_s=10.0, max_centre_windows=3)
     offset = clock_model(prep, g1, g2, axes, params, WALKING.axes).offset_s
-    assert len(calls) == 3  # of 9 windows
-    assert calls[0].start == 0 and calls[-1].stop == prep.n  # the first and the last: spread over the session
+    windows = sorted({(w.start, w.stop) for w in calls})  # each read again until it settles
+    assert len(windows) == 3  # of 9 windows
+    assert windows[0][0] == 0 and windows[-1][1] == prep.n  # the first and the last: spread over the session
+    assert len(calls) <= 3 * (1 + params.settle_reads)
     assert offset is not None and abs(offset - 0.012) < 0.003
 
 
