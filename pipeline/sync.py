@@ -231,9 +231,9 @@ def _checked_by_centre(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
     """The hinge cue's line ``fit``, with the joint-centre cue's line as its ``alternative`` where the two differ
     by more than ``agree_s``: first the middle window alone, searched around the hinge line; where it differs, the
     line on ``check_centre_windows`` windows, each searched from the middle window's lag (with the hinge's drift;
-    its centres handed on from the first fit). Where those windows make no line and none of them, searched from
-    the hinge line, rests on it, the two cues disagree and neither is borne out: the timing is unknown
-    (``disagreement``)."""
+    its centres handed on from the first fit). Where the middle window comes to rest beyond ``max_lag_s``, or where
+    those windows make no line and none of them, searched from the hinge line, rests on it, the two cues disagree
+    and neither is borne out: the timing is unknown (``disagreement``)."""
     assert fit.offset_s is not None
     cue = _centre_lag_of(prep, g1, g2, axes, params, axes_params)
     mid, t_mid = windows[len(windows) // 2], float(prep.t_s[prep.n // 2])
@@ -242,6 +242,8 @@ def _checked_by_centre(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
     probe = cue[0](mid, expected)
     if probe is None or abs(probe.lag_s - expected) <= params.agree_s:
         return fit
+    if abs(probe.lag_s) > params.max_lag_s:
+        return ClockFit(None, disagreement=True)  # the centre cue rests nowhere in the range searched
     around = ClockFit(probe.lag_s - fit.drift * (t_probe - t_mid), fit.drift)
     alt = _centre_line(prep, windows, params, cue, around=around, max_windows=params.check_centre_windows, wide=wide)
     if alt.offset_s is None:
@@ -498,10 +500,10 @@ def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
 
 def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
                    axes_params: AxesParams) -> CentreCue:
-    """The joint-centre lag of one window (:func:`pipeline.axes.estimate_centre_lag_s`, read again until it settles:
-    :func:`_reread`), its inputs prepared once, and where in a window that lag is measured: (N,) the squared slope
-    of the shank's acceleration on the fitted samples (the knee-centre acceleration changes most sharply at heel
-    strike)."""
+    """The joint-centre lag of one window (:func:`pipeline.axes.estimate_centre_lag_s`, read again until it comes
+    to rest: :func:`_reread`), its inputs prepared once, and where in a window that lag is measured: (N,) the
+    squared slope of the shank's acceleration on the fitted samples (the knee-centre acceleration changes most
+    sharply at heel strike)."""
     fs = prep.fs_hz
     a1, a2, gd1, gd2, far = _centre_inputs(prep, g1, g2, params, axes_params)
     # the first window that fits centres hands them on: the others start from them (one fit, no restarts, each)

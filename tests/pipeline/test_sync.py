@@ -22,6 +22,7 @@ from pipeline.signal_utils import lowpass_runs_many
 from pipeline.simulate import SimConfig, simulate_session
 from pipeline.sync import (
     ClockFit,
+    _checked_by_centre,
     _fitted_axes,
     clock_model,
     shock_mask,
@@ -566,17 +567,45 @@ def test_a_knee_that_turns_as_it_flexes_takes_the_joint_centres_timing(seed: int
     assert synced.shank_lag_ms is not None and abs(synced.shank_lag_ms) < 4.0
 
 
-@pytest.mark.parametrize(("seed", "leg"), [(1, "left"), (8, "right")])
-def test_a_running_knee_that_turns_as_it_flexes_keeps_its_clocks(seed: int, leg: str) -> None:
-    # Running with 3-D knees and hips and 6 g heel strikes, exact clocks: the hinge cue reads ~30 ms here (the swing
-    # peak would come out ~15 deg low) with the hinge fit not leaning; the joint-centre cue disagrees and is applied.
+@pytest.mark.parametrize(("seed", "leg", "hip_3d", "impact_g", "leaning"),
+                         [(1, "left", 1.0, 6.0, False), (8, "right", 1.0, 6.0, False), (18, "left", 0.0, None, False),
+                          (6, "left", 0.0, None, True)])
+def test_a_running_knee_that_turns_as_it_flexes_keeps_its_clocks(seed: int, leg: str, hip_3d: float,
+                                                                  impact_g: float | None, leaning: bool) -> None:
+    # Running with 3-D knees, exact clocks. Where the hinge fit does not lean the hinge cue reads ~30 ms (the swing
+    # peak would come out ~15 deg low), and the joint-centre cue, searched around that line, reads 14-29 ms unless
+    # read again until it comes to rest; where it leans the centre cue alone, each window searched around the line
+    # of those before, had read a line of -10 ms and 260 ppm.
     sim = simulate_session(SimConfig(pattern="running", fs_hz=200.0, activities=("standing",), seed=seed,
-                                     n_strides=120, knee_3d=2.0, hip_3d=1.0, impact_g=6.0, sync_offset_ms=0.0,
-                                     clock_drift_ppm=0.0))
+                                     n_strides=120, knee_3d=2.0, hip_3d=hip_3d, impact_g=impact_g,
+                                     sync_offset_ms=0.0, clock_drift_ppm=0.0))
     thigh, shank = _leg_streams(sim.streams, leg)
     synced = synchronised_leg(leg, thigh, shank, RUNNING)
-    assert not synced.axes.leaning
+    assert synced.axes.leaning == leaning
     assert abs(synced.shank_lag_ms or 0.0) < 3.0, synced.shank_lag_ms
+    assert abs(synced.shank_drift_ppm or 0.0) < 50.0, synced.shank_drift_ppm
+    assert not synced.clock_disagreement
+
+
+def test_a_centre_cue_that_rests_beyond_the_search_range_leaves_the_timing_unknown(
+        straight, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the check of a hinge line: where the joint-centre cue, read again and again, comes to rest 90 ms out (an
+    # independent simulator's running leg: hinge 38.7 ms on exact clocks), neither cue is borne out
+    prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
+    params = WALKING.sync
+
+    def far_cue(*_args, **_kwargs):  # noqa: ANN002, ANN003, ANN202
+        return (lambda w, centre: LagEstimate(0.0905)), np.ones(prep.n)
+
+    monkeypatch.setattr("pipeline.sync._centre_lag_of", far_cue)
+    edges = np.linspace(0, prep.n, 4).astype(int)
+    windows = [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    hinge = ClockFit(0.0387)
+    clock = _checked_by_centre(prep, g1, g2, axes, params, WALKING.axes, windows, hinge)
+    assert clock.offset_s is None and clock.disagreement
+    near = dataclasses.replace(params, max_lag_s=0.15)  # within the wide search's range it is a line of its own
+    clock = _checked_by_centre(prep, g1, g2, axes, near, WALKING.axes, windows, hinge)
+    assert clock.alternative is not None and clock.alternative.offset_s == pytest.approx(0.0905)
 
 
 @pytest.mark.parametrize(("seed", "lag_s"), [(3, 0.075), (2, -0.09), (0, -0.09)])
