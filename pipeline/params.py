@@ -185,16 +185,13 @@ class SyncParams:
     wide_from_share: float = 0.75
     """A line found beyond this share of ``max_lag_s`` is searched over ``wide_max_lag_s`` too (a 75 ms offset read
     as 67 ms, a 90 ms one as 54 ms on the simulator: the narrow windows followed it part of the way out)."""
-    research_times: int = 2
-    """Times the wide search reads a window again around the lag it read, where that lies more than ``agree_s``
-    from where it searched: the joint-centre cue fits its centres at the searched lag and reads short of a far one."""
     settle_reads: int = 4
     """Times the joint-centre cue reads a window again around the lag it read, until it moves by less than
     ``settle_s`` (:func:`pipeline.sync._reread`): it fits its centres at the lag it is searched around and reads only
-    part of the way from there (searched around a hinge line 33 ms off on exact clocks: 14, 20 and 29 ms; read
-    again: -1.5 .. -2.8 ms). Running with 3-D knees on exact clocks (this simulator, tune seeds 6-20, 270 legs): 46
-    legs corrected by 6-33 ms (or steeper than 100 ppm), none after; an independent simulator's running legs beyond
-    10 ms, 70 -> 38 of 264."""
+    part of the way from there (searched around a hinge line 33 ms off on exact clocks: 14, 20 and 29 ms; read again:
+    -1.5 .. -2.8 ms). Running with 3-D knees on exact clocks (this simulator, seeds 6-20, 270 legs), 46 legs read
+    6-33 ms or lines steeper than 100 ppm without the re-reads and lie within 5 ms and 50 ppm with them; the
+    ``wide_max_lag_s`` search reads far offsets the same way."""
     settle_s: float = 0.001
     """A re-read joint-centre lag that moved by less than this [s] has settled (a fifth of a sample at 200 Hz)."""
     wide_max_se_s: float = 0.004
@@ -231,8 +228,8 @@ class SyncParams:
     centre's is applied. A knee whose tibia turns as it flexes without the hinge fit leaning reads 10-25 ms into the
     hinge cue (an independent simulator: 6 of 80 legs beyond 10 ms, levels off by up to 24 deg; this simulator's
     running with 3-D knees: 30 ms on exact clocks). Of 27 disagreeing legs (walking with the hinge-lean test off,
-    running; 3-D knees, tune seeds), the centre's line lay within 5 ms of the truth on all 27, the hinge's on none;
-    refitting the centres on the leg re-stamped by each line and keeping the better Eq. 5 fit chose the hinge's on 8
+    running; 3-D knees, tune seeds), the centre's line lies within 5 ms of the truth on all 27, the hinge's on none;
+    a refit of the centres on the leg re-stamped by each line, keeping the better Eq. 5 fit, picks the hinge's on 8
     (its robust scale leaves out the heel strikes' large residuals, where the timing shows). Where the knee is an
     exact hinge the centre's line can be the wrong one: the simulator's planar knee at 200 Hz, one leg of ten, -16
     ms against a true -4.6 (ROM LoA -0.5 .. 0.2 -> -1.3 .. 1.5 deg); no real knee is one (Eq. 2 residual 25 deg/s on

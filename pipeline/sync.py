@@ -78,7 +78,9 @@ class ClockFit:
 
     offset_s: float | None  # lag at mid-session [s]; None: no correction applied
     drift: float = 0.0  # [s/s]
-    disagreement: bool = False  # the window lags run apart faster than ``SyncParams.max_line_drift``: timing unknown
+    # the leg's timing is unknown: the window lags run apart faster than ``SyncParams.max_line_drift``, the wide
+    # search's scatter far from zero, or the joint-centre check bears out neither cue (:func:`_checked_by_centre`)
+    disagreement: bool = False
     # the joint-centre cue's line where it differs from this one (the hinge cue's) by more than ``agree_s`` at
     # mid-session: :func:`synchronised_leg` applies it instead
     alternative: ClockFit | None = None
@@ -104,11 +106,10 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     axes = _fitted_axes(prep, g1, g2, params)
     streams = _LegStreams(leg, (si1, si2), (fs1, fs2), prep, (g1, g2))
     clock = clock_model(prep, g1, g2, axes, params.sync, params.axes)
-    for line in (clock.alternative, clock):  # the joint centre's line first, where the cues disagree
-        if line is not None and line.offset_s is not None:
-            synced = _corrected(streams, axes, line.offset_s, line.drift, params)
-            if synced is not None:
-                return synced
+    line = clock.alternative or clock  # the joint centre's line where the cues disagree
+    synced = None if line.offset_s is None else _corrected(streams, axes, line.offset_s, line.drift, params)
+    if synced is not None:
+        return synced
     seen = _leg_stride_drift(prep, axes, params, (g1, g2))
     if seen is not None and seen.beyond(params.sync.max_drift):
         found = _clock_after_stride_drift(streams, seen.drift, params)
@@ -168,9 +169,8 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
     simulators drew +-40 ms per sensor (80 ms between a thigh and its shank), whose 60-75 ms went uncorrected with
     swing peaks 10-40 deg off. A line found near the edge of the narrow range (beyond ``wide_from_share`` of it: the
     windows' searches follow the line of those before and slide part of the way out) is searched wide as well, and
-    the wide line kept where there is one (a drifting clock's narrow line lies there too, rightly). The wide search
-    reads each window again around the lag it read (``research_times``) and, where its windows scatter but all lie
-    beyond ``scattered_max_lag_s`` on one side, says the timing is unknown."""
+    the wide line kept where there is one (a drifting clock's narrow line lies there too, rightly). Where the wide
+    search's windows scatter but all lie beyond ``scattered_max_lag_s`` on one side, the timing is unknown."""
     fit = _clock_model(prep, g1, g2, axes, params, axes_params)
     near_edge = fit.offset_s is not None and abs(fit.offset_s) > params.wide_from_share * params.max_lag_s
     if (fit.offset_s is not None and not near_edge) or fit.disagreement or params.wide_max_lag_s <= params.max_lag_s:
@@ -216,7 +216,8 @@ def _clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointA
         # on a hinge knee the centre cue is the less accurate of the two wherever turns make both informative
         # (sweep and accuracy tune seeds: crouch gait, long lever arms); but a knee whose tibia turns as it flexes
         # without leaning the hinge fit reads a lag of its own into the hinge cue (10-25 ms on an independent
-        # simulator), so the centre cue is asked too, around the hinge's line, and a disagreement is settled later
+        # simulator), so the centre cue is asked too, from the hinge's line; where the two disagree the centre's line
+        # is applied (:func:`synchronised_leg`)
         if fit.offset_s is not None and axes_params is not None:
             return _checked_by_centre(prep, g1, g2, axes, params, axes_params, windows, fit, wide)
         if fit.offset_s is not None or axes_params is None or sum(lag is not None for lag in hinge) >= 2:
@@ -243,12 +244,14 @@ def _checked_by_centre(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
     if probe is None or abs(probe.lag_s - expected) <= params.agree_s:
         return fit
     if abs(probe.lag_s) > params.max_lag_s:
-        return ClockFit(None, disagreement=True)  # the centre cue rests nowhere in the range searched
+        # the centre cue rests beyond the range searched: a line near its edge is searched wide (:func:`clock_model`)
+        near_edge = not wide and abs(fit.offset_s) > params.wide_from_share * params.max_lag_s
+        return ClockFit(None, disagreement=not near_edge)
     around = ClockFit(probe.lag_s - fit.drift * (t_probe - t_mid), fit.drift)
     alt = _centre_line(prep, windows, params, cue, around=around, max_windows=params.check_centre_windows, wide=wide)
     if alt.offset_s is None:
-        # the centre's windows scatter (the cue has more than one resting place): the hinge line stands where one of
-        # them, searched from it, rests on it
+        # the centre's windows make no line (they scatter, or too few speak): the hinge line stands where one of
+        # them, searched from it, rests on it (the middle one too: its read starts from the centres fitted since)
         for w in _spread(windows, params.check_centre_windows):
             on_line = fit.offset_s + fit.drift * (_cue_time(prep, w, cue[1]) - t_mid)
             est = cue[0](w, on_line)
@@ -466,6 +469,8 @@ def _clock_after_stride_drift(streams: _LegStreams, drift: float, params: Pipeli
             offset = whole.lag_s  # beyond half the windows' range: their first search would miss it
             again, h1, h2, axes = restamped(offset)
     rest = clock_model(again, h1, h2, axes, params.sync, params.axes)
+    if rest.alternative is not None:
+        rest = rest.alternative  # the joint centre's line where the cues disagree (:func:`synchronised_leg`)
     if rest.offset_s is None or abs(rest.drift) > params.sync.max_drift:
         return None  # no line, or a steep one where only a crystal's worth of drift is left: the cues disagree
     # the rest's line at the first grid's middle (the re-stamped grid may be cut, which moves its own)
@@ -495,7 +500,7 @@ def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
     halves = [slice(0, half), slice(half, prep.n)]
     lag = _line_model(prep, halves, params, _centre_lag_of(prep, g1, g2, axes, params, axes_params)[0],
                       drifting=False).offset_s
-    return lag if lag is not None and abs(lag) > params.short_min_lag_s else None
+    return lag if lag is not None and params.short_min_lag_s < abs(lag) <= params.max_lag_s else None
 
 
 def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
@@ -565,10 +570,9 @@ def _predicted_lag(pts: list[tuple[float, float]], t: float, params: SyncParams)
 
 def _window_lag(lag_of: Callable[[slice, float], LagEstimate | None], w: slice, centre: float, params: SyncParams,
                 wide: bool) -> LagEstimate | None:
-    """``lag_of(w, centre)``; in the wide search read again around what it read (:func:`_reread`,
-    ``research_times``), and None unless clear (``wide_max_se_s``: over the wide range a shallow curve finds false
-    minima)."""
-    est = _reread(lag_of, w, centre, params.research_times if wide else 0, params.agree_s)
+    """``lag_of(w, centre)``; in the wide search None unless clear (``wide_max_se_s``: over the wide range a
+    shallow curve finds false minima)."""
+    est = lag_of(w, centre)
     return None if wide and est is not None and est.se_s is not None and est.se_s > params.wide_max_se_s else est
 
 

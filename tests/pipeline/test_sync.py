@@ -575,7 +575,7 @@ def test_a_running_knee_that_turns_as_it_flexes_keeps_its_clocks(seed: int, leg:
     # Running with 3-D knees, exact clocks. Where the hinge fit does not lean the hinge cue reads ~30 ms (the swing
     # peak would come out ~15 deg low), and the joint-centre cue, searched around that line, reads 14-29 ms unless
     # read again until it comes to rest; where it leans the centre cue alone, each window searched around the line
-    # of those before, had read a line of -10 ms and 260 ppm.
+    # of those before, reads a line of -10 ms and 260 ppm without the re-reads.
     sim = simulate_session(SimConfig(pattern="running", fs_hz=200.0, activities=("standing",), seed=seed,
                                      n_strides=120, knee_3d=2.0, hip_3d=hip_3d, impact_g=impact_g,
                                      sync_offset_ms=0.0, clock_drift_ppm=0.0))
@@ -606,6 +606,35 @@ def test_a_centre_cue_that_rests_beyond_the_search_range_leaves_the_timing_unkno
     near = dataclasses.replace(params, max_lag_s=0.15)  # within the wide search's range it is a line of its own
     clock = _checked_by_centre(prep, g1, g2, axes, near, WALKING.axes, windows, hinge)
     assert clock.alternative is not None and clock.alternative.offset_s == pytest.approx(0.0905)
+    # a hinge line near the edge of the narrow range (a 75 ms offset read as 67 ms) is left to the wide search
+    clock = _checked_by_centre(prep, g1, g2, axes, params, WALKING.axes, windows, ClockFit(0.067))
+    assert clock.offset_s is None and not clock.disagreement
+
+
+@pytest.mark.parametrize(("rests_on_hinge", "expected"), [(True, "hinge"), (False, "unknown")])
+def test_centre_windows_that_make_no_line_bear_out_the_hinge_only_where_one_rests_on_it(
+        straight, monkeypatch: pytest.MonkeyPatch, rests_on_hinge: bool, expected: str) -> None:
+    # a joint-centre cue with more than one resting place: each window comes to rest at its own lag whatever it is
+    # searched from, but for the first window, which (in one case) rests wherever it starts near the hinge line
+    prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
+    edges = np.linspace(0, prep.n, 4).astype(int)
+    windows = [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    rest = {windows[0].start: -0.020, windows[1].start: 0.015, windows[2].start: -0.010}
+
+    def cue(*_args, **_kwargs):  # noqa: ANN002, ANN003, ANN202
+        def lag_of(w: slice, centre: float) -> LagEstimate:
+            if rests_on_hinge and w.start == 0 and abs(centre - 0.030) < 0.002:
+                return LagEstimate(centre)
+            return LagEstimate(rest[w.start])
+        return lag_of, np.ones(prep.n)
+
+    monkeypatch.setattr("pipeline.sync._centre_lag_of", cue)
+    hinge = ClockFit(0.030)
+    clock = _checked_by_centre(prep, g1, g2, axes, WALKING.sync, WALKING.axes, windows, hinge)
+    if expected == "hinge":
+        assert clock == hinge
+    else:
+        assert clock.offset_s is None and clock.disagreement
 
 
 @pytest.mark.parametrize(("seed", "lag_s"), [(3, 0.075), (2, -0.09), (0, -0.09)])
