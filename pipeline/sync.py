@@ -523,7 +523,7 @@ def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: Join
         return None if lag is None else LagEstimate(lag)
 
     def lag_of(w: slice, centre_s: float) -> LagEstimate | None:
-        return _reread(read, w, centre_s, params.settle_reads, params.settle_s)
+        return _reread(read, w, centre_s, params)
     return lag_of, row_norm(np.gradient(a2, axis=0)) ** 2 * far
 
 
@@ -576,15 +576,15 @@ def _window_lag(lag_of: Callable[[slice, float], LagEstimate | None], w: slice, 
     return None if wide and est is not None and est.se_s is not None and est.se_s > params.wide_max_se_s else est
 
 
-def _reread(lag_of: Callable[[slice, float], LagEstimate | None], w: slice, centre: float, reads: int, tol_s: float
+def _reread(lag_of: Callable[[slice, float], LagEstimate | None], w: slice, centre: float, params: SyncParams
             ) -> LagEstimate | None:
-    """``lag_of(w, centre)``, read again around what it read while that lies more than ``tol_s`` [s] from where it
-    searched, at most ``reads`` more times. The joint-centre cue fits its centres at the lag it is searched around
-    and reads only part of the way from there (75 ms as 42-49 ms from 0; searched around a hinge line 33 ms off on
-    exact clocks, 14, 20 and 29 ms): read again from there, it comes to rest where its own fit puts it."""
+    """``lag_of(w, centre)``, read again around what it read while that lies more than ``settle_s`` [s] from where
+    it searched, at most ``settle_reads`` more times. The joint-centre cue fits its centres at the lag it is searched
+    around and reads only part of the way from there (75 ms as 42-49 ms from 0; searched around a hinge line 33 ms
+    off on exact clocks, 14, 20 and 29 ms): read again from there, it comes to rest where its own fit puts it."""
     est = lag_of(w, centre)
-    for _ in range(reads):
-        if est is None or abs(est.lag_s - centre) <= tol_s:
+    for _ in range(params.settle_reads):
+        if est is None or abs(est.lag_s - centre) <= params.settle_s:
             break
         centre = est.lag_s
         est = lag_of(w, centre)
