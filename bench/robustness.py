@@ -271,11 +271,17 @@ AXES: dict[str, Axis] = {
         _v("knee ab/adduction and axial rotation x1", knee_3d=1.0),
         _v("knee ab/adduction and axial rotation x2", knee_3d=2.0),
         _v("knee varus 6 deg (static)", knee_varus_deg=6.0),
-        _v("all x1", hip_3d=1.0, knee_3d=1.0), _v("all x2, varus 6 deg", hip_3d=2.0, knee_3d=2.0, knee_varus_deg=6.0)),
+        _v("all x1", hip_3d=1.0, knee_3d=1.0), _v("all x2, varus 6 deg", hip_3d=2.0, knee_3d=2.0, knee_varus_deg=6.0),
+        _v("all x1, the joint centre rolls 10 mm per 90 deg", hip_3d=1.0, knee_3d=1.0, knee_rollback_mm=10.0),
+        _v("all x1, rolls 20 mm per 90 deg", hip_3d=1.0, knee_3d=1.0, knee_rollback_mm=20.0),
+        _v("running 6 g, all x1, rolls 20 mm per 90 deg", RUNNING_TARGETS, hip_3d=1.0, knee_3d=1.0,
+           knee_rollback_mm=20.0, impact_g=6.0, **_RUN)),
         note="Truth: the flexion of the joint coordinate system (Grood and Suntay 1983). x1: pelvic rotation and "
              "obliquity +-4 deg, lateral sway +-2.5 cm, hip ab/adduction -6..8 deg and rotation +-5 deg, knee "
              "ab/adduction -2.5..2 deg and tibial internal rotation 0.15 deg per deg of flexion (~9 deg in swing); "
-             "each subject 0.7-1.3 x."),
+             "each subject 0.7-1.3 x. Rolls: femoral rollback, the knee no fixed pivot (SimConfig.knee_rollback_mm: "
+             "Seel's joint-centre constraint, Eq. 5, and the accelerometer angle assume one); running rows with the "
+             "running targets."),
     "joint_3d_mixed": Axis("Typical 3-D hip and knee motion (x1) together with other axes", tuple(
         _v(label, **{"hip_3d": 1.0, "knee_3d": 1.0, **over}) for label, over in (
             ("seated 90 deg", {"activities": ("sitting",)}),

@@ -32,7 +32,8 @@ flights up and down step over step, sit-to-stand repetitions, seated knee extens
 ``walking=False`` makes an exercise session of them alone), a sensor turned on its segment half-way through
 (``remount_segment``), wrongly labelled
 sensors (legs or thigh/shank swapped), per-axis sensitivity (gain) errors, and 3-D joint motion (``knee_3d``,
-``hip_3d``, ``knee_varus_deg``; the thigh sensor's skin turning about the femur with flexion, ``thigh_sta_deg``):
+``hip_3d``, ``knee_varus_deg``; the thigh sensor's skin turning about the femur with flexion, ``thigh_sta_deg``;
+a joint centre that rolls with flexion, ``knee_rollback_mm``):
 each segment is then the end of a chain of rotations, pelvis
 ``Rz(heading + rotation) Rx(obliquity)``, hip and knee each ``Ry(flexion) Rx(ab/adduction) Rz(axial rotation)`` in
 the order of the joint coordinate system (Grood and Suntay 1983), whose flexion is the true knee angle.
@@ -203,6 +204,10 @@ class SimConfig:
     # soft-tissue artefact of the thigh sensor: the skin (and strap) turns about the femur's long axis with knee
     # flexion, this many deg at 60 deg of flexion (bone-pin vs skin-marker studies: up to ~10 deg, Benoit et al. 2006)
     thigh_sta_deg: float = 0.0
+    # femoral rollback: the knee is no fixed pivot. The shank's origin (the joint centre) moves anteriorly in the
+    # thigh's frame by this many mm per 90 deg of flexion above standing (fluoroscopy of healthy knees: the
+    # tibiofemoral contact moves back 10-20 mm over the flexion range; Seel's Eq. 5 assumes one fixed centre)
+    knee_rollback_mm: float = 0.0
     # walking pace per bout, cycled over the bouts (empty: every bout at the pattern's own pace). A pace p scales the
     # bout's gait excursions (knee, hip, pelvis bob) by p and its cadence by sqrt(p), so the forward speed goes with
     # p^1.5 and the segments' angular velocities with p^1.5 too: 0.5 turns brisk walking into a rehabilitation
@@ -862,6 +867,19 @@ def _point_acc(rot: np.ndarray, omega: np.ndarray, alpha: np.ndarray, r_local: n
     return np.cross(alpha, r) + np.cross(omega, np.cross(omega, r))
 
 
+def _rollback_acc(rot: np.ndarray, omega: np.ndarray, alpha: np.ndarray, leg: _LegSplines, t: np.ndarray,
+                  rollback_mm: float, stand_knee_deg: float) -> np.ndarray:
+    """World acceleration (N, 3) of the joint centre's move along the thigh's x axis by ``rollback_mm`` per 90 deg
+    of flexion above ``stand_knee_deg`` (:attr:`SimConfig.knee_rollback_mm`): with ``r = d(t) x_thigh`` in the
+    thigh's frame, ``alpha x Rr + omega x (omega x Rr) + 2 omega x R dr/dt + R d2r/dt2``."""
+    k = 1e-3 * rollback_mm / (np.pi / 2)
+    q = leg.thigh(t) - leg.shank(t) - np.radians(stand_knee_deg)  # knee flexion [rad] above standing
+    dq, ddq = leg.thigh(t, 1) - leg.shank(t, 1), leg.thigh(t, 2) - leg.shank(t, 2)
+    x_w = rot[:, :, 0]
+    r, dr, ddr = (k * q)[:, None] * x_w, (k * dq)[:, None] * x_w, (k * ddq)[:, None] * x_w
+    return np.cross(alpha, r) + np.cross(omega, np.cross(omega, r)) + 2 * np.cross(omega, dr) + ddr
+
+
 def _transient(t: np.ndarray, onsets: np.ndarray, amp: float, freq_hz: float, tau_s: float,
                deriv: int = 0) -> np.ndarray:
     """Sum of damped sines A exp(-u/tau) sin(2 pi f u), u = t - onset >= 0 (or its 1st/2nd derivative)."""
@@ -1186,6 +1204,9 @@ def simulate_session(cfg: SimConfig) -> SimSession:  # noqa: C901 - ditto: the d
                 rot, om, al = _chain_motion(body, legs[leg].shank_links, t_true) if chain else \
                     _segment_motion(body, legs[leg].shank, t_true)
                 acc_w = acc_w + _point_acc(rot_t, om_t, al_t, np.array([0, 0, -thigh_len]))
+                if cfg.knee_rollback_mm:
+                    acc_w = acc_w + _rollback_acc(rot_t, om_t, al_t, legs[leg], t_true,
+                                                  cfg.knee_rollback_mm, truth[leg].stand_knee_deg)
                 acc_w = acc_w + _point_acc(rot, om, al, lever)
             f_w = acc_w + np.array([0.0, 0.0, GRAVITY_MS2])
             r_sensor = rot @ r_mount  # sensor-to-world
