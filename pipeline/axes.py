@@ -753,22 +753,28 @@ def fit_margin_mask(valid: np.ndarray, fs_hz: float, params: AxesParams = WALKIN
 def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,
                           gd2: np.ndarray, j1: np.ndarray, j2: np.ndarray, far: np.ndarray, fs_hz: float,
                           window: slice, max_lag_s: float, params: AxesParams = WALKING.axes,
-                          centres: np.ndarray | None = None, centre_s: float = 0.0
+                          centres: np.ndarray | None = None, centre_s: float = 0.0, min_depth: float = 2.0
                           ) -> tuple[float | None, np.ndarray | None]:
     """Timestamp offset of the shank relative to the thigh [s] (sign as :func:`estimate_sync_lag_s`) from Seel's
     joint-centre constraint (Eq. 5): both accelerometers, moved to the knee centre by ``Gamma o``, measure one
     acceleration, so ``||a1 - Gamma_1 o1|| = ||a2 - Gamma_2 o2||`` sample by sample. Unlike the hinge constraint
     (Eq. 2) this holds timing information in straight walking: the knee-centre acceleration swings by several
-    m/s^2 each stride, most sharply at heel strike. For each whole-sample lag the shank samples are shifted and the
-    window's centres (fitted at the lag ``centre_s``) moved by one Gauss-Newton step of Eq. 5: a profile of the
-    Eq. 5 cost over the lag, since centres held fixed would absorb part of the offset (a full refit at every lag
-    gave lag errors whose SD differed by 0.2 ms at most on the sweep's tune seeds, at several times the cost); then
-    a parabola through the three best lags. None without a clear interior minimum. Inputs on one grid: low-passed
-    accelerations [m/s^2], gyros [rad/s] and their Eq. 1 derivatives, ``far`` the samples usable for a fit
-    (:func:`fit_margin_mask`); only samples inside ``window`` are used. The lags searched are ``centre_s +-
-    max_lag_s`` (a drifting lag followed from window to window). The centres (o1, o2) at the lag ``centre_s`` are
-    fitted on the window's samples, from ``centres`` when given (one fit, no restarts). Returns the lag and those
-    centres (None where the window has too few samples)."""
+    m/s^2 each stride, most sharply at heel strike. The profile of the Eq. 5 cost over the lag: for each whole-sample
+    lag the shank samples are shifted and the window's centres (o1, o2) fitted again (Levenberg-Marquardt from the
+    neighbouring lag's centres and from those at ``centre_s``), so that the minimum does not depend on where the
+    search starts: centres held at one lag's fit, or moved by one Gauss-Newton step, carry that lag's misfit and
+    read only part of the way from it (running with 3-D knees and 20-40 ms offsets on an independent simulator: 40-90
+    ms off, often of the wrong sign; refitted, within 5 ms). Then a parabola through the three best lags. None
+    without a clear minimum: the lags whose cost lies below ``min_depth`` times the least must form one valley that
+    reaches neither end of the range (two valleys are two hypotheses, not a measurement). Centres that fit no lag
+    well (a thigh sensor 50 cm from the knee, which the fit's pull towards the knee keeps it from finding) and shocks
+    that do not fit the rigid-body model give shallow or two-valleyed profiles with false minima 30-60 ms out; a
+    broad valley (walking at 100 Hz on an independent simulator: -50 .. 0 ms around a true -32) still reads its
+    least. Inputs on one grid: low-passed accelerations [m/s^2], gyros [rad/s] and their Eq. 1 derivatives,
+    ``far`` the samples usable for a fit (:func:`fit_margin_mask`); only samples inside ``window`` are used. The lags
+    searched are ``centre_s +- max_lag_s`` (a drifting lag followed from window to window). The centres at the lag
+    ``centre_s`` are fitted on the window's samples, from ``centres`` when given (one fit, no restarts). Returns the
+    lag and those centres (None where the window has too few samples)."""
     k_max = max(int(round(max_lag_s * fs_hz)), 2)
     k0 = int(round(centre_s * fs_hz))
     n = g1.shape[0]
@@ -791,29 +797,24 @@ def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: n
         fit = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[at], g2[at], gd2[at], j1, j2,
                                 dataclasses.replace(params, centre_bias_prior_mps2=0.0))
         centres = np.concatenate([fit.o1, fit.o2])
-    else:
-        centres = _lsq_centres(centres, a1[idx], m1, a2[at], m2[at - span[0]], params.centre_reg).x
-    # both segments' Eq. 5 terms at those centres: each lag then only gathers rows (the arithmetic of
-    # _CentreProblem's residuals and Jacobian at those samples)
-    v1 = a1[idx] - np.einsum("nij,j->ni", m1, centres[:3])
-    v2 = a2[span] - np.einsum("nij,j->ni", m2, centres[3:])
-    n1, n2 = row_norm(v1), row_norm(v2)
-    d1 = -np.einsum("ni,nij->nj", v1 / np.maximum(n1, _EPS)[:, None], m1)  # d(n1)/d(o1)
-    d2 = np.einsum("ni,nij->nj", v2 / np.maximum(n2, _EPS)[:, None], m2)  # -d(n2)/d(o2)
     cost = np.empty(2 * k_max + 1)
-    for i, k in enumerate(range(k0 - k_max, k0 + k_max + 1)):
+    fitted: dict[int, np.ndarray] = {}
+    # outwards from ``centre_s``: each lag starts from its inner neighbour's centres (a continuous path of minima)
+    for k in (*range(k0, k0 + k_max + 1), *range(k0 - 1, k0 - k_max - 1, -1)):
         ok = far[idx + k]
         n_ok = int(ok.sum())
         if n_ok < 10 * k_max:
             return None, centres
-        s2 = idx[ok] + k - span[0]
-        w = params.centre_reg * np.sqrt(n_ok)  # the centres' pull, as in _CentreProblem
-        jac = np.column_stack([d1[ok], d2[s2]])
-        r = n1[ok] - n2[s2]
-        step = -np.linalg.solve(jac.T @ jac + w * w * np.eye(6), jac.T @ r + w * w * centres)
-        r1 = row_norm(v1[ok] - np.einsum("nij,j->ni", m1[ok], step[:3]))
-        r2 = row_norm(v2[s2] - np.einsum("nij,j->ni", m2[s2], step[3:]))
-        cost[i] = (float(np.sum((r1 - r2) ** 2)) + w * w * float(np.sum((centres + step) ** 2))) / n_ok
+        rows = (a1[idx[ok]], m1[ok], a2[idx[ok] + k], m2[idx[ok] + k - span[0]], params.centre_reg)
+        neighbour = fitted.get(k - 1 if k > k0 else k + 1)
+        starts = (centres,) if neighbour is None else (neighbour, centres)
+        best = min((_lsq_centres(x0, *rows) for x0 in starts), key=lambda f: f.cost)
+        fitted[k] = best.x
+        cost[k - k0 + k_max] = 2.0 * best.cost / n_ok  # with the centres' pull, as _CentreProblem weighs it
+    # the lags within ``min_depth`` of the least cost: one valley inside the range, or no measurement
+    low = np.flatnonzero(cost <= min_depth * cost.min())
+    if low[0] == 0 or low[-1] == cost.size - 1 or low.size != low[-1] - low[0] + 1:
+        return None, centres
     lag = _parabolic_minimum_s(cost, k_max, fs_hz)
     return (None if lag is None else lag + k0 / fs_hz), centres
 

@@ -172,7 +172,8 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
     the wide line kept where there is one (a drifting clock's narrow line lies there too, rightly). Where the wide
     search's windows scatter but all lie beyond ``scattered_max_lag_s`` on one side, the timing is unknown."""
     fit = _clock_model(prep, g1, g2, axes, params, axes_params)
-    near_edge = fit.offset_s is not None and abs(fit.offset_s) > params.wide_from_share * params.max_lag_s
+    applied = fit.alternative or fit  # the joint centre's line where the cues disagree (:func:`synchronised_leg`)
+    near_edge = applied.offset_s is not None and abs(applied.offset_s) > params.wide_from_share * params.max_lag_s
     if (fit.offset_s is not None and not near_edge) or fit.disagreement or params.wide_max_lag_s <= params.max_lag_s:
         return fit
     wide = _clock_model(prep, g1, g2, axes, dataclasses.replace(params, max_lag_s=params.wide_max_lag_s),
@@ -232,8 +233,8 @@ def _checked_by_centre(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
     """The hinge cue's line ``fit``, with the joint-centre cue's line as its ``alternative`` where the two differ
     by more than ``agree_s``: first the middle window alone, searched around the hinge line; where it differs, the
     line on ``check_centre_windows`` windows, each searched from the middle window's lag (with the hinge's drift;
-    its centres handed on from the first fit). Where the middle window comes to rest beyond ``max_lag_s``, or where
-    those windows make no line and none of them, searched from the hinge line, rests on it, the two cues disagree
+    its centres handed on from the first fit). Where the middle window reads a lag beyond ``max_lag_s``, or where
+    those windows make no line and none of them, searched from the hinge line, reads it, the two cues disagree
     and neither is borne out: the timing is unknown (``disagreement``)."""
     assert fit.offset_s is not None
     cue = _centre_lag_of(prep, g1, g2, axes, params, axes_params)
@@ -241,17 +242,21 @@ def _checked_by_centre(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
     t_probe = _cue_time(prep, mid, cue[1])
     expected = fit.offset_s + fit.drift * (t_probe - t_mid)
     probe = cue[0](mid, expected)
+    if probe is None and abs(expected) > params.agree_s:
+        # no clear minimum within max_lag_s of a far hinge line: the centre cue is asked where clocks usually are
+        probe = cue[0](mid, 0.0)
     if probe is None or abs(probe.lag_s - expected) <= params.agree_s:
         return fit
     if abs(probe.lag_s) > params.max_lag_s:
-        # the centre cue rests beyond the range searched: a line near its edge is searched wide (:func:`clock_model`)
+        # the centre cue reads beyond the range searched: a line near its edge is searched wide (:func:`clock_model`)
         near_edge = not wide and abs(fit.offset_s) > params.wide_from_share * params.max_lag_s
         return ClockFit(None, disagreement=not near_edge)
     around = ClockFit(probe.lag_s - fit.drift * (t_probe - t_mid), fit.drift)
     alt = _centre_line(prep, windows, params, cue, around=around, max_windows=params.check_centre_windows, wide=wide)
-    if alt.offset_s is None:
-        # the centre's windows make no line (they scatter, or too few speak): the hinge line stands where one of
-        # them, searched from it, rests on it (the middle one too: its read starts from the centres fitted since)
+    if alt.offset_s is None or abs(alt.drift) > params.crystal_drift >= abs(fit.drift):
+        # the centre's windows make no line (they scatter, or too few speak), or one that runs away faster than two
+        # crystals can where the hinge's does not (two windows 12 ms apart at 10 % packet loss: -400 ppm): the hinge
+        # line stands where one of them, searched from it, reads it
         for w in _spread(windows, params.check_centre_windows):
             on_line = fit.offset_s + fit.drift * (_cue_time(prep, w, cue[1]) - t_mid)
             est = cue[0](w, on_line)
@@ -505,25 +510,21 @@ def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
 
 def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,
                    axes_params: AxesParams) -> CentreCue:
-    """The joint-centre lag of one window (:func:`pipeline.axes.estimate_centre_lag_s`, read again until it comes
-    to rest: :func:`_reread`), its inputs prepared once, and where in a window that lag is measured: (N,) the
-    squared slope of the shank's acceleration on the fitted samples (the knee-centre acceleration changes most
-    sharply at heel strike)."""
+    """The joint-centre lag of one window (:func:`pipeline.axes.estimate_centre_lag_s`), its inputs prepared once,
+    and where in a window that lag is measured: (N,) the squared slope of the shank's acceleration on the fitted
+    samples (the knee-centre acceleration changes most sharply at heel strike)."""
     fs = prep.fs_hz
     a1, a2, gd1, gd2, far = _centre_inputs(prep, g1, g2, params, axes_params)
-    # the first window that fits centres hands them on: the others start from them (one fit, no restarts, each)
+    # the first window that fits centres hands them on: the others start from them (no restarts)
     centres: list[np.ndarray] = []
 
-    def read(w: slice, centre_s: float) -> LagEstimate | None:
+    def lag_of(w: slice, centre_s: float) -> LagEstimate | None:
         lag, fitted = estimate_centre_lag_s(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, far, fs, w,
                                             params.max_lag_s, axes_params, centres[0] if centres else None,
-                                            centre_s)
+                                            centre_s, params.centre_depth)
         if fitted is not None and not centres:
             centres.append(fitted)
         return None if lag is None else LagEstimate(lag)
-
-    def lag_of(w: slice, centre_s: float) -> LagEstimate | None:
-        return _reread(read, w, centre_s, params)
     return lag_of, row_norm(np.gradient(a2, axis=0)) ** 2 * far
 
 
@@ -576,21 +577,6 @@ def _window_lag(lag_of: Callable[[slice, float], LagEstimate | None], w: slice, 
     return None if wide and est is not None and est.se_s is not None and est.se_s > params.wide_max_se_s else est
 
 
-def _reread(lag_of: Callable[[slice, float], LagEstimate | None], w: slice, centre: float, params: SyncParams
-            ) -> LagEstimate | None:
-    """``lag_of(w, centre)``, read again around what it read while that lies more than ``settle_s`` [s] from where
-    it searched, at most ``settle_reads`` more times. The joint-centre cue fits its centres at the lag it is searched
-    around and reads only part of the way from there (75 ms as 42-49 ms from 0; searched around a hinge line 33 ms
-    off on exact clocks, 14, 20 and 29 ms): read again from there, it comes to rest where its own fit puts it."""
-    est = lag_of(w, centre)
-    for _ in range(params.settle_reads):
-        if est is None or abs(est.lag_s - centre) <= params.settle_s:
-            break
-        centre = est.lag_s
-        est = lag_of(w, centre)
-    return est
-
-
 def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
                 lag_of: Callable[[slice, float], LagEstimate | None], drifting: bool = True,
                 weight: np.ndarray | None = None, wide: bool = False) -> ClockFit:
@@ -604,10 +590,10 @@ def _line_model(prep: PreparedLeg, windows: list[slice], params: SyncParams,
     window its lag is measured (the window is placed at the weighted mean time, not at its centre: under a drift a
     window's lag is that of its turns or heel strikes). Where every lag carries a standard error the line is a
     weighted least-squares fit (weights 1 / max(se, ``window_lag_floor_s``)^2): a window that lost most of its
-    turns to packet loss or speaks only faintly no longer sets the drift as much as the others. ``wide``: the
-    search over ``wide_max_lag_s`` (:func:`clock_model`): each window read again around the lag it read, only
-    clear windows (standard error within ``wide_max_se_s``), ``wide_min_windows`` of them, a line no steeper than
-    ``max_drift``; scattered windows about a far lag mark the timing unknown."""
+    turns to packet loss or speaks only faintly no longer sets the drift as much as the others. ``wide``: the search
+    over ``wide_max_lag_s`` (:func:`clock_model`): only clear windows (standard error within ``wide_max_se_s``),
+    ``wide_min_windows`` of them, a line no steeper than ``max_drift``; scattered windows about a far lag mark the
+    timing unknown."""
     t_mid = float(prep.t_s[prep.n // 2])
     pts: list[tuple[float, float]] = []
     ses: list[float | None] = []

@@ -66,12 +66,14 @@ def test_the_strides_next_to_a_stair_step_are_found() -> None:
 def test_a_step_onto_a_landing_is_no_gait_stride() -> None:
     """An exercise session without walking (3-D knee and hip): the last step of a stair flight, onto the landing,
     kept its knee near extension long enough to pass as level gait and entered trends (quality 0.75, peak 47 deg);
-    it led off a stair stride, so it is a transition and is dropped with the flight. (The data that showed it: with
-    the simulator's shocks balanced, ``impact_balanced``, the same step already fails the other leg's anti-phase test.)
+    it led off a stair stride, so it is a transition and is dropped with the flight. Which test drops it depends on
+    the left shank's clock correction (-9.7 ms: the transition rule; -11.2 ms: the other leg's anti-phase test, as
+    with the simulator's shocks balanced, ``impact_balanced``); either way it is dropped as no gait.
     """
     sim = simulate_session(SimConfig(seed=3, duration_s=90.0, bout_strides=12, walking=False, hip_3d=1.0, knee_3d=1.0,
                                      move_reps=6, activities=("sitting", "seated_extension", "sit_to_stand", "jump",
                                                               "step_test", "stair_flight"), impact_balanced=False))
     res = process_session(sim.streams)
     assert not [s for lr in res.legs.values() for s in lr.strides if s.quality >= 0.5]
-    assert any("led onto or off such a one" in w for w in res.warnings)
+    assert any("led onto or off such a one" in w or "did not swing in anti-phase" in w
+               for w in res.warnings if w.startswith("left leg"))
