@@ -753,8 +753,8 @@ def fit_margin_mask(valid: np.ndarray, fs_hz: float, params: AxesParams = WALKIN
 def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: np.ndarray, g2: np.ndarray,
                           gd2: np.ndarray, j1: np.ndarray, j2: np.ndarray, far: np.ndarray, fs_hz: float,
                           window: slice, max_lag_s: float, params: AxesParams = WALKING.axes,
-                          centres: np.ndarray | None = None, centre_s: float = 0.0, min_depth: float = 2.0
-                          ) -> tuple[float | None, np.ndarray | None]:
+                          centres: np.ndarray | None = None, centre_s: float = 0.0,
+                          min_depth: float = WALKING.sync.centre_depth) -> tuple[float | None, np.ndarray | None]:
     """Timestamp offset of the shank relative to the thigh [s] (sign as :func:`estimate_sync_lag_s`) from Seel's
     joint-centre constraint (Eq. 5): both accelerometers, moved to the knee centre by ``Gamma o``, measure one
     acceleration, so ``||a1 - Gamma_1 o1|| = ||a2 - Gamma_2 o2||`` sample by sample. Unlike the hinge constraint
@@ -765,16 +765,16 @@ def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: n
     search starts: centres held at one lag's fit, or moved by one Gauss-Newton step, carry that lag's misfit and
     read only part of the way from it (running with 3-D knees and 20-40 ms offsets on an independent simulator: 40-90
     ms off, often of the wrong sign; refitted, within 5 ms). Then a parabola through the three best lags. None
-    without a clear minimum: the lags whose cost lies below ``min_depth`` times the least must form one valley that
-    reaches neither end of the range (two valleys are two hypotheses, not a measurement). Centres that fit no lag
+    without a clear minimum (:func:`one_valley`). Centres that fit no lag
     well (a thigh sensor 50 cm from the knee, which the fit's pull towards the knee keeps it from finding) and shocks
     that do not fit the rigid-body model give shallow or two-valleyed profiles with false minima 30-60 ms out; a
     broad valley (walking at 100 Hz on an independent simulator: -50 .. 0 ms around a true -32) still reads its
     least. Inputs on one grid: low-passed accelerations [m/s^2], gyros [rad/s] and their Eq. 1 derivatives,
     ``far`` the samples usable for a fit (:func:`fit_margin_mask`); only samples inside ``window`` are used. The lags
-    searched are ``centre_s +- max_lag_s`` (a drifting lag followed from window to window). The centres at the lag
-    ``centre_s`` are fitted on the window's samples, from ``centres`` when given (one fit, no restarts). Returns the
-    lag and those centres (None where the window has too few samples)."""
+    searched are ``centre_s +- max_lag_s`` (a drifting lag followed from window to window). ``centres`` (o1, o2) start
+    the fits when given (and are returned as given), else they are fitted at the lag ``centre_s`` on the window's
+    samples (:func:`fit_joint_centres`, with its restarts). Returns the lag and those centres (None where the window
+    has too few samples)."""
     k_max = max(int(round(max_lag_s * fs_hz)), 2)
     k0 = int(round(centre_s * fs_hz))
     n = g1.shape[0]
@@ -797,26 +797,35 @@ def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: n
         fit = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[at], g2[at], gd2[at], j1, j2,
                                 dataclasses.replace(params, centre_bias_prior_mps2=0.0))
         centres = np.concatenate([fit.o1, fit.o2])
+    lags = (*range(k0, k0 + k_max + 1), *range(k0 - 1, k0 - k_max - 1, -1))
+    if min(int(far[idx + k].sum()) for k in lags) < 10 * k_max:
+        return None, centres
     cost = np.empty(2 * k_max + 1)
     fitted: dict[int, np.ndarray] = {}
     # outwards from ``centre_s``: each lag starts from its inner neighbour's centres (a continuous path of minima)
-    for k in (*range(k0, k0 + k_max + 1), *range(k0 - 1, k0 - k_max - 1, -1)):
+    for k in lags:
         ok = far[idx + k]
         n_ok = int(ok.sum())
-        if n_ok < 10 * k_max:
-            return None, centres
         rows = (a1[idx[ok]], m1[ok], a2[idx[ok] + k], m2[idx[ok] + k - span[0]], params.centre_reg)
         neighbour = fitted.get(k - 1 if k > k0 else k + 1)
         starts = (centres,) if neighbour is None else (neighbour, centres)
         best = min((_lsq_centres(x0, *rows) for x0 in starts), key=lambda f: f.cost)
         fitted[k] = best.x
         cost[k - k0 + k_max] = 2.0 * best.cost / n_ok  # with the centres' pull, as _CentreProblem weighs it
-    # the lags within ``min_depth`` of the least cost: one valley inside the range, or no measurement
-    low = np.flatnonzero(cost <= min_depth * cost.min())
-    if low[0] == 0 or low[-1] == cost.size - 1 or low.size != low[-1] - low[0] + 1:
+    if not one_valley(cost, min_depth):
         return None, centres
     lag = _parabolic_minimum_s(cost, k_max, fs_hz)
     return (None if lag is None else lag + k0 / fs_hz), centres
+
+
+def one_valley(cost: np.ndarray, min_depth: float) -> bool:
+    """Whether a profile ``cost`` (L,) over candidate lags has one clear minimum: finite, and the lags whose cost lies
+    within ``min_depth`` (>= 1) times the least form one run that reaches neither end of the range. Two such runs
+    are two hypotheses, not a measurement; one reaching an end may continue beyond the range searched."""
+    if not np.isfinite(cost).all():
+        return False
+    low = np.flatnonzero(cost <= min_depth * cost.min())
+    return bool(low.size and low[0] > 0 and low[-1] < cost.size - 1 and low.size == low[-1] - low[0] + 1)
 
 
 def _parabolic_minimum_s(cost: np.ndarray, k_max: int, fs_hz: float) -> float | None:

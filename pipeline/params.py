@@ -186,9 +186,9 @@ class SyncParams:
     """A line found beyond this share of ``max_lag_s`` is searched over ``wide_max_lag_s`` too (a 75 ms offset read
     as 67 ms, a 90 ms one as 54 ms on the simulator: the narrow windows followed it part of the way out)."""
     centre_depth: float = 2.5
-    """How clear a joint-centre lag's minimum must be (:func:`pipeline.axes.estimate_centre_lag_s`): the lags whose
-    Eq. 5 cost lies below this many times the least form one valley that reaches neither end of the search range;
-    else the window reads no lag. The sweep's tune seeds and running scans of this simulator (425 windows, centres
+    """How clear a joint-centre lag's minimum must be (:func:`pipeline.axes.one_valley`, >= 1): the lags whose Eq. 5
+    cost lies within this many times the least form one valley that reaches neither end of the search range; else
+    the window reads no lag. The sweep's tune seeds and running scans of this simulator (425 windows, centres
     refitted at each lag): of the windows whose least cost lay within 5 ms of the true lag, 382 of 387 pass (twice
     the least: 384, three times: 380); of those more than 10 ms off (a thigh sensor 50 cm from the knee, shocks that
     leave the sensor faster, long runs with 3-D knees), 1 of 13 (twice: 3, three times: 0)."""
@@ -216,9 +216,9 @@ class SyncParams:
     min_shift_samples: float = 0.25
     """A correction smaller than this share of a sample period is not applied (re-preparing costs time)."""
     max_centre_windows: int = 8
-    """Most windows the joint-centre cue is evaluated on, spread evenly over the session: each costs one centre fit
-    and a Gauss-Newton step per candidate lag (13 at 100 Hz), and an offset with a drift needs only a few agreeing
-    points, so the cost of a long recording without turns stays that of eight windows."""
+    """Most windows the joint-centre cue is evaluated on, spread evenly over the session: each costs one or two
+    Levenberg-Marquardt fits of the centres per candidate lag (13 at 100 Hz), and an offset with a drift needs only
+    a few agreeing points, so the cost of a long recording without turns stays that of eight windows."""
     check_centre_windows: int = 3
     """Windows the joint-centre cue checks a hinge-cue line on (:func:`pipeline.sync.clock_model`), each searched
     from the middle window's lag, once the middle window alone differed from it by more than ``agree_s`` (where the
@@ -233,8 +233,9 @@ class SyncParams:
     ms against a true -4.6 (ROM LoA -0.5 .. 0.2 -> -1.3 .. 1.5 deg); no real knee is one (Eq. 2 residual 25 deg/s on
     the biomechZoo trial, 0.1-0.3 on the simulator's planar knees). The centre cue alone, used wherever the hinge
     speaks, is less accurate (lever arms x2 on the sweep's tune seeds). Three windows give the offset and its drift
-    and can disagree with a line (where they make none, :func:`pipeline.sync._checked_by_centre` asks whether one
-    rests on the hinge line, else the timing is unknown), at under half the cost of ``max_centre_windows``."""
+    and can disagree with a line (where they make none, or one that runs away faster than ``crystal_drift`` while
+    the hinge's does not, :func:`pipeline.sync._checked_by_centre` asks whether one of them reads the hinge line,
+    else the timing is unknown), at under half the cost of ``max_centre_windows``."""
     shock_g: float = 1.0
     """Acceleration above the fit band [g] (a sensor's raw acceleration minus its ``AxesParams.fit_cutoff_hz``
     low-pass, :func:`pipeline.sync.shock_mask`) marking a shock whose samples the joint-centre cue leaves out: 5 and

@@ -167,8 +167,9 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
     lag beyond ``max_lag_s`` leaves every window's minimum at the edge of its range (no line), which the wide search
     then finds: phone-side stamps carry a BLE connection interval and the radio's buffering, and two independent
     simulators drew +-40 ms per sensor (80 ms between a thigh and its shank), whose 60-75 ms went uncorrected with
-    swing peaks 10-40 deg off. A line found near the edge of the narrow range (beyond ``wide_from_share`` of it: the
-    windows' searches follow the line of those before and slide part of the way out) is searched wide as well, and
+    swing peaks 10-40 deg off. A line to be applied (the joint centre's where the cues disagree) found near the edge
+    of the narrow range (beyond ``wide_from_share`` of it: the windows' searches follow the line of those before and
+    slide part of the way out) is searched wide as well, and
     the wide line kept where there is one (a drifting clock's narrow line lies there too, rightly). Where the wide
     search's windows scatter but all lie beyond ``scattered_max_lag_s`` on one side, the timing is unknown."""
     fit = _clock_model(prep, g1, g2, axes, params, axes_params)
@@ -233,9 +234,12 @@ def _checked_by_centre(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
     """The hinge cue's line ``fit``, with the joint-centre cue's line as its ``alternative`` where the two differ
     by more than ``agree_s``: first the middle window alone, searched around the hinge line; where it differs, the
     line on ``check_centre_windows`` windows, each searched from the middle window's lag (with the hinge's drift;
-    its centres handed on from the first fit). Where the middle window reads a lag beyond ``max_lag_s``, or where
-    those windows make no line and none of them, searched from the hinge line, reads it, the two cues disagree
-    and neither is borne out: the timing is unknown (``disagreement``)."""
+    its centres handed on from the first fit). Where the middle window has no clear minimum around a hinge line
+    farther than ``agree_s`` from zero, it is searched around zero: a lag found beyond the range first searched is
+    the centre's probe, one inside it (where the first search saw two valleys) leaves the timing unknown. Where the
+    middle window reads a lag beyond ``max_lag_s``, or where those windows make no line, or one that runs away
+    faster than ``crystal_drift`` while the hinge's does not, and none of the other windows, searched from the hinge
+    line, reads it, the two cues disagree and neither is borne out: the timing is unknown (``disagreement``)."""
     assert fit.offset_s is not None
     cue = _centre_lag_of(prep, g1, g2, axes, params, axes_params)
     mid, t_mid = windows[len(windows) // 2], float(prep.t_s[prep.n // 2])
@@ -245,6 +249,8 @@ def _checked_by_centre(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
     if probe is None and abs(expected) > params.agree_s:
         # no clear minimum within max_lag_s of a far hinge line: the centre cue is asked where clocks usually are
         probe = cue[0](mid, 0.0)
+        if probe is not None and abs(probe.lag_s - expected) <= params.max_lag_s:
+            return ClockFit(None, disagreement=True)  # inside the range first searched: one of two valleys there
     if probe is None or abs(probe.lag_s - expected) <= params.agree_s:
         return fit
     if abs(probe.lag_s) > params.max_lag_s:
@@ -255,9 +261,11 @@ def _checked_by_centre(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
     alt = _centre_line(prep, windows, params, cue, around=around, max_windows=params.check_centre_windows, wide=wide)
     if alt.offset_s is None or abs(alt.drift) > params.crystal_drift >= abs(fit.drift):
         # the centre's windows make no line (they scatter, or too few speak), or one that runs away faster than two
-        # crystals can where the hinge's does not (two windows 12 ms apart at 10 % packet loss: -400 ppm): the hinge
-        # line stands where one of them, searched from it, reads it
+        # crystals can where the hinge's does not (two windows 12 ms apart at 10 % packet loss: -390 ppm): the hinge
+        # line stands where another of them, searched from it, reads it
         for w in _spread(windows, params.check_centre_windows):
+            if w == mid:
+                continue  # its lag does not depend on where it is searched from: read above
             on_line = fit.offset_s + fit.drift * (_cue_time(prep, w, cue[1]) - t_mid)
             est = cue[0](w, on_line)
             if est is not None and abs(est.lag_s - on_line) <= params.agree_s:

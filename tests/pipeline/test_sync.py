@@ -14,6 +14,7 @@ from pipeline.axes import (
     estimate_centre_lag_s,
     fit_joint_axes,
     fit_margin_mask,
+    one_valley,
 )
 from pipeline.params import RUNNING, WALKING
 from pipeline.prepare import nominal_fs, prepare_leg_si, to_si
@@ -22,6 +23,7 @@ from pipeline.signal_utils import lowpass_runs_many
 from pipeline.simulate import SimConfig, simulate_session
 from pipeline.sync import (
     ClockFit,
+    _centre_inputs,
     _checked_by_centre,
     _fitted_axes,
     clock_model,
@@ -663,8 +665,8 @@ def test_a_far_hinge_line_is_checked_where_clocks_usually_are(straight, monkeypa
 def test_a_centre_line_that_runs_away_faster_than_crystals_needs_the_hinge_borne_out(
         straight, monkeypatch: pytest.MonkeyPatch, reads_hinge: bool, expected: str) -> None:
     # running at 10 % packet loss: the hinge read -3.8, -3.2, -1.5 ms (true -4.2); two joint-centre windows read 8.0
-    # and -3.7 ms, a line of -400 ppm that two crystals cannot run apart by. The hinge's line stands where a centre
-    # window reads it, else the timing is unknown
+    # and -3.7 ms, a line of about -390 ppm that two crystals cannot run apart by. The hinge's line stands where
+    # another centre window reads it, else (here a line of +400 ppm) the timing is unknown
     prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
     windows = _three_windows(prep)
     apart = float(np.mean(prep.t_s[windows[2]]) - np.mean(prep.t_s[windows[1]]))  # the two windows' times [s]
@@ -706,12 +708,36 @@ def test_an_offset_beyond_the_narrow_range_is_searched_wide(seed: int, lag_s: fl
 
 
 def _centre_inputs_of(prep, g1, g2, params=WALKING):
-    fs = prep.fs_hz
-    a1, a2 = (np.nan_to_num(a) for a in lowpass_runs_many((prep.acc_thigh_mps2, prep.acc_shank_mps2), prep.valid,
-                                                            params.axes.fit_cutoff_hz, fs))
-    far = fit_margin_mask(prep.valid, fs) & ~shock_mask(((prep.acc_thigh_mps2, a1), (prep.acc_shank_mps2, a2)),
-                                                         prep.valid, fs, params.sync)
-    return a1, a2, angular_acceleration(g1, fs), angular_acceleration(g2, fs), far
+    return _centre_inputs(prep, g1, g2, params.sync, params.axes)
+
+
+@pytest.mark.parametrize(("cost", "clear"), [
+    ([9.0, 4.0, 1.0, 1.5, 6.0, 9.0], True),     # one valley
+    ([9.0, 1.2, 3.0, 1.0, 3.0, 9.0], False),    # two valleys within 2.5 x the least
+    ([2.0, 1.5, 1.0, 1.4, 6.0, 9.0], False),    # the valley reaches the end of the range
+    ([9.0, 1.1, 1.0, 1.2, 1.3, 9.0], True),     # broad, but one valley
+    ([9.0, 4.0, np.nan, 1.5, 6.0, 9.0], False),
+])
+def test_a_lag_profile_is_read_only_from_one_clear_valley(cost: list[float], clear: bool) -> None:
+    assert one_valley(np.array(cost), WALKING.sync.centre_depth) == clear
+
+
+def test_a_second_valley_near_a_far_hinge_line_leaves_the_timing_unknown(
+        straight, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the centre cue has valleys at -5 and +75 ms; around a hinge line of +30 ms (-30 .. +90 ms) it sees both and
+    # reads nothing, around zero only the first: that is one of two hypotheses, not the centre's line
+    prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
+    params = WALKING.sync
+
+    def cue(*_args, **_kwargs):  # noqa: ANN002, ANN003, ANN202
+        def lag_of(_w: slice, centre: float) -> LagEstimate | None:
+            seen = [v for v in (-0.005, 0.075) if abs(v - centre) < params.max_lag_s]
+            return LagEstimate(seen[0]) if len(seen) == 1 else None
+        return lag_of, np.ones(prep.n)
+
+    monkeypatch.setattr("pipeline.sync._centre_lag_of", cue)
+    clock = _checked_by_centre(prep, g1, g2, axes, params, WALKING.axes, _three_windows(prep), ClockFit(0.030))
+    assert clock.offset_s is None and clock.disagreement
 
 
 def test_the_centre_profile_reads_the_same_lag_wherever_its_search_starts() -> None:
