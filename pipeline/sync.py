@@ -235,8 +235,9 @@ def _checked_by_centre(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
     by more than ``agree_s``: first the middle window alone, searched around the hinge line; where it differs, the
     line on ``check_centre_windows`` windows, each searched from the middle window's lag (with the hinge's drift;
     its centres handed on from the first fit). Where the middle window has no clear minimum around a hinge line
-    farther than ``agree_s`` from zero, it is searched around zero: a lag found beyond the range first searched is
-    the centre's probe, one inside it (where the first search saw two valleys) leaves the timing unknown. Where the
+    farther than ``agree_s`` from zero, it is searched around zero: a lag found there is the centre's probe where it
+    lies beyond the range first searched or where a search from between the two finds it alone, else (a second valley
+    near the hinge line) the timing is unknown. Where the
     middle window reads a lag beyond ``max_lag_s``, or where those windows make no line, or one that runs away
     faster than ``crystal_drift`` while the hinge's does not, and none of the other windows, searched from the hinge
     line, reads it, the two cues disagree and neither is borne out: the timing is unknown (``disagreement``)."""
@@ -250,7 +251,11 @@ def _checked_by_centre(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
         # no clear minimum within max_lag_s of a far hinge line: the centre cue is asked where clocks usually are
         probe = cue[0](mid, 0.0)
         if probe is not None and abs(probe.lag_s - expected) <= params.max_lag_s:
-            return ClockFit(None, disagreement=True)  # inside the range first searched: one of two valleys there
+            # inside the range first searched, which showed no clear valley: either that range cut this valley at
+            # its end, or it held a second one. Searched from between the two, one clear valley is this one
+            between = cue[0](mid, 0.5 * (probe.lag_s + expected))
+            if between is None or abs(between.lag_s - probe.lag_s) > params.agree_s:
+                return ClockFit(None, disagreement=True)
     if probe is None or abs(probe.lag_s - expected) <= params.agree_s:
         return fit
     if abs(probe.lag_s) > params.max_lag_s:

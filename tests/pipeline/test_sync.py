@@ -722,17 +722,37 @@ def test_a_lag_profile_is_read_only_from_one_clear_valley(cost: list[float], cle
     assert one_valley(np.array(cost), WALKING.sync.centre_depth) == clear
 
 
-def test_a_second_valley_near_a_far_hinge_line_leaves_the_timing_unknown(
+def test_a_valley_cut_by_the_end_of_the_hinge_range_is_the_centres_probe(
         straight, monkeypatch: pytest.MonkeyPatch) -> None:
-    # the centre cue has valleys at -5 and +75 ms; around a hinge line of +30 ms (-30 .. +90 ms) it sees both and
-    # reads nothing, around zero only the first: that is one of two hypotheses, not the centre's line
+    # an independent simulator's walking leg on exact clocks: the hinge cue read -52 ms; around it (-112 .. +8 ms)
+    # the joint-centre valley at -3 ms reached the range's end, around zero and from between the two it stood alone
     prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
     params = WALKING.sync
 
     def cue(*_args, **_kwargs):  # noqa: ANN002, ANN003, ANN202
         def lag_of(_w: slice, centre: float) -> LagEstimate | None:
-            seen = [v for v in (-0.005, 0.075) if abs(v - centre) < params.max_lag_s]
-            return LagEstimate(seen[0]) if len(seen) == 1 else None
+            return LagEstimate(-0.001) if abs(-0.001 - centre) < params.max_lag_s - 0.010 else None
+        return lag_of, np.ones(prep.n)
+
+    monkeypatch.setattr("pipeline.sync._centre_lag_of", cue)
+    clock = _checked_by_centre(prep, g1, g2, axes, params, WALKING.axes, _three_windows(prep), ClockFit(-0.052))
+    assert clock.alternative is not None and clock.alternative.offset_s == pytest.approx(-0.001)
+
+
+def test_a_second_valley_near_a_far_hinge_line_leaves_the_timing_unknown(
+        straight, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the centre cue has valleys at -5 and +75 ms; around a hinge line of +30 ms (-30 .. +90 ms) it sees both and
+    # reads nothing, around zero only the first, and from between the two (12.5 ms) both again: that is one of two
+    # hypotheses, not the centre's line
+    prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
+    params = WALKING.sync
+
+    def cue(*_args, **_kwargs):  # noqa: ANN002, ANN003, ANN202
+        def lag_of(_w: slice, centre: float) -> LagEstimate | None:
+            # a valley 10 ms wide: one whose middle lies up to 10 ms beyond the range still shows as a flank
+            seen = [v for v in (-0.005, 0.075) if abs(v - centre) < params.max_lag_s + 0.010]
+            inside = [v for v in seen if abs(v - centre) < params.max_lag_s]
+            return LagEstimate(inside[0]) if len(seen) == 1 and inside else None
         return lag_of, np.ones(prep.n)
 
     monkeypatch.setattr("pipeline.sync._centre_lag_of", cue)
