@@ -82,8 +82,13 @@ class ClockFit:
     # search's scatter far from zero, or the joint-centre check bears out neither cue (:func:`_checked_by_centre`)
     disagreement: bool = False
     # the joint-centre cue's line where it differs from this one (the hinge cue's) by more than ``agree_s`` at
-    # mid-session: :func:`synchronised_leg` applies it instead
+    # mid-session: it is applied instead (:attr:`applied`)
     alternative: ClockFit | None = None
+
+    @property
+    def applied(self) -> ClockFit:
+        """The line a leg is re-stamped by: the joint centre's where the cues disagree, else this one."""
+        return self.alternative or self
 
 
 def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, params: PipelineParams,
@@ -106,7 +111,7 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     axes = _fitted_axes(prep, g1, g2, params)
     streams = _LegStreams(leg, (si1, si2), (fs1, fs2), prep, (g1, g2))
     clock = clock_model(prep, g1, g2, axes, params.sync, params.axes)
-    line = clock.alternative or clock  # the joint centre's line where the cues disagree
+    line = clock.applied
     synced = None if line.offset_s is None else _corrected(streams, axes, line.offset_s, line.drift, params)
     if synced is not None:
         return synced
@@ -169,11 +174,11 @@ def clock_model(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAx
     simulators drew +-40 ms per sensor (80 ms between a thigh and its shank), whose 60-75 ms went uncorrected with
     swing peaks 10-40 deg off. A line to be applied (the joint centre's where the cues disagree) found near the edge
     of the narrow range (beyond ``wide_from_share`` of it: the windows' searches follow the line of those before and
-    slide part of the way out) is searched wide as well, and
-    the wide line kept where there is one (a drifting clock's narrow line lies there too, rightly). Where the wide
-    search's windows scatter but all lie beyond ``scattered_max_lag_s`` on one side, the timing is unknown."""
+    slide part of the way out) is searched wide as well, and the wide line kept where there is one (a drifting
+    clock's narrow line lies there too, rightly). Where the wide search's windows scatter but all lie beyond
+    ``scattered_max_lag_s`` on one side, the timing is unknown."""
     fit = _clock_model(prep, g1, g2, axes, params, axes_params)
-    applied = fit.alternative or fit  # the joint centre's line where the cues disagree (:func:`synchronised_leg`)
+    applied = fit.applied
     near_edge = applied.offset_s is not None and abs(applied.offset_s) > params.wide_from_share * params.max_lag_s
     if (fit.offset_s is not None and not near_edge) or fit.disagreement or params.wide_max_lag_s <= params.max_lag_s:
         return fit
@@ -236,11 +241,11 @@ def _checked_by_centre(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: 
     line on ``check_centre_windows`` windows, each searched from the middle window's lag (with the hinge's drift;
     its centres handed on from the first fit). Where the middle window has no clear minimum around a hinge line
     farther than ``agree_s`` from zero, it is searched around zero: a lag found there is the centre's probe where it
-    lies beyond the range first searched or where a search from between the two finds it alone, else (a second valley
-    near the hinge line) the timing is unknown. Where the
-    middle window reads a lag beyond ``max_lag_s``, or where those windows make no line, or one that runs away
-    faster than ``crystal_drift`` while the hinge's does not, and none of the other windows, searched from the hinge
-    line, reads it, the two cues disagree and neither is borne out: the timing is unknown (``disagreement``)."""
+    lies beyond the range first searched or where a search from between the two finds it alone, else (a second
+    valley near the hinge line) the timing is unknown. Where the middle window reads a lag beyond ``max_lag_s``, or
+    where those windows make no line, or one that runs away faster than ``crystal_drift`` while the hinge's does
+    not, and none of the other windows, searched from the hinge line, reads it, the two cues disagree and neither is
+    borne out: the timing is unknown (``disagreement``)."""
     assert fit.offset_s is not None
     cue = _centre_lag_of(prep, g1, g2, axes, params, axes_params)
     mid, t_mid = windows[len(windows) // 2], float(prep.t_s[prep.n // 2])
@@ -487,8 +492,7 @@ def _clock_after_stride_drift(streams: _LegStreams, drift: float, params: Pipeli
             offset = whole.lag_s  # beyond half the windows' range: their first search would miss it
             again, h1, h2, axes = restamped(offset)
     rest = clock_model(again, h1, h2, axes, params.sync, params.axes)
-    if rest.alternative is not None:
-        rest = rest.alternative  # the joint centre's line where the cues disagree (:func:`synchronised_leg`)
+    rest = rest.applied
     if rest.offset_s is None or abs(rest.drift) > params.sync.max_drift:
         return None  # no line, or a steep one where only a crystal's worth of drift is left: the cues disagree
     # the rest's line at the first grid's middle (the re-stamped grid may be cut, which moves its own)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -589,99 +590,127 @@ def test_a_running_knee_that_turns_as_it_flexes_keeps_its_clocks(seed: int, leg:
     assert not synced.clock_disagreement
 
 
+@dataclasses.dataclass(frozen=True)
+class _Leg:
+    """The straight walk's left leg, 12 ms late, prepared for :func:`_checked_by_centre` on three windows."""
+
+    prep: object
+    g1: np.ndarray
+    g2: np.ndarray
+    axes: object
+    windows: list[slice]
+
+
+@pytest.fixture(scope="module")
+def leg(straight) -> _Leg:
+    prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
+    edges = np.linspace(0, prep.n, 4).astype(int)
+    return _Leg(prep, g1, g2, axes, [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)])
+
+
+def _checked_with(leg: _Leg, monkeypatch: pytest.MonkeyPatch,
+                  lag_of: Callable[[slice, float], LagEstimate | None], hinge: ClockFit,
+                  params=WALKING.sync) -> ClockFit:
+    """:func:`_checked_by_centre` of the hinge line ``hinge`` with the joint-centre cue replaced by ``lag_of``
+    (window, the lag searched around [s])."""
+    monkeypatch.setattr("pipeline.sync._centre_lag_of", lambda *_a, **_k: (lag_of, np.ones(leg.prep.n)))
+    return _checked_by_centre(leg.prep, leg.g1, leg.g2, leg.axes, params, WALKING.axes, leg.windows, hinge)
+
+
 def test_a_centre_cue_that_reads_beyond_the_search_range_leaves_the_timing_unknown(
-        straight, monkeypatch: pytest.MonkeyPatch) -> None:
+        leg: _Leg, monkeypatch: pytest.MonkeyPatch) -> None:
     # the check of a hinge line: where the joint-centre cue reads 90 ms out (an independent simulator's running leg:
     # hinge 38.7 ms on exact clocks), neither cue is borne out
-    prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
-    params = WALKING.sync
+    def far(_w: slice, _centre: float) -> LagEstimate:
+        return LagEstimate(0.0905)
 
-    def far_cue(*_args, **_kwargs):  # noqa: ANN002, ANN003, ANN202
-        return (lambda w, centre: LagEstimate(0.0905)), np.ones(prep.n)
-
-    monkeypatch.setattr("pipeline.sync._centre_lag_of", far_cue)
-    edges = np.linspace(0, prep.n, 4).astype(int)
-    windows = [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
     hinge = ClockFit(0.0387)
-    clock = _checked_by_centre(prep, g1, g2, axes, params, WALKING.axes, windows, hinge)
+    clock = _checked_with(leg, monkeypatch, far, hinge)
     assert clock.offset_s is None and clock.disagreement
-    near = dataclasses.replace(params, max_lag_s=0.15)  # within the wide search's range it is a line of its own
-    clock = _checked_by_centre(prep, g1, g2, axes, near, WALKING.axes, windows, hinge)
+    near = dataclasses.replace(WALKING.sync, max_lag_s=0.15)  # within the wide search's range it is a line of its own
+    clock = _checked_with(leg, monkeypatch, far, hinge, near)
     assert clock.alternative is not None and clock.alternative.offset_s == pytest.approx(0.0905)
     # a hinge line near the edge of the narrow range (a 75 ms offset read as 67 ms) is left to the wide search
-    clock = _checked_by_centre(prep, g1, g2, axes, params, WALKING.axes, windows, ClockFit(0.067))
+    clock = _checked_with(leg, monkeypatch, far, ClockFit(0.067))
     assert clock.offset_s is None and not clock.disagreement
 
 
 @pytest.mark.parametrize(("reads_hinge", "expected"), [(True, "hinge"), (False, "unknown")])
 def test_centre_windows_that_make_no_line_bear_out_the_hinge_only_where_one_reads_it(
-        straight, monkeypatch: pytest.MonkeyPatch, reads_hinge: bool, expected: str) -> None:
+        leg: _Leg, monkeypatch: pytest.MonkeyPatch, reads_hinge: bool, expected: str) -> None:
     # a joint-centre cue whose windows scatter: each reads its own lag whatever it is searched from, but for the
     # first window, which (in one case) reads the hinge line where searched from near it
-    prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
-    edges = np.linspace(0, prep.n, 4).astype(int)
-    windows = [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
-    rest = {windows[0].start: -0.020, windows[1].start: 0.015, windows[2].start: -0.010}
+    w = leg.windows
+    rest = {w[0].start: -0.020, w[1].start: 0.015, w[2].start: -0.010}
 
-    def cue(*_args, **_kwargs):  # noqa: ANN002, ANN003, ANN202
-        def lag_of(w: slice, centre: float) -> LagEstimate:
-            if reads_hinge and w.start == 0 and abs(centre - 0.030) < 0.002:
-                return LagEstimate(centre)
-            return LagEstimate(rest[w.start])
-        return lag_of, np.ones(prep.n)
+    def lag_of(win: slice, centre: float) -> LagEstimate:
+        if reads_hinge and win.start == 0 and abs(centre - 0.030) < 0.002:
+            return LagEstimate(centre)
+        return LagEstimate(rest[win.start])
 
-    monkeypatch.setattr("pipeline.sync._centre_lag_of", cue)
     hinge = ClockFit(0.030)
-    clock = _checked_by_centre(prep, g1, g2, axes, WALKING.sync, WALKING.axes, windows, hinge)
+    clock = _checked_with(leg, monkeypatch, lag_of, hinge)
     if expected == "hinge":
         assert clock == hinge
     else:
         assert clock.offset_s is None and clock.disagreement
 
 
-def _three_windows(prep) -> list[slice]:
-    edges = np.linspace(0, prep.n, 4).astype(int)
-    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
-
-
-def test_a_far_hinge_line_is_checked_where_clocks_usually_are(straight, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_far_hinge_line_is_checked_where_clocks_usually_are(leg: _Leg, monkeypatch: pytest.MonkeyPatch) -> None:
     # an independent simulator's running leg: the hinge cue read +39 ms where the shank was 26 ms early; searched
     # around the hinge line (-21 .. +99 ms) the joint-centre profile had no clear minimum, searched around 0 it read
     # -27 ms: the centre's line is applied
-    prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
-    params = WALKING.sync
+    def lag_of(_w: slice, centre: float) -> LagEstimate | None:
+        return LagEstimate(-0.027) if abs(centre + 0.027) < WALKING.sync.max_lag_s else None
 
-    def cue(*_args, **_kwargs):  # noqa: ANN002, ANN003, ANN202
-        def lag_of(_w: slice, centre: float) -> LagEstimate | None:
-            return LagEstimate(-0.027) if abs(centre + 0.027) < params.max_lag_s else None
-        return lag_of, np.ones(prep.n)
-
-    monkeypatch.setattr("pipeline.sync._centre_lag_of", cue)
-    clock = _checked_by_centre(prep, g1, g2, axes, params, WALKING.axes, _three_windows(prep), ClockFit(0.039))
+    clock = _checked_with(leg, monkeypatch, lag_of, ClockFit(0.039))
     assert clock.alternative is not None and clock.alternative.offset_s == pytest.approx(-0.027)
+
+
+def test_a_valley_cut_by_the_end_of_the_hinge_range_is_the_centres_probe(
+        leg: _Leg, monkeypatch: pytest.MonkeyPatch) -> None:
+    # an independent simulator's walking leg on exact clocks: the hinge cue read -52 ms; around it (-112 .. +8 ms)
+    # the joint-centre valley at -3 ms reached the range's end, around zero and from between the two it stood alone
+    def lag_of(_w: slice, centre: float) -> LagEstimate | None:
+        return LagEstimate(-0.001) if abs(-0.001 - centre) < WALKING.sync.max_lag_s - 0.010 else None
+
+    clock = _checked_with(leg, monkeypatch, lag_of, ClockFit(-0.052))
+    assert clock.alternative is not None and clock.alternative.offset_s == pytest.approx(-0.001)
+
+
+def test_a_second_valley_near_a_far_hinge_line_leaves_the_timing_unknown(
+        leg: _Leg, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the centre cue has valleys at -5 and +75 ms; around a hinge line of +30 ms (-30 .. +90 ms) it sees both and
+    # reads nothing, around zero only the first, and from between the two (12.5 ms) both again: that is one of two
+    # hypotheses, not the centre's line
+    max_lag = WALKING.sync.max_lag_s
+
+    def lag_of(_w: slice, centre: float) -> LagEstimate | None:
+        # a valley 10 ms wide: one whose middle lies up to 10 ms beyond the range still shows as a flank
+        seen = [v for v in (-0.005, 0.075) if abs(v - centre) < max_lag + 0.010]
+        inside = [v for v in seen if abs(v - centre) < max_lag]
+        return LagEstimate(inside[0]) if len(seen) == 1 and inside else None
+
+    clock = _checked_with(leg, monkeypatch, lag_of, ClockFit(0.030))
+    assert clock.offset_s is None and clock.disagreement
 
 
 @pytest.mark.parametrize(("reads_hinge", "expected"), [(True, "hinge"), (False, "unknown")])
 def test_a_centre_line_that_runs_away_faster_than_crystals_needs_the_hinge_borne_out(
-        straight, monkeypatch: pytest.MonkeyPatch, reads_hinge: bool, expected: str) -> None:
+        leg: _Leg, monkeypatch: pytest.MonkeyPatch, reads_hinge: bool, expected: str) -> None:
     # running at 10 % packet loss: the hinge read -3.8, -3.2, -1.5 ms (true -4.2); two joint-centre windows read 8.0
     # and -3.7 ms, a line of about -390 ppm that two crystals cannot run apart by. The hinge's line stands where
     # another centre window reads it, else (here a line of +400 ppm) the timing is unknown
-    prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
-    windows = _three_windows(prep)
-    apart = float(np.mean(prep.t_s[windows[2]]) - np.mean(prep.t_s[windows[1]]))  # the two windows' times [s]
-    reads = {windows[0].start: None, windows[1].start: 0.008,
-             windows[2].start: (-0.0037 if reads_hinge else 0.008 + 0.0004 * apart)}
+    w, t_s = leg.windows, leg.prep.t_s
+    apart = float(np.mean(t_s[w[2]]) - np.mean(t_s[w[1]]))  # the two windows' times [s]
+    reads = {w[0].start: None, w[1].start: 0.008, w[2].start: (-0.0037 if reads_hinge else 0.008 + 0.0004 * apart)}
 
-    def cue(*_args, **_kwargs):  # noqa: ANN002, ANN003, ANN202
-        def lag_of(w: slice, _centre: float) -> LagEstimate | None:
-            lag = reads[w.start]
-            return None if lag is None else LagEstimate(lag)
-        return lag_of, np.ones(prep.n)
+    def lag_of(win: slice, _centre: float) -> LagEstimate | None:
+        lag = reads[win.start]
+        return None if lag is None else LagEstimate(lag)
 
-    monkeypatch.setattr("pipeline.sync._centre_lag_of", cue)
     hinge = ClockFit(-0.003, 2e-5)
-    clock = _checked_by_centre(prep, g1, g2, axes, WALKING.sync, WALKING.axes, windows, hinge)
+    clock = _checked_with(leg, monkeypatch, lag_of, hinge)
     if expected == "hinge":
         assert clock == hinge
     else:
@@ -707,10 +736,6 @@ def test_an_offset_beyond_the_narrow_range_is_searched_wide(seed: int, lag_s: fl
     assert len(errors) >= 40 and max(abs(e) for e in errors) < 6.0
 
 
-def _centre_inputs_of(prep, g1, g2, params=WALKING):
-    return _centre_inputs(prep, g1, g2, params.sync, params.axes)
-
-
 @pytest.mark.parametrize(("cost", "clear"), [
     ([9.0, 4.0, 1.0, 1.5, 6.0, 9.0], True),     # one valley
     ([9.0, 1.2, 3.0, 1.0, 3.0, 9.0], False),    # two valleys within 2.5 x the least
@@ -722,44 +747,6 @@ def test_a_lag_profile_is_read_only_from_one_clear_valley(cost: list[float], cle
     assert one_valley(np.array(cost), WALKING.sync.centre_depth) == clear
 
 
-def test_a_valley_cut_by_the_end_of_the_hinge_range_is_the_centres_probe(
-        straight, monkeypatch: pytest.MonkeyPatch) -> None:
-    # an independent simulator's walking leg on exact clocks: the hinge cue read -52 ms; around it (-112 .. +8 ms)
-    # the joint-centre valley at -3 ms reached the range's end, around zero and from between the two it stood alone
-    prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
-    params = WALKING.sync
-
-    def cue(*_args, **_kwargs):  # noqa: ANN002, ANN003, ANN202
-        def lag_of(_w: slice, centre: float) -> LagEstimate | None:
-            return LagEstimate(-0.001) if abs(-0.001 - centre) < params.max_lag_s - 0.010 else None
-        return lag_of, np.ones(prep.n)
-
-    monkeypatch.setattr("pipeline.sync._centre_lag_of", cue)
-    clock = _checked_by_centre(prep, g1, g2, axes, params, WALKING.axes, _three_windows(prep), ClockFit(-0.052))
-    assert clock.alternative is not None and clock.alternative.offset_s == pytest.approx(-0.001)
-
-
-def test_a_second_valley_near_a_far_hinge_line_leaves_the_timing_unknown(
-        straight, monkeypatch: pytest.MonkeyPatch) -> None:
-    # the centre cue has valleys at -5 and +75 ms; around a hinge line of +30 ms (-30 .. +90 ms) it sees both and
-    # reads nothing, around zero only the first, and from between the two (12.5 ms) both again: that is one of two
-    # hypotheses, not the centre's line
-    prep, g1, g2, axes = _prepared(*_leg_streams(straight.streams, "left", 0.012))
-    params = WALKING.sync
-
-    def cue(*_args, **_kwargs):  # noqa: ANN002, ANN003, ANN202
-        def lag_of(_w: slice, centre: float) -> LagEstimate | None:
-            # a valley 10 ms wide: one whose middle lies up to 10 ms beyond the range still shows as a flank
-            seen = [v for v in (-0.005, 0.075) if abs(v - centre) < params.max_lag_s + 0.010]
-            inside = [v for v in seen if abs(v - centre) < params.max_lag_s]
-            return LagEstimate(inside[0]) if len(seen) == 1 and inside else None
-        return lag_of, np.ones(prep.n)
-
-    monkeypatch.setattr("pipeline.sync._centre_lag_of", cue)
-    clock = _checked_by_centre(prep, g1, g2, axes, params, WALKING.axes, _three_windows(prep), ClockFit(0.030))
-    assert clock.offset_s is None and clock.disagreement
-
-
 def test_the_centre_profile_reads_the_same_lag_wherever_its_search_starts() -> None:
     """The centres are refitted at every lag: a window reads its lag whether searched around the truth, 0 or the
     far side. Centres fitted once at the start (or moved by one Gauss-Newton step) carry the start's misfit and read
@@ -768,7 +755,7 @@ def test_the_centre_profile_reads_the_same_lag_wherever_its_search_starts() -> N
                                      knee_3d=1.0, impact_g=6.0, sync_offset_ms=0.0, clock_drift_ppm=0.0))
     prep, g1, g2, _ = _prepared(*_leg_streams(sim.streams, "left", 0.025))
     axes = _fitted_axes(prep, g1, g2, RUNNING)
-    a1, a2, gd1, gd2, far = _centre_inputs_of(prep, g1, g2, RUNNING)
+    a1, a2, gd1, gd2, far = _centre_inputs(prep, g1, g2, RUNNING.sync, RUNNING.axes)
     mid = slice(prep.n // 3, 2 * prep.n // 3)
     reads = [estimate_centre_lag_s(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, far, prep.fs_hz, mid,
                                    RUNNING.sync.max_lag_s, RUNNING.axes, None, start)[0]
@@ -786,7 +773,7 @@ def test_a_centre_fit_that_misses_the_sensor_reads_no_lag() -> None:
                                      lever_scale=2.0))
     prep, g1, g2, _ = _prepared(*_leg_streams(sim.streams, "left"))
     axes = _fitted_axes(prep, g1, g2, WALKING)
-    a1, a2, gd1, gd2, far = _centre_inputs_of(prep, g1, g2)
+    a1, a2, gd1, gd2, far = _centre_inputs(prep, g1, g2, WALKING.sync, WALKING.axes)
     third = prep.n // 3
     lag, _ = estimate_centre_lag_s(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, far, prep.fs_hz,
                                    slice(third, 2 * third), WALKING.sync.max_lag_s, WALKING.axes)
