@@ -12,6 +12,7 @@ Units are part of the field names; each field says why it has its value.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 
 @dataclass(frozen=True)
@@ -702,6 +703,15 @@ class RunningParams:
 
     fit_window: tuple[float, float] = (0.40, 0.80)
     """Share of the gait cycle used for the axis and centre fits (Rhudy Fig. 7: swing, no impacts)."""
+    thigh_axis: Literal["principal", "hinge"] = "principal"
+    """How the knee axes are found on those windows. ``"hinge"``: Seel's Eq. 2 with both axes free (Rhudy Eq. 2),
+    levelled (``AxesParams.level_lean_deg``). ``"principal"``: the thigh's axis is its dominant rotation axis
+    (McGrath et al. 2018; in a running swing the hip flexes through 60-80 deg while its ab/adduction and rotation
+    span a few), the median over the gait cycles (:func:`pipeline.axes.median_principal_axis`, so a turn does not
+    tilt it), and only the shank's is fitted by Eq. 2 against it (:func:`pipeline.axes.fit_shank_axis`). A knee is
+    no hinge: the tibia turns about its long axis as the knee flexes, and with both axes free Eq. 2 tilts them
+    together along a shallow valley of its cost (on the sweep's 150 s runs with 3-D hip and knee: 15-27 deg off the
+    flexion axes, mostly in heading, and the knee's swing a tenth short)."""
     impact_half_width: float = 0.05
     """Share of the gait cycle skipped on either side of a foot strike for measurement updates (Rhudy)."""
     lowpass_hz: float = 7.0

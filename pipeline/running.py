@@ -6,8 +6,10 @@
   strikers, a loosely coupled sensor: the swing "whip" of the shank reaches 3-4 g too). What always sets an impact
   apart is its frequency content, the ringing that the 7 Hz filter removes (Fig. 5), so the peaks are searched in
   the magnitude of the unfiltered signal's content above ``RunningParams.impact_hp_hz``.
-* The joint axes (Eq. 2) and joint centres (Eq. 5) are fitted on 40-80 % of each gait cycle only (Fig. 7): swing,
-  with its large sagittal rotation and no impact or ground-reaction effects.
+* The joint axes and joint centres (Eq. 5) are fitted on 40-80 % of each gait cycle only (Fig. 7): swing, with its
+  large sagittal rotation and no impact or ground-reaction effects. Going further than the paper, only the shank's
+  axis comes from Eq. 2; the thigh's is its own dominant rotation axis over those windows
+  (``RunningParams.thigh_axis``: a knee is no hinge, and with both axes free Eq. 2 tilts them together).
 * Once the axes are known, gyroscope and accelerometer signals are low-passed with a 4th-order zero-lag 7 Hz
   Butterworth.
 * Accelerometer measurement updates are skipped within +-5 % of the gait cycle around each foot strike (the filters
@@ -34,7 +36,10 @@ from pipeline.axes import (
     centre_fit_step,
     fit_joint_axes,
     fit_joint_centres,
+    fit_shank_axis,
+    median_principal_axis,
     orient_axes,
+    principal_axis,
     select_fit_samples,
 )
 from pipeline.constants import G_MPS2
@@ -286,8 +291,8 @@ def filtered_leg(prep: PreparedLeg, params: RunningParams = _RP) -> PreparedLeg:
 def build_running_leg_input(prep: PreparedLeg, params: PipelineParams, cycles: RunningCycles | None = None
                             ) -> tuple[LegInput, RunningDiagnostics]:
     """Rhudy et al.'s running flow (Fig. 3) for one leg: foot strikes from the unfiltered shank accelerometer ->
-    joint axes (Eq. 2) on 40-80 % of each gait cycle -> 7 Hz low-pass -> joint centres (Eq. 5) on the same windows ->
-    accelerometer angle (Eq. 6-7) -> impact mask for the filters' measurement updates.
+    joint axes (:func:`_running_axes`) on 40-80 % of each gait cycle -> 7 Hz low-pass -> joint centres (Eq. 5) on
+    the same windows -> accelerometer angle (Eq. 6-7) -> impact mask for the filters' measurement updates.
 
     The leg input carries ``running_cycles``, ``acc_update_mask`` (True on the 40-80 % windows and quiet periods,
     never within +-5 % of a foot strike) and the quiet mask of the unfiltered leg. Falls back to the whole valid
@@ -331,16 +336,24 @@ def build_running_leg_input(prep: PreparedLeg, params: PipelineParams, cycles: R
 
 def _running_axes(prep: PreparedLeg, fit_mask: np.ndarray, cycles: RunningCycles, params: PipelineParams
                   ) -> JointAxes:
-    """Eq. 2 axes on the fit windows; signs from whole strides (within 40-80 % thigh and shank may rotate in
-    opposite senses): the shank's from its late-swing rotation (:func:`shank_axis_sign`), the thigh's from the
-    timing of the flexion peak (:func:`thigh_axis_sign`)."""
+    """The knee axes on the fit windows (``RunningParams.thigh_axis``); signs from whole strides (within 40-80 %
+    thigh and shank may rotate in opposite senses): the shank's from its late-swing rotation
+    (:func:`shank_axis_sign`), the thigh's from the timing of the flexion peak (:func:`thigh_axis_sign`)."""
     valid = prep.valid
-    axes = fit_joint_axes(prep.gyr_thigh_rps, prep.gyr_shank_rps, fit_mask, params.axes,
-                          up=axis_up(prep, params.axes))
-    j1, j2 = orient_axes(axes.j1, axes.j2, prep.gyr_thigh_rps[valid], prep.gyr_shank_rps[valid])
-    j2 = shank_axis_sign(j2, prep.gyr_shank_rps, cycles.cycles, params.running)
-    j1 = thigh_axis_sign(j1, j2, prep.gyr_thigh_rps, prep.gyr_shank_rps, cycles.cycles, prep.fs_hz,
-                         params.running)
+    g1_all, g2_all = prep.gyr_thigh_rps, prep.gyr_shank_rps
+    window = np.flatnonzero(fit_mask)
+    if params.running.thigh_axis == "principal" and window.size >= 10:
+        j1 = median_principal_axis(g1_all, true_runs(fit_mask))  # one run per cycle's window
+        # evenly over the windows, not select_fit_samples' most dynamic samples: those are where the segments'
+        # other rotations peak too, and the shank's axis fitted there leaned 7 deg further off on the 3-D runs
+        idx = window[::-(-window.size // params.axes.max_fit_samples)]
+        j2, rms = fit_shank_axis(g1_all[idx], g2_all[idx], j1, principal_axis(g2_all[window]))
+        axes = JointAxes(j1=j1, j2=j2, rms_residual_dps=rms, n_samples=int(idx.size))
+    else:
+        axes = fit_joint_axes(g1_all, g2_all, fit_mask, params.axes, up=axis_up(prep, params.axes))
+    j1, j2 = orient_axes(axes.j1, axes.j2, g1_all[valid], g2_all[valid])
+    j2 = shank_axis_sign(j2, g2_all, cycles.cycles, params.running)
+    j1 = thigh_axis_sign(j1, j2, g1_all, g2_all, cycles.cycles, prep.fs_hz, params.running)
     return replace(axes, j1=j1, j2=j2)
 
 

@@ -13,15 +13,19 @@ from pipeline.axes import (
     JointCentres,
     accelerometer_angle_deg,
     angular_acceleration,
+    axis_angle_deg,
     centre_fit_step,
     estimate_sync_lag_s,
     fit_joint_axes,
     fit_joint_centres,
+    fit_shank_axis,
     gamma_matrices,
     knee_dips_deg,
+    median_principal_axis,
     observable_bias_basis,
     orient_axes,
     orient_thigh_on_gait,
+    principal_axis,
     select_fit_samples,
 )
 from pipeline.params import WALKING, AxesParams
@@ -60,6 +64,37 @@ def test_axis_fit_recovers_the_hinge_axis_for_any_mounting(seed: int) -> None:
     # sign convention: flexion rate g1.j1 - g2.j2 equals the true knee rate (not its negative)
     rate = g1 @ ax.j1 - g2 @ ax.j2
     assert np.corrcoef(rate, knee_rate)[0, 1] > 0.99
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_shank_axis_fitted_against_a_given_thigh_axis(seed: int) -> None:
+    g1, g2, j1_true, j2_true, _ = _hinge_gyros(seed)
+    start = Rotation.from_rotvec(np.radians(30.0) * np.array([1.0, 0.0, 0.0])).apply(j2_true)
+    j2, rms = fit_shank_axis(g1, g2, j1_true, start)
+    assert axis_angle_deg(j2, j2_true) < 0.2
+    assert rms < 2.0  # deg/s: the gyro noise, not a misfit
+    _, rms_off = fit_shank_axis(g1, g2, Rotation.from_euler("z", 10.0, degrees=True).apply(j1_true), start)
+    assert rms_off > 2 * rms
+
+
+def test_the_thigh_axis_of_many_cycles_is_not_tilted_by_a_few_turns() -> None:
+    """Cycles rotating about one axis (different amplitudes, noise), three of them also turning about another at
+    4 rad/s (a sharp turn while running): the pooled principal axis leans towards the turn, the median over the
+    cycles does not."""
+    rng = np.random.default_rng(4)
+    axis = np.array([0.2, 0.9, -0.3]) / np.linalg.norm([0.2, 0.9, -0.3])
+    turn = np.array([0.1, 0.2, 1.0]) / np.linalg.norm([0.1, 0.2, 1.0])
+    t = np.arange(80) / 200.0
+    rows, runs = [], []
+    for k in range(20):
+        yaw = 4.0 * turn if k in (6, 7, 8) else np.zeros(3)
+        swing = rng.uniform(4.0, 6.0) * np.sin(2 * np.pi * 2.5 * t)[:, None] * axis
+        rows.append(swing + yaw + 0.05 * rng.standard_normal((t.size, 3)))
+        runs.append((k * t.size, (k + 1) * t.size))
+    g = np.concatenate(rows)
+    assert axis_angle_deg(principal_axis(g), axis) > 1.0
+    assert axis_angle_deg(median_principal_axis(g, runs), axis) < 0.2
+    assert axis_angle_deg(median_principal_axis(g, runs[:2]), principal_axis(g[:2 * t.size])) < 1e-9
 
 
 def test_sign_convention_is_independent_of_the_initial_signs() -> None:
