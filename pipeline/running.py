@@ -346,7 +346,7 @@ def _running_axes(prep: PreparedLeg, fit_mask: np.ndarray, cycles: RunningCycles
         j1 = median_principal_axis(g1_all, true_runs(fit_mask))  # one run per cycle's window
         # evenly over the windows, not select_fit_samples' most dynamic samples: those are where the segments'
         # other rotations peak too, and the shank's axis fitted there leaned 7 deg further off on the 3-D runs
-        idx = window[::-(-window.size // params.axes.max_fit_samples)]
+        idx = window[::int(np.ceil(window.size / params.axes.max_fit_samples))]
         j2, rms = fit_shank_axis(g1_all[idx], g2_all[idx], j1, principal_axis(g2_all[window]))
         axes = JointAxes(j1=j1, j2=j2, rms_residual_dps=rms, n_samples=int(idx.size))
     else:
