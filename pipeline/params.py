@@ -711,7 +711,10 @@ class RunningParams:
     tilt it), and only the shank's is fitted by Eq. 2 against it (:func:`pipeline.axes.fit_shank_axis`). A knee is
     no hinge: the tibia turns about its long axis as the knee flexes, and with both axes free Eq. 2 tilts them
     together along a shallow valley of its cost (on the sweep's 150 s runs with 3-D hip and knee: 15-27 deg off the
-    flexion axes, mostly in heading, and the knee's swing a tenth short)."""
+    flexion axes, mostly in heading, and the trend strides' peaks 2-9 deg low). The price is paid by hinge knees
+    whose hip moves in 3-D: the principal axis takes in the hip's ab/adduction and rotation (an independent
+    simulator's hinge control: legs more than 3 deg off 0 -> 4 of 16, while its 3-D knees' worst legs went from -22
+    to -7 deg). No measure found here tells the two apart reliably (the hinge fit's residual overlaps)."""
     impact_half_width: float = 0.05
     """Share of the gait cycle skipped on either side of a foot strike for measurement updates (Rhudy)."""
     lowpass_hz: float = 7.0
