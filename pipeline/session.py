@@ -134,7 +134,7 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
             gait_legs.discard(leg)
     legs = _withhold_unanchored(legs, gait_legs, session_params.axes.min_gait_strides, warnings)
     legs = _check_sides(legs, ap, session_params.quality, warnings)
-    warnings += _angle_warnings(legs)
+    warnings += _angle_warnings(legs) + _implausible_warnings(legs, session_params.posture)
     _note_assignment(legs, assigned)
     return SessionResult(algorithm_version=ALGORITHM_VERSION, activity=activity, legs=legs, warnings=warnings)
 
@@ -157,6 +157,25 @@ def _angle_warnings(legs: dict[str, LegResult]) -> list[str]:
             if (m := _mounting(legs[leg])) is not None and m.changed and not _withheld(legs[leg])]
     return out + [_level_bridged_warning(leg, d) for leg in sorted(legs)
                   if (d := legs[leg].diagnostics) is not None and d.level_bridged and not _withheld(legs[leg])]
+
+
+def _implausible_warnings(legs: dict[str, LegResult], posture: PostureParams) -> list[str]:
+    """One warning per shown leg whose knee angle left ``PostureParams.plausible_knee_deg`` on at least
+    ``implausible_warn_share`` of its samples and ``implausible_warn_min_s``, and that reports fewer strides than its
+    gait strides: masked, so never shown, but the strides across it are gone too."""
+    lo, hi = posture.plausible_knee_deg
+    out = []
+    for leg in sorted(legs):
+        lr, d = legs[leg], legs[leg].diagnostics
+        masked_s = d.masked_implausible_samples / lr.fs_hz if d is not None else 0.0
+        if d is None or _withheld(lr) or d.n_strides >= d.gait_strides or masked_s < posture.implausible_warn_min_s \
+                or d.masked_implausible_samples < posture.implausible_warn_share * lr.angle_deg.size:
+            continue
+        out.append(f"{leg} leg: {masked_s:.0f} s of its knee angle lay outside "
+                   f"{lo:g} .. {hi:g} deg, which no knee reaches, and are not shown; {d.n_strides} of its "
+                   f"{d.gait_strides} gait strides are reported. The knee axes or the level do not fit this leg: "
+                   "check the sensors' placement and labels")
+    return out
 
 
 def _mounting_warning(leg: str, m: MountingCheck) -> str:

@@ -324,18 +324,24 @@ def test_jumps_between_bouts_do_not_flip_the_thigh_axis() -> None:
 
 
 def test_implausible_angles_are_masked_and_counted() -> None:
-    """A band narrower than the gait's range masks the swing peaks: they become NaN, are counted, and no stride
-    containing one is reported."""
+    """A band narrower than the gait's range masks the swing peaks: they become NaN, are counted, no stride
+    containing one is reported, and the session says so."""
     sim = _sim("normal", 5, legs=("left",))
     band = dataclasses.replace(WALKING.posture, plausible_knee_deg=(-15.0, 50.0))
     narrow = dataclasses.replace(WALKING, posture=band)
-    leg = process_session(sim.streams, params=narrow).legs["left"]
+    res = process_session(sim.streams, params=narrow)
+    leg = res.legs["left"]
     assert leg.diagnostics.masked_implausible_samples > 0
     assert np.nanmax(leg.angle_deg) <= 50.0
     assert not leg.strides
     assert leg.diagnostics.trace_withheld is None and np.isfinite(leg.angle_deg).mean() > 0.5  # still its gait
-    full = process_session(sim.streams).legs["left"]
+    said = [w for w in res.warnings if "outside -15 .. 50 deg" in w]
+    assert len(said) == 1 and said[0].startswith("left leg:")
+    assert f"0 of its {leg.diagnostics.gait_strides} gait strides are reported" in said[0]
+    full_res = process_session(sim.streams)
+    full = full_res.legs["left"]
     assert full.diagnostics.masked_implausible_samples == 0 and full.strides
+    assert not any("which no knee reaches" in w for w in full_res.warnings)
 
 
 @pytest.mark.parametrize(("hole_s", "modelled"), [(0.06, False), (0.13, False), (0.3, True)])
