@@ -556,9 +556,8 @@ class PostureParams:
     """A leg whose masked share of the knee angle (outside ``plausible_knee_deg``) reaches this, and that reports
     fewer strides than its gait strides, gets a session warning: the angle there was wrong, and the strides across it
     are not reported, so the axes or the level do not fit the leg (an independent simulator's running leg: 13 %
-    masked, its 218 gait cycles all dropped, no word said). On the sweep (one seed per row) only legs that report all
-    their strides reached it, and legs withheld for want of gait; a run without quiet standing (its level GO's, 24 deg
-    off) reached it with one stride lost, a fair warning."""
+    masked, its 218 gait cycles all dropped, no word said). On the sweep (one seed per row) only the runs without
+    quiet standing get it, whose level is GO's and 24 deg off (1 s masked, one stride lost): a fair warning."""
     implausible_warn_min_s: float = 1.0
     """... and that masked time [s] at least: a short trial's few masked samples are over the share without meaning
     much (the real 10 s trial with a 0.1 g accelerometer offset: 0.12 s, its lost strides dropped for another
