@@ -11,7 +11,8 @@ are compared with those after it: the line the axes take before (:func:`pipeline
 knee's fitted hinge also moves with the activity (3-D hip and knee: the thigh's by up to 22 deg between walking and
 stairs on the simulator's ``joint_3d`` chain, the shank's by up to 7), but those windows interleave over a session,
 so the two means stay close; a remount moves every later window. No paper gives these rules; the thresholds sit
-above the activity spread the simulator shows.
+above the activity spread the simulator shows. Running legs whose thigh axis is its principal rotation axis
+(``RunningParams.thigh_axis``) are checked on that axis per window instead, which a 3-D knee does not move.
 
 A turn about an axis near the knee axis barely moves the hinge, but it turns the joint-plane frames in which the
 accelerometer angle (Seel Eq. 6-7) is measured, so it moves the leg's level: :func:`level_step` looks for a step
@@ -24,7 +25,16 @@ import dataclasses
 
 import numpy as np
 
-from pipeline.axes import JointAxes, axis_angle_deg, fit_margin_mask, mean_axis, refit_axes, select_fit_samples
+from pipeline.axes import (
+    JointAxes,
+    axis_angle_deg,
+    fit_margin_mask,
+    fit_shank_axis,
+    mean_axis,
+    principal_axis,
+    refit_axes,
+    select_fit_samples,
+)
 from pipeline.estimators.go import go_relative
 from pipeline.leg_input import LegInput
 from pipeline.params import WALKING, AxesParams, MountingParams
@@ -36,11 +46,15 @@ from pipeline.types import MountingCheck
 
 
 def window_axes(prep: PreparedLeg, axes: JointAxes, fit_gyr: tuple[np.ndarray, np.ndarray],
-                params: MountingParams = WALKING.mounting) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                params: MountingParams = WALKING.mounting, principal_thigh: bool = False
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per window of ``params.window_s`` whose shank turns faster than ``params.moving_dps`` for at least
     ``params.min_moving_s``: its start [s] (K,), and the hinge axes refitted on it (K, 3) thigh and shank frame, on
     the gyros ``fit_gyr`` (thigh, shank (N, 3) [rad/s]: the session fit's low-passed ones,
-    :func:`pipeline.walking.fit_gyros`, or the raw ones) and the measured samples away from gaps."""
+    :func:`pipeline.walking.fit_gyros`, or the raw ones) and the measured samples away from gaps.
+    ``principal_thigh``: the thigh's axis is the window's principal rotation axis over its moving samples and the
+    shank's its Eq. 2 partner, as the running path finds them (``RunningParams.thigh_axis``): with a knee that is no
+    hinge, the free refits wander along their shallow valley by 40-50 deg from one window to the next."""
     fs = prep.fs_hz
     win_n = max(int(round(params.window_s * fs)), 1)
     g1, g2 = fit_gyr
@@ -54,7 +68,11 @@ def window_axes(prep: PreparedLeg, axes: JointAxes, fit_gyr: tuple[np.ndarray, n
         if sel.sum() < need:
             continue
         idx = a + select_fit_samples(g1[a:a + win_n], g2[a:a + win_n], sel, bound)
-        j1, j2 = refit_axes(g1[idx], g2[idx], axes.j1, axes.j2)
+        if principal_thigh:
+            j1 = principal_axis(g1[a:a + win_n][sel])
+            j2, _ = fit_shank_axis(g1[idx], g2[idx], j1, axes.j2)
+        else:
+            j1, j2 = refit_axes(g1[idx], g2[idx], axes.j1, axes.j2)
         starts.append(prep.t_s[a])
         j1s.append(j1)
         j2s.append(j2)
@@ -62,24 +80,26 @@ def window_axes(prep: PreparedLeg, axes: JointAxes, fit_gyr: tuple[np.ndarray, n
 
 
 def check_mounting(prep: PreparedLeg, axes: JointAxes, fit_gyr: tuple[np.ndarray, np.ndarray],
-                   params: MountingParams = WALKING.mounting) -> MountingCheck:
+                   params: MountingParams = WALKING.mounting, principal_thigh: bool = False) -> MountingCheck:
     """:class:`MountingCheck` of one prepared leg, whose session fit is ``axes`` on ``fit_gyr``. At least
     ``params.min_windows`` fitted windows on either side of a split point are needed to judge it (else the changes
     and the time are None). The axes on either side are lines (:func:`pipeline.axes.mean_axis`), so neither the
-    windows' signs nor a session fit spoilt by the two mountings sway them."""
-    starts, j1s, j2s = window_axes(prep, axes, fit_gyr, params)
+    windows' signs nor a session fit spoilt by the two mountings sway them. ``principal_thigh``: as
+    :func:`window_axes`."""
+    starts, j1s, j2s = window_axes(prep, axes, fit_gyr, params, principal_thigh)
+    thigh_deg = params.principal_thigh_deg if principal_thigh else params.thigh_deg
     k_min = params.min_windows
     best: tuple[float, float, float] | None = None
     for k in range(k_min, starts.size - k_min + 1):
         d1 = axis_angle_deg(mean_axis(j1s[:k]), mean_axis(j1s[k:]))
         d2 = axis_angle_deg(mean_axis(j2s[:k]), mean_axis(j2s[k:]))
-        if best is None or max(d1 / params.thigh_deg, d2 / params.shank_deg) > max(best[0] / params.thigh_deg,
-                                                                                    best[1] / params.shank_deg):
+        if best is None or max(d1 / thigh_deg, d2 / params.shank_deg) > max(best[0] / thigh_deg,
+                                                                             best[1] / params.shank_deg):
             best = (d1, d2, float(starts[k]))
     if best is None:
         return MountingCheck(thigh_deg=None, shank_deg=None, at_s=None, windows=int(starts.size), changed=False)
     return MountingCheck(thigh_deg=round(best[0], 1), shank_deg=round(best[1], 1), at_s=round(best[2], 2),
-                         windows=int(starts.size), changed=best[0] > params.thigh_deg or best[1] > params.shank_deg)
+                         windows=int(starts.size), changed=best[0] > thigh_deg or best[1] > params.shank_deg)
 
 
 def with_level_step(check: MountingCheck, leg: LegInput, params: MountingParams = WALKING.mounting,

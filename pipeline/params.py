@@ -368,6 +368,13 @@ class MountingParams:
     motion: on the simulator (tune seeds 0-3, sessions of 90 and 240 s) the before/after means moved by up to 12 deg
     with typical 3-D hip and knee motion (walking, stairs, jumps), 19 at changing paces, 29 at twice the typical
     motion with a varus knee; a thigh turned by 60 deg about a random axis moved them by 17-60 (8 of 12 caught)."""
+    principal_thigh_deg: float = 8.0
+    """``thigh_deg`` where the thigh's axis is its principal rotation axis per window (running,
+    ``RunningParams.thigh_axis``): that axis does not wander with the hip's and knee's 3-D motion as the refitted hinge
+    does (150 s runs without a remount: 0-0.3 deg on this repository's simulator with 3-D hip and knee and on an
+    independent one, where the refitted hinge read 4-21 and 48-53 deg), and a turn of the sensor moves it by up to
+    the turn's angle (30 deg about a random axis: 12-30; 15 deg: 6-15). Below ~8 deg a turn moves the knee rate by
+    1 % at most."""
     shank_deg: float = 14.0
     """A change of the shank's axis beyond this [deg] is a remount. The same sessions: up to 6.6 deg with typical
     3-D motion, 12.5 at twice it with a varus knee; a shank turned by 30 deg about a random axis: 8-28 deg (6 of 12

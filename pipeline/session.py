@@ -610,7 +610,8 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
     # the session fit's low-passed gyros when the synchronisation kept them; else the raw ones (filtering the session
     # again cost as much as the check itself, and the windows' verdicts were the same on the tune seeds)
     fit_gyr = synced.fit_gyr or (synced.prep.gyr_thigh_rps, synced.prep.gyr_shank_rps)
-    mounting = check_mounting(synced.prep, synced.axes, fit_gyr, data.params.mounting)
+    principal = data.activity == "running" and data.params.running.thigh_axis == "principal"  # as its axes were found
+    mounting = check_mounting(synced.prep, synced.axes, fit_gyr, data.params.mounting, principal_thigh=principal)
     if data.activity == "walking":
         mounting = with_level_step(mounting, data, data.params.mounting, result.stance_levels_deg, result.standing)
     not_worn, handled = not_worn_spans_s(data, other, data.params.worn) if data.activity == "walking" else ([], [])

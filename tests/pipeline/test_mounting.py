@@ -135,3 +135,27 @@ def test_only_a_step_both_levels_share_counts(stand_step: float, stride_step: fl
 def test_no_split_point_with_both_levels_on_either_side_is_unjudged() -> None:
     assert coherent_step(_T_STAND[:1], np.zeros(1), _T_STRIDES, np.zeros(_T_STRIDES.size)) == (None, None)
     assert coherent_step(_T_STAND, np.zeros(_T_STAND.size), _T_STRIDES[:8], np.zeros(8)) == (None, None)
+
+
+@pytest.mark.parametrize(("remount_deg", "changed"), [(30.0, True), (0.0, False)])
+def test_a_running_thigh_remount_is_seen_by_its_principal_axis(remount_deg: float, changed: bool) -> None:
+    """Running with 3-D hip and knee: the refitted hinge wanders by tens of degrees between windows, so a thigh turned
+    by 30 deg went unseen (and an unturned one could be flagged); the thigh's principal axis per window moves by the
+    turn and by nothing else (``MountingParams.principal_thigh_deg``)."""
+    import dataclasses
+
+    from pipeline.params import RUNNING
+
+    sim = simulate_session(SimConfig(pattern="running", fs_hz=200.0, activities=("standing",), duration_s=90.0,
+                                     bout_strides=400, impact_g=6.0, knee_3d=1.0, hip_3d=1.0, seed=0,
+                                     remount_segment="thigh" if remount_deg else "none", remount_deg=remount_deg))
+
+    def check(thigh_axis: str):
+        params = dataclasses.replace(RUNNING, running=dataclasses.replace(RUNNING.running, thigh_axis=thigh_axis))
+        return process_session(sim.streams, activity="running", params=params).legs["left"].diagnostics.mounting
+
+    principal = check("principal")
+    assert principal.changed is changed
+    assert (principal.thigh_deg > 20.0) if changed else (principal.thigh_deg < 2.0)
+    if changed:
+        assert not check("hinge").changed  # the free refits' wander hides the turn under their threshold
