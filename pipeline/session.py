@@ -134,7 +134,7 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
             gait_legs.discard(leg)
     legs = _withhold_unanchored(legs, gait_legs, session_params.axes.min_gait_strides, warnings)
     legs = _check_sides(legs, ap, session_params.quality, warnings)
-    warnings += _angle_warnings(legs) + _implausible_warnings(legs, session_params.posture)
+    warnings += _angle_warnings(legs, session_params.posture)
     _note_assignment(legs, assigned)
     return SessionResult(algorithm_version=ALGORITHM_VERSION, activity=activity, legs=legs, warnings=warnings)
 
@@ -147,16 +147,17 @@ def _note_assignment(legs: dict[str, LegResult], assigned: dict[str, str]) -> No
             lr.diagnostics = dataclasses.replace(lr.diagnostics, assignment=how)
 
 
-def _angle_warnings(legs: dict[str, LegResult]) -> list[str]:
+def _angle_warnings(legs: dict[str, LegResult], posture: PostureParams) -> list[str]:
     """The warnings about each shown knee angle: clocks that run apart, a sensor remounted, a level carried from
-    standing."""
+    standing, strides lost to implausible angles (:func:`_implausible_warnings`)."""
     out = [f"{leg} leg: its thigh and shank clocks run apart faster than crystal clocks can; the knee angle's "
            "timing is unknown and its strides are kept out of trends (clock_disagreement)"
            for leg in sorted(legs) if _clock_unknown(legs[leg]) and not _withheld(legs[leg])]
     out += [_mounting_warning(leg, m) for leg in sorted(legs)
             if (m := _mounting(legs[leg])) is not None and m.changed and not _withheld(legs[leg])]
-    return out + [_level_bridged_warning(leg, d) for leg in sorted(legs)
-                  if (d := legs[leg].diagnostics) is not None and d.level_bridged and not _withheld(legs[leg])]
+    out += [_level_bridged_warning(leg, d) for leg in sorted(legs)
+            if (d := legs[leg].diagnostics) is not None and d.level_bridged and not _withheld(legs[leg])]
+    return out + _implausible_warnings(legs, posture)
 
 
 def _implausible_warnings(legs: dict[str, LegResult], posture: PostureParams) -> list[str]:
@@ -167,9 +168,11 @@ def _implausible_warnings(legs: dict[str, LegResult], posture: PostureParams) ->
     out = []
     for leg in sorted(legs):
         lr, d = legs[leg], legs[leg].diagnostics
-        masked_s = d.masked_implausible_samples / lr.fs_hz if d is not None else 0.0
-        if d is None or _withheld(lr) or d.n_strides >= d.gait_strides or masked_s < posture.implausible_warn_min_s \
-                or d.masked_implausible_samples < posture.implausible_warn_share * lr.angle_deg.size:
+        if d is None or _withheld(lr) or d.n_strides >= d.gait_strides:
+            continue
+        masked_s = d.masked_implausible_samples / lr.fs_hz
+        if masked_s < posture.implausible_warn_min_s or \
+                d.masked_implausible_samples < posture.implausible_warn_share * lr.angle_deg.size:
             continue
         out.append(f"{leg} leg: {masked_s:.0f} s of its knee angle lay outside "
                    f"{lo:g} .. {hi:g} deg, which no knee reaches, and are not shown; {d.n_strides} of its "
