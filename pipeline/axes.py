@@ -791,7 +791,8 @@ def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: n
                           gd2: np.ndarray, j1: np.ndarray, j2: np.ndarray, far: np.ndarray, fs_hz: float,
                           window: slice, max_lag_s: float, params: AxesParams = WALKING.axes,
                           centres: np.ndarray | None = None, centre_s: float = 0.0,
-                          min_depth: float = WALKING.sync.centre_depth) -> tuple[float | None, np.ndarray | None]:
+                          min_depth: float = WALKING.sync.centre_depth,
+                          step_s: float = WALKING.sync.centre_lag_step_s) -> tuple[float | None, np.ndarray | None]:
     """Timestamp offset of the shank relative to the thigh [s] (sign as :func:`estimate_sync_lag_s`) from Seel's
     joint-centre constraint (Eq. 5): both accelerometers, moved to the knee centre by ``Gamma o``, measure one
     acceleration, so ``||a1 - Gamma_1 o1|| = ||a2 - Gamma_2 o2||`` sample by sample. Unlike the hinge constraint
@@ -801,8 +802,9 @@ def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: n
     neighbouring lag's centres and from those at ``centre_s``), so that the minimum does not depend on where the
     search starts: centres held at one lag's fit, or moved by one Gauss-Newton step, carry that lag's misfit and
     read only part of the way from it (running with 3-D knees and 20-40 ms offsets on an independent simulator: 40-90
-    ms off, often of the wrong sign; refitted, within 5 ms). Then a parabola through the three best lags. None
-    without a clear minimum (:func:`one_valley`). Centres that fit no lag
+    ms off, often of the wrong sign; refitted, within 5 ms). The lags are fitted every ``step_s`` first (and at both
+    ends of the range), then every lag between the least of them and its two neighbours; a parabola through the
+    three best lags. None without a clear minimum (:func:`one_valley`, on the first pass). Centres that fit no lag
     well (a thigh sensor 50 cm from the knee, which the fit's pull towards the knee keeps it from finding) and shocks
     that do not fit the rigid-body model give shallow or two-valleyed profiles with false minima 30-60 ms out; a
     broad valley (walking at 100 Hz on an independent simulator: -50 .. 0 ms around a true -32) still reads its
@@ -834,23 +836,35 @@ def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: n
         fit = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[at], g2[at], gd2[at], j1, j2,
                                 dataclasses.replace(params, centre_bias_prior_mps2=0.0))
         centres = np.concatenate([fit.o1, fit.o2])
-    lags = (*range(k0, k0 + k_max + 1), *range(k0 - 1, k0 - k_max - 1, -1))
-    if min(int(far[idx + k].sum()) for k in lags) < 10 * k_max:
+    if min(int(far[idx + k].sum()) for k in range(k0 - k_max, k0 + k_max + 1)) < 10 * k_max:
         return None, centres
-    cost = np.empty(2 * k_max + 1)
+    cost = np.full(2 * k_max + 1, np.nan)  # by lag k0 - k_max .. k0 + k_max
     fitted: dict[int, np.ndarray] = {}
-    # outwards from ``centre_s``: each lag starts from its inner neighbour's centres (a continuous path of minima)
-    for k in lags:
+
+    def fit(k: int, inner: int) -> None:
+        """The profile at lag ``k``, started from the centres at ``centre_s`` and from the fitted lag ``inner``'s."""
         ok = far[idx + k]
-        n_ok = int(ok.sum())
         rows = (a1[idx[ok]], m1[ok], a2[idx[ok] + k], m2[idx[ok] + k - span[0]], params.centre_reg)
-        neighbour = fitted.get(k - 1 if k > k0 else k + 1)
+        neighbour = fitted.get(inner)
         starts = (centres,) if neighbour is None else (neighbour, centres)
         best = min((_lsq_centres(x0, *rows) for x0 in starts), key=lambda f: f.cost)
         fitted[k] = best.x
-        cost[k - k0 + k_max] = 2.0 * best.cost / n_ok  # with the centres' pull, as _CentreProblem weighs it
-    if not one_valley(cost, min_depth):
+        cost[k - k0 + k_max] = 2.0 * best.cost / int(ok.sum())  # with the centres' pull, as _CentreProblem weighs it
+
+    step = max(int(round(step_s * fs_hz)), 1)
+    coarse = np.unique(np.r_[np.arange(0, k_max, step), k_max])  # offsets from k0 outwards, both ends included
+    # outwards from ``centre_s``: each lag starts from its inner neighbour's centres (a continuous path of minima)
+    fit(k0, k0)
+    for sign in (1, -1):
+        for inner, d in zip(coarse[:-1].tolist(), coarse[1:].tolist(), strict=True):
+            fit(k0 + sign * d, k0 + sign * inner)
+    grid = np.flatnonzero(~np.isnan(cost))  # the first pass's lags
+    if not one_valley(cost[grid], min_depth):
         return None, centres
+    at = int(np.argmin(cost[grid]))
+    b, lo, hi = (int(grid[i]) for i in (at, at - 1, at + 1))  # one_valley: the least lies inside the range
+    for i in (*range(b + 1, hi), *range(b - 1, lo, -1)):  # the lags between, outwards from the least
+        fit(i + k0 - k_max, (i - 1 if i > b else i + 1) + k0 - k_max)
     lag = _parabolic_minimum_s(cost, k_max, fs_hz)
     return (None if lag is None else lag + k0 / fs_hz), centres
 
@@ -866,11 +880,15 @@ def one_valley(cost: np.ndarray, min_depth: float) -> bool:
 
 
 def _parabolic_minimum_s(cost: np.ndarray, k_max: int, fs_hz: float) -> float | None:
-    """The lag [s] of an interior minimum of ``cost`` over lags ``-k_max..k_max`` samples that stands clearly below
-    the ends of the search range (noise and model misfit leave a floor under the whole curve, so compare depths, not
-    ratios to the median), refined by a parabola through the three best lags. None without one."""
-    b = int(np.argmin(cost))
-    if b == 0 or b == cost.size - 1 or not np.isfinite(cost).all() or 0.5 * (cost[0] + cost[-1]) < 1.2 * cost[b]:
+    """The lag [s] of an interior minimum of ``cost`` over lags ``-k_max..k_max`` samples (NaN: a lag not evaluated)
+    that stands clearly below the ends of the search range (noise and model misfit leave a floor under the whole
+    curve, so compare depths, not ratios to the median), refined by a parabola through the three best lags. None
+    without one."""
+    if np.isnan(cost).all():
+        return None
+    b = int(np.nanargmin(cost))
+    if b == 0 or b == cost.size - 1 or not np.isfinite(cost[[0, -1, b - 1, b, b + 1]]).all() \
+            or 0.5 * (cost[0] + cost[-1]) < 1.2 * cost[b]:
         return None
     den = cost[b - 1] - 2 * cost[b] + cost[b + 1]
     frac = 0.5 * (cost[b - 1] - cost[b + 1]) / den if den > 0 else 0.0

@@ -193,6 +193,14 @@ class SyncParams:
     refitted at each lag): of the windows whose least cost lay within 5 ms of the true lag, 382 of 387 pass (twice
     the least: 384, three times: 380); of those more than 10 ms off (a thigh sensor 50 cm from the knee, shocks that
     leave the sensor faster, long runs with 3-D knees), 1 of 13 (twice: 3, three times: 0)."""
+    centre_lag_step_s: float = 0.01
+    """Spacing [s] of the joint-centre lag profile's first pass (:func:`pipeline.axes.estimate_centre_lag_s`); the
+    lags between its least and that one's two neighbours are fitted after, to the sample. Each lag is a
+    Levenberg-Marquardt fit of the centres, and the lags within ``max_lag_s`` grow with the rate (121 at 1000 Hz).
+    The profile is one smooth bowl over the range (its second valleys, where a window has them, lie 30-60 ms away),
+    so its least on a 10 ms grid lies next to the true one: on 2-minute walks at 200, 500 and 1000 Hz and runs at
+    200 Hz (seeds 0-1) every lag read equals the one read with every lag fitted to 0.1 ms. At 100 Hz and below
+    every lag is fitted."""
     wide_max_se_s: float = 0.004
     """Largest standard error [s] of a hinge window's lag the wide search takes: over +-0.15 s the shallow cost curve
     of a window without a walk (a stair flight, exercises) has false minima 50 ms out (standard errors 5.5-8 ms on

@@ -538,7 +538,7 @@ def _centre_lag_of(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: Join
     def lag_of(w: slice, centre_s: float) -> LagEstimate | None:
         lag, fitted = estimate_centre_lag_s(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, far, fs, w,
                                             params.max_lag_s, axes_params, centres[0] if centres else None,
-                                            centre_s, params.centre_depth)
+                                            centre_s, params.centre_depth, params.centre_lag_step_s)
         if fitted is not None and not centres:
             centres.append(fitted)
         return None if lag is None else LagEstimate(lag)

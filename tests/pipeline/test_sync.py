@@ -8,6 +8,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
+import pipeline.axes
 from bench.real_data import BIOMECHZOO_CSV, load_biomechzoo, real_data_available
 from pipeline.axes import (
     LagEstimate,
@@ -124,6 +125,34 @@ def test_the_centre_cue_runs_on_a_bounded_number_of_windows(straight, monkeypatc
     assert windows[0][0] == 0 and windows[-1][1] == prep.n  # the first and the last: spread over the session
     assert len(calls) == 3  # each read once: the profile refits its centres, wherever the search starts
     assert offset is not None and abs(offset - 0.012) < 0.003
+
+
+def test_the_centre_profile_at_a_high_rate_reads_the_lag_of_every_lag_from_a_coarse_pass(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """At 500 Hz the +-60 ms hold 61 lags: fitted every 10 ms first and then to the sample around the least, the
+    profile reads the lag that fitting every lag reads, with less than half the centre fits."""
+    sim = simulate_session(SimConfig(seed=3, fs_hz=500.0, **{**_STRAIGHT, "duration_s": 30.0}))
+    prep, g1, g2, axes = _prepared(*_leg_streams(sim.streams, "left", 0.017))
+    fs = prep.fs_hz
+    a1, a2, gd1, gd2, far = _centre_inputs(prep, g1, g2, WALKING.sync, WALKING.axes)
+    fits = [0]
+    lsq = pipeline.axes._lsq_centres
+
+    def counted(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        fits[0] += 1
+        return lsq(*args, **kwargs)
+
+    monkeypatch.setattr("pipeline.axes._lsq_centres", counted)
+    reads = {}
+    for step_s in (0.0, WALKING.sync.centre_lag_step_s):
+        fits[0] = 0
+        lag, _ = estimate_centre_lag_s(a1, g1, gd1, a2, g2, gd2, axes.j1, axes.j2, far, fs, slice(0, prep.n),
+                                       WALKING.sync.max_lag_s, step_s=step_s)
+        reads[step_s] = (lag, fits[0])
+    (every, n_every), (coarse, n_coarse) = reads.values()
+    assert every is not None and abs(every - 0.017) < 0.003  # the lag injected
+    assert coarse == pytest.approx(every, abs=1e-4)
+    assert n_coarse < 0.5 * n_every
 
 
 # a 10 m walk test: ~8 s of walking between 1 s of quiet standing, shorter than two 40 s windows (a tune seed)
