@@ -429,9 +429,45 @@ def knee_dips_deg(w1_rps: np.ndarray, w2_rps: np.ndarray, strides: list[tuple[in
     """Per whole stride ``(hs, to, hs_next)`` (no non-finite rate inside), how far below its mid-stance value
     (half-way from heel strike to toe-off) the knee angle ``th1 - th2`` falls over the stride, and the same for
     ``-th1 - th2`` (the other sign of the thigh's axis): two (strides,) arrays [deg]. ``th`` is each segment's
-    rate about its axis (N,) [rad/s, sampled at ``fs_hz``] integrated over the stride, its drift removed as the
-    angle returns after a stride. None without a whole stride. Every stride's samples at once (O(N), no loop over
-    strides)."""
+    rate about its axis (N,) [rad/s, sampled at ``fs_hz``] integrated over the stride (:func:`_stride_angles_deg`).
+    None without a whole stride."""
+    found = _stride_angles_deg(w1_rps, w2_rps, strides, fs_hz)
+    if found is None:
+        return None
+    (th1, th2), first, (a, t) = found
+    mst = first + ((a + t) // 2 - a)
+    out = []
+    for sign in (1.0, -1.0):
+        knee = sign * th1 - th2
+        out.append(knee[mst] - np.minimum.reduceat(knee, first))
+    return out[0], out[1]
+
+
+def knee_excursion_deg(w1_rps: np.ndarray, w2_rps: np.ndarray, strides: list[tuple[int, int, int]], fs_hz: float
+                       ) -> np.ndarray | None:
+    """Per whole stride, how one-sided the knee angle ``th1 - th2`` (:func:`knee_dips_deg`) moves: its largest plus
+    its least value minus twice its mean [deg] (strides,). A knee flexes away from near extension and back, and
+    rests near extension for most of a stride: in walking 0-20 deg for the stance's 60 %, a swing peak of 40-60 deg.
+    Medians over a leg's strides on this repository's simulator: +19 .. +22 deg in normal, slow and fast walking,
+    +14 .. +15 with a stiff knee, +7 .. +9 in crouch gait; the negated angle reads as far below zero. None without
+    a whole stride."""
+    found = _stride_angles_deg(w1_rps, w2_rps, strides, fs_hz)
+    if found is None:
+        return None
+    (th1, th2), first, _ = found
+    knee = th1 - th2
+    size = np.diff(np.append(first, knee.size))
+    mean = np.add.reduceat(knee, first) / size
+    return np.maximum.reduceat(knee, first) + np.minimum.reduceat(knee, first) - 2.0 * mean
+
+
+def _stride_angles_deg(w1_rps: np.ndarray, w2_rps: np.ndarray, strides: list[tuple[int, int, int]], fs_hz: float
+                       ) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray, tuple[np.ndarray, np.ndarray]] | None:
+    """Each segment's rate about its axis (N,) [rad/s, sampled at ``fs_hz``] integrated over each whole stride
+    ``(hs, to, hs_next)`` (no non-finite rate inside, toe-off inside), its drift removed as the angle returns after
+    a stride: the two angles [deg] of every such stride's samples concatenated, the index of each stride's first
+    sample in them, and those strides' ``hs`` and ``to``. Every stride's samples at once (O(N), no loop over
+    strides). None without a whole stride."""
     arr = np.asarray(strides, dtype=np.int64).reshape(-1, 3)
     ok = np.isfinite(w1_rps) & np.isfinite(w2_rps)
     bad = np.concatenate(([0], np.cumsum(~ok)))
@@ -449,12 +485,7 @@ def knee_dips_deg(w1_rps: np.ndarray, w2_rps: np.ndarray, strides: list[tuple[in
     for w in (w1_rps, w2_rps):
         c = np.cumsum(np.where(ok, w, 0.0)) / fs_hz
         th.append(np.degrees(c[k] - c[a][sid] - ramp * (c[b] - c[a])[sid]))
-    mst = first + ((a + t) // 2 - a)
-    out = []
-    for sign in (1.0, -1.0):
-        knee = sign * th[0] - th[1]
-        out.append(knee[mst] - np.minimum.reduceat(knee, first))
-    return out[0], out[1]
+    return (th[0], th[1]), first, (a, t)
 
 
 def hinge_rates(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -81,8 +81,9 @@ class AxesParams:
     min_gait_strides: int = 3
     """Fewest gait strides (:func:`pipeline.bilateral.gait_strides`) that anchor a leg's knee axes, their signs and
     its zero; with fewer the leg shows no angle and keeps no stride (``pipeline.session``). A turn on the spot
-    gives 1-2 (an independent simulator's step-to crutch gait, whose steps are no strides: 1-2 per leg from its
-    turns, and the trace they anchored read a 30 deg swing as -14 deg); a single walk of 5 steps gives 3."""
+    gives 1-2 (an independent simulator's step-to crutch gait, whose steps were found as no strides then: 1-2 per
+    leg from its turns, and the trace they anchored read a 30 deg swing as -14 deg); a single walk of 5 steps gives
+    3."""
     fit_margin_s: float = 0.1
     """Centre-fit samples stay this far [s] from a masked gap: filters and Eq. 1 differences are unreliable there."""
     max_fit_samples: int = 1000
@@ -288,15 +289,24 @@ class PhaseParams:
     min_period_s: float = 0.5
     """Shortest plausible stride [s] for walking bouts."""
     max_period_s: float = 3.0
-    """Longest plausible stride [s] (very slow walking)."""
+    """Longest plausible stride [s] (very slow walking). Step-to gait with crutches or a walker (the affected leg
+    steps, the other steps up beside it, the crutches move on during a pause of double support) runs 2-4 s a cycle,
+    and an independent simulator of it lost the quarter of its strides longer than 3 s here. 4.5 s kept them, but
+    made step-ups of a step test (their lobes 1.8 and 3.0 s apart, one leg up and down while the other follows)
+    into strides: 59 false strides on the sweep's step-test row after a walk, 43 in an exercise session without
+    one. The step test's periods alternate where gait's repeat, but its slowest steps alike reach 3.6-5 s."""
     period_tol: float = 0.35
     """A stride off its neighbours' median period by more than this share breaks the bout."""
     min_bout_peaks: int = 3
     """Shortest bout [swing peaks] that produces strides (isolated steps are not gait)."""
     search_s: float = 0.3
     """Toe-off search window before a lobe start [s]."""
-    stance_pct_range: tuple[float, float] = (30.0, 85.0)
-    """Plausible stance share of a stride [%]; outside it the events are wrong."""
+    stance_pct_range: tuple[float, float] = (30.0, 92.0)
+    """Plausible stance share of a stride [%]; outside it the events are wrong. 60-65 % in walking at ordinary
+    speed, more as it slows; in step-to gait (``max_period_s``) a leg swings 0.45-0.7 s of a 2-3 s cycle (75-85 %),
+    and the swing lobe the events come from is a little shorter than the swing: an independent simulator's step-to
+    strides read 73-90 %, and 85 % had refused a third of those in cycles up to 3 s. The ``RUNNING`` preset keeps
+    85 %."""
     to_delay_s: float = 0.04
     """Toe-off after the shank minimum [s]: measured against the Tan et al. 2022 force plate."""
     hs_delay_s: float = 0.02
@@ -860,8 +870,9 @@ class PipelineParams:
 
 WALKING = PipelineParams()
 """Walking preset (also the start for ``unknown`` sessions)."""
-RUNNING = PipelineParams(phases=PhaseParams(search_s=0.2))
-"""Running preset. Its toe-off is searched within 0.2 s before the swing lobe, not walking's 0.3 s: a running
+RUNNING = PipelineParams(phases=PhaseParams(search_s=0.2, stance_pct_range=(30.0, 85.0)))
+"""Running preset. Strides of at most 85 % stance (walking's wider limit is for step-to gait). Its
+toe-off is searched within 0.2 s before the swing lobe, not walking's 0.3 s: a running
 stride is ~0.7 s and its swing lobe starts ~0.2 s after toe-off, so 0.3 s reached back into the loading response,
 whose dip after a rearfoot strike is the deeper minimum, and the stance share (~18 %) failed
 ``PhaseParams.stance_pct_range`` (an independent running simulator: 34-63 % of strides found, 99-100 % with 0.2 s;

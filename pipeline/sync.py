@@ -56,7 +56,7 @@ from pipeline.params import WALKING, AxesParams, PipelineParams, SyncParams
 from pipeline.prepare import SI, PreparedLeg, nominal_fs, prepare_leg_si, to_si
 from pipeline.signal_utils import lowpass_runs_many, row_norm
 from pipeline.types import RawSensorStream
-from pipeline.walking import fit_gyros, gait_events, reusable_thigh_fit
+from pipeline.walking import fit_gyros, gait_events, orient_on_gait, reusable_thigh_fit
 
 
 @dataclass(frozen=True)
@@ -108,7 +108,7 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     if prep.valid.sum() < max(10, int(prep.fs_hz)):
         raise ValueError("less than one second of usable samples")
     g1, g2 = fit_gyros(prep, params.axes.fit_cutoff_hz)
-    axes = _fitted_axes(prep, g1, g2, params)
+    axes = orient_on_gait(prep, _fitted_axes(prep, g1, g2, params), g1, g2, params)
     streams = _LegStreams(leg, (si1, si2), (fs1, fs2), prep, (g1, g2))
     clock = clock_model(prep, g1, g2, axes, params.sync, params.axes)
     line = clock.applied

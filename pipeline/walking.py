@@ -16,6 +16,7 @@ from pipeline.axes import (
     fit_joint_axes,
     fit_joint_centres,
     fit_margin_mask,
+    knee_excursion_deg,
     orient_thigh_on_gait,
     select_fit_samples,
 )
@@ -55,6 +56,44 @@ def gait_events(prep: PreparedLeg, axes: JointAxes, params: PipelineParams) -> t
     events = detect_gait_events(shank_sag, prep.fs_hz, prep.valid, shank_acc_mps2=prep.acc_shank_mps2,
                                 params=params.phases)
     return shank_sag, events
+
+
+def orient_on_gait(prep: PreparedLeg, axes: JointAxes, g1: np.ndarray, g2: np.ndarray, params: PipelineParams
+                   ) -> JointAxes:
+    """``axes`` with both signs turned where gait says the shank's was wrong: the sign under which the knee flexes
+    away from extension over the strides found (:func:`pipeline.axes.knee_excursion_deg`, median over strides, each
+    sign's gait events and its thigh sign from them, :func:`pipeline.axes.orient_thigh_on_gait`), when both signs find
+    at least ``AxesParams.min_gait_strides`` strides, the turned one as many, and it moves more one-sidedly, and
+    positively. Where the given sign finds fewer, nothing is turned: a step test alone found no stride with it and
+    three with the other, which then anchored a trace 12 deg off.
+
+    Eq. 2 fixes the axes up to sign, and :func:`pipeline.axes.orient_axes` takes the shank's largest excursion as the
+    forward swing. In step-to gait (crutches or a walker after a knee replacement) the leg that steps up beside the
+    other flexes its knee 45-60 deg with a hip that moves 10-20: its shank turns backwards faster in early swing than
+    it swings forwards (an independent simulator: -228 .. -317 against +200 .. +262 deg/s), every one of its legs
+    took the backward turn for the swing, lost all strides and showed its knee angle upside down. Its excursion
+    figure reads -27 .. -39 deg with that sign and +26 .. +41 with the other (the leading leg +11 .. +26 against
+    -11 .. -28), and its reciprocal walking +24 .. +30 against +2.5 .. +2.9; this repository's simulator's walking
+    +19 .. +22 against +2 .. +5 (where the turned sign finds strides at all). ``g1``, ``g2``: the fit gyros
+    (:func:`fit_gyros`)."""
+    scores: list[float] = []
+    found = 0
+    for sign in (1.0, -1.0):
+        turned = dataclasses.replace(axes, j1=sign * axes.j1, j2=sign * axes.j2)
+        strides = gait_events(prep, turned, params)[1].strides
+        if len(strides) < max(params.axes.min_gait_strides, found):
+            return axes
+        found = len(strides)
+        j1 = orient_thigh_on_gait(turned.j1, turned.j2, g1, g2, strides, prep.fs_hz)
+        excursion = knee_excursion_deg(g1 @ j1, g2 @ turned.j2, strides, prep.fs_hz)
+        if excursion is None:
+            return axes
+        scores.append(float(np.median(excursion)))
+    if scores[1] <= max(scores[0], 0.0):
+        return axes
+    hinge = axes.hinge_j1 is not None and axes.hinge_j2 is not None
+    return dataclasses.replace(axes, j1=-axes.j1, j2=-axes.j2, hinge_j1=-axes.hinge_j1 if hinge else None,
+                               hinge_j2=-axes.hinge_j2 if hinge else None)
 
 
 def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: JointAxes | None = None,

@@ -21,6 +21,7 @@ from pipeline.axes import (
     fit_shank_axis,
     gamma_matrices,
     knee_dips_deg,
+    knee_excursion_deg,
     median_principal_axis,
     observable_bias_basis,
     orient_axes,
@@ -29,9 +30,10 @@ from pipeline.axes import (
     select_fit_samples,
 )
 from pipeline.params import WALKING, AxesParams
+from pipeline.prepare import nominal_fs, prepare_leg_si, to_si
 from pipeline.simulate import SimConfig, simulate_session
 from pipeline.sync import synchronised_leg
-from pipeline.walking import build_walking_leg_input
+from pipeline.walking import build_walking_leg_input, fit_gyros, gait_events, orient_on_gait
 
 
 def _hinge_gyros(seed: int, n: int = 3000, fs: float = 100.0):
@@ -415,3 +417,42 @@ def test_sensors_left_lying_off_the_body_do_not_level_the_knee_axes() -> None:
     errs = [s.peak_swing_flexion_deg - min(truth.items(), key=lambda kv: abs(kv[0] - s.t_start_s))[1]
             for s in left.strides if s.t_end_s < half and s.quality >= 0.5]
     assert len(errs) >= 10 and np.median(np.abs(errs)) < 3.0
+
+
+def _leg_prep(seed: int, leg: str):
+    sim = simulate_session(SimConfig(seed=seed, duration_s=60.0))
+    thigh = next(s for s in sim.streams if s.leg == leg and s.segment == "thigh")
+    shank = next(s for s in sim.streams if s.leg == leg and s.segment == "shank")
+    si1, si2 = to_si(thigh), to_si(shank)
+    prep = prepare_leg_si(leg, si1, si2, nominal_fs(thigh, si1[0]), nominal_fs(shank, si2[0]),
+                          params=WALKING.prepare)
+    g1, g2 = fit_gyros(prep, WALKING.axes.fit_cutoff_hz)
+    return prep, g1, g2, fit_joint_axes(g1, g2, prep.valid, WALKING.axes)
+
+
+@pytest.mark.parametrize(("seed", "leg"), [(0, "left"), (2, "right"), (5, "right")])
+def test_both_axes_turned_round_are_turned_back_by_gait(seed: int, leg: str) -> None:
+    """The axes' common sign from gait (pipeline.walking.orient_on_gait): given both axes turned round (what the
+    largest-excursion rule does where a shank turns back faster in early swing than it swings forwards, as in the
+    trailing leg of step-to gait), the knee flexes below its extension over the strides that sign finds and the
+    turned sign is taken back; the right sign is kept."""
+    prep, g1, g2, axes = _leg_prep(seed, leg)
+    assert orient_on_gait(prep, axes, g1, g2, WALKING) is axes
+    wrong = dataclasses.replace(axes, j1=-axes.j1, j2=-axes.j2)
+    assert len(gait_events(prep, wrong, WALKING)[1].strides) >= WALKING.axes.min_gait_strides  # it finds strides
+    back = orient_on_gait(prep, wrong, g1, g2, WALKING)
+    assert np.allclose(back.j1, axes.j1) and np.allclose(back.j2, axes.j2)
+    strides = gait_events(prep, axes, WALKING)[1].strides
+    right = knee_excursion_deg(g1 @ axes.j1, g2 @ axes.j2, strides, prep.fs_hz)
+    assert right is not None and np.median(right) > 15.0
+    negated = knee_excursion_deg(-g1 @ axes.j1, -g2 @ axes.j2, strides, prep.fs_hz)
+    assert negated is not None and np.allclose(negated, -right)
+
+
+def test_a_sign_that_finds_no_gait_is_not_judged() -> None:
+    """Where the given sign finds fewer than ``min_gait_strides`` strides, the other is not taken for it, however
+    gait-like its strides (a step test alone: the other sign's three strides anchored a trace 12 deg off)."""
+    prep, g1, g2, axes = _leg_prep(1, "left")
+    wrong = dataclasses.replace(axes, j1=-axes.j1, j2=-axes.j2)
+    assert len(gait_events(prep, wrong, WALKING)[1].strides) < WALKING.axes.min_gait_strides
+    assert orient_on_gait(prep, wrong, g1, g2, WALKING) is wrong

@@ -138,3 +138,26 @@ def test_a_lobe_half_the_height_of_its_neighbours_is_no_swing() -> None:
     found = np.interp(ev.ms / fs - (walk.size / fs + 3), t, steps, left=np.nan)
     assert np.sum(found > 90) >= 4  # the step-ups' large lobes stand out among their neighbours
     assert not np.any(found < 90)  # the small ones never
+
+
+def _step_to_rate(t: np.ndarray, cycle_s: float, swing_dps: float, swing_s: float = 0.35) -> np.ndarray:
+    """A shank sagittal rate [deg/s] of step-to gait: one swing lobe of ~``swing_s`` per cycle, its toe-off and
+    heel-strike dips, the tibia's roll in stance, and a pause of double support that fills the rest of the cycle."""
+    tau, at, k = t % cycle_s, cycle_s - 0.35, swing_s / 0.44
+    return swing_dps * (np.exp(-(((tau - at) / (0.1 * k)) ** 2))
+                        - 0.4 * np.exp(-(((tau - at + 0.27 * k) / (0.06 * k)) ** 2))
+                        - 0.3 * np.exp(-(((tau - at - 0.27 * k) / (0.05 * k)) ** 2))
+                        + 0.15 * np.exp(-(((tau - 0.6) / 0.15) ** 2)))
+
+
+@pytest.mark.parametrize("cycle_s", [2.6, 2.9])
+def test_step_to_gait_with_its_pauses_keeps_its_strides(cycle_s: float) -> None:
+    """Step-to gait with crutches: two steps and two pauses make a cycle of 2-3 s (and more) in which each leg's
+    swing lobe lasts ~0.35 s, 85-90 % stance. Every cycle is a stride (85 % had refused them all)."""
+    fs = 100.0
+    ev = detect_gait_events(_step_to_rate(np.arange(int(12 * cycle_s * fs)) / fs, cycle_s, 200.0), fs)
+    strides = np.array(ev.strides)
+    assert len(strides) >= 10
+    stance = (strides[:, 1] - strides[:, 0]) / (strides[:, 2] - strides[:, 0])
+    assert np.all(stance > 0.85)
+    assert np.allclose(np.diff(strides[:, 0]) / fs, cycle_s, atol=0.02)
