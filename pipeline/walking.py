@@ -72,7 +72,7 @@ def orient_on_gait(prep: PreparedLeg, axes: JointAxes, g1: np.ndarray, g2: np.nd
     other flexes its knee 45-60 deg with a hip that moves 10-20: its shank turns backwards faster in early swing than
     it swings forwards (an independent simulator: -228 .. -317 against +200 .. +262 deg/s), every one of its legs
     took the backward turn for the swing, lost all strides and showed its knee angle upside down. Its excursion
-    figure reads -27 .. -39 deg with that sign and +26 .. +41 with the other (the leading leg +11 .. +26 against
+    figure reads -26 .. -39 deg with that sign and +26 .. +41 with the other (the leading leg +11 .. +29 against
     -11 .. -28), and its reciprocal walking +24 .. +30 against +2.5 .. +2.9; this repository's simulator's walking
     +19 .. +22 against +2 .. +5 (where the turned sign finds strides at all). ``g1``, ``g2``: the fit gyros
     (:func:`fit_gyros`)."""
