@@ -133,6 +133,7 @@ AXES: dict[str, Axis] = {
            **_LONG_RUN),
         _v("6 g, 150 s run, 3-D hip and knee x1", RUNNING_TARGETS, impact_g=6.0, knee_3d=1.0, hip_3d=1.0,
            **_LONG_RUN),
+        _v("6 g, 150 s run, 3-D hip x1, a hinge knee", RUNNING_TARGETS, impact_g=6.0, hip_3d=1.0, **_LONG_RUN),
         _v("6 g, 150 s run, 3-D x1, the thigh's skin turns 10 deg at 60 deg of flexion", RUNNING_TARGETS,
            impact_g=6.0, knee_3d=1.0, hip_3d=1.0, thigh_sta_deg=10.0, **_LONG_RUN),
         _v("10 g, 150 s run, ringing, sensors 5 cm off the segment axes", RUNNING_TARGETS, impact_g=10.0,

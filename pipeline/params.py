@@ -84,6 +84,12 @@ class AxesParams:
     gives 1-2 (an independent simulator's step-to crutch gait, whose steps were found as no strides then: 1-2 per
     leg from its turns, and the trace they anchored read a 30 deg swing as -14 deg); a single walk of 5 steps gives
     3."""
+    sign_margin_deg: float = 15.0
+    """How much more one-sidedly the knee must flex under the other sign of both axes for them to be turned
+    (:func:`pipeline.walking.orient_on_gait`, medians of :func:`pipeline.axes.knee_excursion_deg`) [deg]. The right
+    sign reads +7 .. +9 in crouch gait and +19 .. +30 in walking, the negated angle as far below zero, so a turned
+    sign differs by twice that: at least 14. Less is a near tie, in which neither sign's strides show a knee that
+    flexes and extends."""
     fit_margin_s: float = 0.1
     """Centre-fit samples stay this far [s] from a masked gap: filters and Eq. 1 differences are unreliable there."""
     max_fit_samples: int = 1000
@@ -289,15 +295,12 @@ class PhaseParams:
     min_period_s: float = 0.5
     """Shortest plausible stride [s] for walking bouts."""
     max_period_s: float = 3.0
-    """Longest plausible stride [s] of ordinary gait (very slow walking)."""
-    slow_max_period_s: float = 4.5
-    """Longest stride [s] where the strides on either side in its bout last as long (within ``period_tol``): step-to
-    gait with crutches or a walker, weeks after a knee replacement (the affected leg steps, the other steps up beside
-    it, the crutches move on during a pause of double support), two steps and two pauses in 2-4.5 s. An independent
-    simulator of it lost the quarter of its strides longer than 3 s to ``max_period_s`` alone. Without the
-    neighbours' agreement 4.5 s made the step-ups of a step test into strides (their lobes alternate 1.8 and 3.0-3.8 s
-    apart, one leg up and down while the other follows: 59 false strides on the sweep's step-test row after a
-    walk)."""
+    """Longest plausible stride [s] (very slow walking). Step-to gait with crutches or a walker runs 2-5 s a cycle (two
+    steps, two pauses of double support); on an independent simulator 3 s lost the quarter of its strides that were
+    longer. Not raised: 4.5 s made the step-ups of a step test into strides (59 false on the sweep's step-test row
+    after a walk), and 4.5 s only between neighbours alike in period, which kept the step tests out, chained
+    sit-to-stand repetitions 4-5 s apart into bouts whose zero-angle updates fell in sitting, and the trace there
+    read down to -15 deg on 3 of 12 legs of another independent simulator."""
     period_tol: float = 0.35
     """A stride off its neighbours' median period by more than this share breaks the bout."""
     min_bout_peaks: int = 3
@@ -306,10 +309,9 @@ class PhaseParams:
     """Toe-off search window before a lobe start [s]."""
     stance_pct_range: tuple[float, float] = (30.0, 92.0)
     """Plausible stance share of a stride [%]; outside it the events are wrong. 60-65 % in walking at ordinary
-    speed, more as it slows; in step-to gait (``slow_max_period_s``) a leg swings 0.45-0.7 s of a 2-4.5 s cycle
-    (70-90 %), and the swing lobe the events come from is a little shorter than the swing: an independent
-    simulator's step-to strides read 73-90 %, and 85 % had refused a third of those. The ``RUNNING`` preset keeps
-    85 % (and 3 s: its ``slow_max_period_s`` equals ``max_period_s``)."""
+    speed, more as it slows; in step-to gait a leg swings 0.45-0.7 s of a 2-3 s cycle (75-85 %), and the swing lobe
+    the events come from is a little shorter than the swing: an independent simulator's step-to strides read
+    73-90 %, and 85 % had refused a third of those. The ``RUNNING`` preset keeps 85 %."""
     to_delay_s: float = 0.04
     """Toe-off after the shank minimum [s]: measured against the Tan et al. 2022 force plate."""
     hs_delay_s: float = 0.02
@@ -830,7 +832,7 @@ class LongSessionParams:
     the axis, centre and standing fits (one walking minute already gives the axis fit its 1000 samples), the
     processing of one chunk stays under 300 MB (bench/speed.py), and the overlap below adds only ~2 % to the work."""
     overlap_s: float = 20.0
-    """Data [s] read on either side of a chunk's owned part: a stride (at most 4.5 s, ``PhaseParams.slow_max_period_s``)
+    """Data [s] read on either side of a chunk's owned part: a stride (at most 3 s, ``PhaseParams.max_period_s``)
     starting just before the edge ends inside it, and the running medians over strides (11 and 15 strides,
     ``FusionParams.offset_smooth``, ``FilterInputParams.bias_smooth_strides``) see the same neighbours as in one
     block."""
@@ -873,8 +875,8 @@ class PipelineParams:
 
 WALKING = PipelineParams()
 """Walking preset (also the start for ``unknown`` sessions)."""
-RUNNING = PipelineParams(phases=PhaseParams(search_s=0.2, stance_pct_range=(30.0, 85.0), slow_max_period_s=3.0))
-"""Running preset. Strides of at most 3 s and 85 % stance (walking's wider limits are for step-to gait). Its
+RUNNING = PipelineParams(phases=PhaseParams(search_s=0.2, stance_pct_range=(30.0, 85.0)))
+"""Running preset. Strides of at most 85 % stance (walking's wider limit is for step-to gait). Its
 toe-off is searched within 0.2 s before the swing lobe, not walking's 0.3 s: a running
 stride is ~0.7 s and its swing lobe starts ~0.2 s after toe-off, so 0.3 s reached back into the loading response,
 whose dip after a rearfoot strike is the deeper minimum, and the stance share (~18 %) failed

@@ -221,20 +221,12 @@ def _bouts(ms: np.ndarray, ws: np.ndarray, valid: np.ndarray, fs_hz: float, min_
     if ms.size == 0:
         return bout
     period = np.diff(ms) / fs_hz
-    link = (period >= p.min_period_s) & (period <= max(p.max_period_s, p.slow_max_period_s))
+    link = (period >= p.min_period_s) & (period <= p.max_period_s)
     inv_cum = np.concatenate(([0], np.cumsum(~valid)))
     # minimum of ws between consecutive peaks, all at once (peaks are increasing; the last entry is unused)
     dip = np.minimum.reduceat(ws, ms)[:-1]
     masked = inv_cum[ms[1:]] != inv_cum[ms[:-1]]
     link &= (dip < -p.stance_neg_dps) & ~masked
-    # a stride longer than ordinary gait's (step-to gait's pauses) only between linked neighbours alike in period
-    slow = link & (period > p.max_period_s)
-    if slow.any():
-        before, after = np.r_[False, link[:-1]], np.r_[link[1:], False]
-        with np.errstate(invalid="ignore"):
-            near = [np.abs(q - period) <= p.period_tol * period for q in (np.r_[np.nan, period[:-1]],
-                                                                        np.r_[period[1:], np.nan])]
-        link &= ~slow | ((before | after) & (near[0] | ~before) & (near[1] | ~after))
     # period consistency: compare each link with the median of its linked neighbourhood
     if period.size >= 3:
         padded = np.pad(np.where(link, period, np.nan), 2, constant_values=np.nan)

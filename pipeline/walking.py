@@ -63,9 +63,10 @@ def orient_on_gait(prep: PreparedLeg, axes: JointAxes, g1: np.ndarray, g2: np.nd
     """``axes`` with both signs turned where gait says the shank's was wrong: the sign under which the knee flexes
     away from extension over the strides found (:func:`pipeline.axes.knee_excursion_deg`, median over strides, each
     sign's gait events and its thigh sign from them, :func:`pipeline.axes.orient_thigh_on_gait`), when both signs find
-    at least ``AxesParams.min_gait_strides`` strides, the turned one as many, and it moves more one-sidedly, and
-    positively. Where the given sign finds fewer, nothing is turned: a step test alone found no stride with it and
-    three with the other, which then anchored a trace 12 deg off.
+    two strides at least and the turned one's figure is positive and ``AxesParams.sign_margin_deg`` above the given
+    one's. Where the given sign finds fewer, nothing is turned: a step test alone found no stride with it and three
+    with the other, which then anchored a trace 12 deg off. The stride counts do not decide: a turn's small steps
+    gave the wrong sign one or two strides more, and the given sign of a walker's 4 s cycles two strides only.
 
     Eq. 2 fixes the axes up to sign, and :func:`pipeline.axes.orient_axes` takes the shank's largest excursion as the
     forward swing. In step-to gait (crutches or a walker after a knee replacement) the leg that steps up beside the
@@ -77,19 +78,15 @@ def orient_on_gait(prep: PreparedLeg, axes: JointAxes, g1: np.ndarray, g2: np.nd
     +19 .. +22 against +2 .. +5 (where the turned sign finds strides at all). ``g1``, ``g2``: the fit gyros
     (:func:`fit_gyros`)."""
     scores: list[float] = []
-    found = 0
     for sign in (1.0, -1.0):
         turned = dataclasses.replace(axes, j1=sign * axes.j1, j2=sign * axes.j2)
         strides = gait_events(prep, turned, params)[1].strides
-        if len(strides) < max(params.axes.min_gait_strides, found):
-            return axes
-        found = len(strides)
         j1 = orient_thigh_on_gait(turned.j1, turned.j2, g1, g2, strides, prep.fs_hz)
-        excursion = knee_excursion_deg(g1 @ j1, g2 @ turned.j2, strides, prep.fs_hz)
-        if excursion is None:
+        excursion = knee_excursion_deg(g1 @ j1, g2 @ turned.j2, strides, prep.fs_hz) if len(strides) >= 2 else None
+        if excursion is None or excursion.size < 2:
             return axes
         scores.append(float(np.median(excursion)))
-    if scores[1] <= max(scores[0], 0.0):
+    if scores[1] <= max(scores[0] + params.axes.sign_margin_deg, 0.0):
         return axes
     hinge = axes.hinge_j1 is not None and axes.hinge_j2 is not None
     return dataclasses.replace(axes, j1=-axes.j1, j2=-axes.j2, hinge_j1=-axes.hinge_j1 if hinge else None,

@@ -135,7 +135,7 @@ def test_unknown_estimator_fails_before_any_chunk(sim: SimSession) -> None:
 
 def test_default_chunking_is_the_parameter_tree() -> None:
     assert WALKING.long_sessions.chunk_s >= 600.0
-    assert WALKING.long_sessions.overlap_s > max(WALKING.phases.max_period_s, WALKING.phases.slow_max_period_s)
+    assert WALKING.long_sessions.overlap_s > WALKING.phases.max_period_s
 
 
 def test_chunk_without_usable_data_is_a_warning(sim: SimSession) -> None:
