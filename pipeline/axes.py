@@ -450,7 +450,7 @@ def knee_excursion_deg(w1_rps: np.ndarray, w2_rps: np.ndarray, strides: list[tup
     rests near extension for most of a stride: in walking 0-20 deg for the stance's 60 %, a swing peak of 40-60 deg.
     Medians over a leg's strides on this repository's simulator: +19 .. +22 deg in normal, slow and fast walking,
     +14 .. +15 with a stiff knee, +7 .. +9 in crouch gait; the negated angle reads as far below zero. None without
-    a whole stride."""
+    a whole stride. One value per whole stride kept (:func:`_stride_angles_deg`)."""
     found = _stride_angles_deg(w1_rps, w2_rps, strides, fs_hz)
     if found is None:
         return None
@@ -555,7 +555,7 @@ def sync_lag_estimate(g1: np.ndarray, g2: np.ndarray, j1: np.ndarray, j2: np.nda
     # one lag at a time: the (lags, samples) matrix would take ~400 MB for a 53 s window at 2000 Hz
     a = m1[sel]
     cost = np.array([np.mean((a - m2[_shifted(sel, k)]) ** 2) for k in range(k0 - k_max, k0 + k_max + 1)])
-    lag = _parabolic_minimum_s(cost, k_max, fs_hz)
+    lag = _parabolic_minimum_s(cost, k_max, fs_hz) if np.isfinite(cost).all() else None
     if lag is None:
         return None
     b = int(np.argmin(cost))
@@ -848,13 +848,13 @@ def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: n
     k_max = max(int(round(max_lag_s * fs_hz)), 2)
     k0 = int(round(centre_s * fs_hz))
     n = g1.shape[0]
-    inner = np.zeros(n, dtype=bool)
+    usable = np.zeros(n, dtype=bool)
     lo = max(window.start or 0, k_max - k0, 0)
     hi = min(window.stop if window.stop is not None else n, n - k_max - k0, n)
     if hi - lo < 10 * k_max:
         return None, None
-    inner[lo:hi] = far[lo:hi]
-    idx = select_fit_samples(g1, g2, inner, params)
+    usable[lo:hi] = far[lo:hi]
+    idx = select_fit_samples(g1, g2, usable, params)
     if idx.size < 10 * k_max:
         return None, None
     # no accelerometer biases in the profile: refitted at every lag they absorb part of the offset (straight
@@ -864,19 +864,19 @@ def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: n
     m1, m2 = gamma_matrices(g1[idx], gd1[idx]), gamma_matrices(g2[span], gd2[span])
     at = idx + k0  # the shank's samples at the lag ``centre_s``
     if centres is None:
-        fit = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[at], g2[at], gd2[at], j1, j2,
-                                dataclasses.replace(params, centre_bias_prior_mps2=0.0))
-        centres = np.concatenate([fit.o1, fit.o2])
+        first = fit_joint_centres(a1[idx], g1[idx], gd1[idx], a2[at], g2[at], gd2[at], j1, j2,
+                                  dataclasses.replace(params, centre_bias_prior_mps2=0.0))
+        centres = np.concatenate([first.o1, first.o2])
     if min(int(far[idx + k].sum()) for k in range(k0 - k_max, k0 + k_max + 1)) < 10 * k_max:
         return None, centres
     cost = np.full(2 * k_max + 1, np.nan)  # by lag k0 - k_max .. k0 + k_max
     fitted: dict[int, np.ndarray] = {}
 
-    def fit(k: int, inner: int) -> None:
-        """The profile at lag ``k``, started from the centres at ``centre_s`` and from the fitted lag ``inner``'s."""
+    def fit_lag(k: int, from_k: int) -> None:
+        """The profile at lag ``k``, started from the centres at ``centre_s`` and from the fitted lag ``from_k``'s."""
         ok = far[idx + k]
         rows = (a1[idx[ok]], m1[ok], a2[idx[ok] + k], m2[idx[ok] + k - span[0]], params.centre_reg)
-        neighbour = fitted.get(inner)
+        neighbour = fitted.get(from_k)
         starts = (centres,) if neighbour is None else (neighbour, centres)
         best = min((_lsq_centres(x0, *rows) for x0 in starts), key=lambda f: f.cost)
         fitted[k] = best.x
@@ -885,17 +885,17 @@ def estimate_centre_lag_s(a1: np.ndarray, g1: np.ndarray, gd1: np.ndarray, a2: n
     step = max(int(round(step_s * fs_hz)), 1)
     coarse = np.unique(np.r_[np.arange(0, k_max, step), k_max])  # offsets from k0 outwards, both ends included
     # outwards from ``centre_s``: each lag starts from its inner neighbour's centres (a continuous path of minima)
-    fit(k0, k0)
+    fit_lag(k0, k0)
     for sign in (1, -1):
-        for inner, d in zip(coarse[:-1].tolist(), coarse[1:].tolist(), strict=True):
-            fit(k0 + sign * d, k0 + sign * inner)
-    grid = np.flatnonzero(~np.isnan(cost))  # the first pass's lags
+        for d_in, d in zip(coarse[:-1].tolist(), coarse[1:].tolist(), strict=True):
+            fit_lag(k0 + sign * d, k0 + sign * d_in)
+    grid = k_max + np.r_[-coarse[:0:-1], coarse]  # the first pass's lags, as indices into ``cost``
     if not one_valley(cost[grid], min_depth):
         return None, centres
-    at = int(np.argmin(cost[grid]))
-    b, lo, hi = (int(grid[i]) for i in (at, at - 1, at + 1))  # one_valley: the least lies inside the range
+    best_i = int(np.argmin(cost[grid]))
+    b, lo, hi = (int(grid[i]) for i in (best_i, best_i - 1, best_i + 1))  # one_valley: the least lies inside
     for i in (*range(b + 1, hi), *range(b - 1, lo, -1)):  # the lags between, outwards from the least
-        fit(i + k0 - k_max, (i - 1 if i > b else i + 1) + k0 - k_max)
+        fit_lag(i + k0 - k_max, (i - 1 if i > b else i + 1) + k0 - k_max)
     lag = _parabolic_minimum_s(cost, k_max, fs_hz)
     return (None if lag is None else lag + k0 / fs_hz), centres
 

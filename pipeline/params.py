@@ -81,15 +81,19 @@ class AxesParams:
     min_gait_strides: int = 3
     """Fewest gait strides (:func:`pipeline.bilateral.gait_strides`) that anchor a leg's knee axes, their signs and
     its zero; with fewer the leg shows no angle and keeps no stride (``pipeline.session``). A turn on the spot
-    gives 1-2 (an independent simulator's step-to crutch gait, whose steps were found as no strides then: 1-2 per
-    leg from its turns, and the trace they anchored read a 30 deg swing as -14 deg); a single walk of 5 steps gives
-    3."""
+    gives 1-2 (on an independent simulator's crutch gait whose own steps gave no strides, 1-2 per leg from its
+    turns anchored a trace that read a 30 deg swing as -14 deg); a single walk of 5 steps gives 3."""
+    sign_min_strides: int = 2
+    """Whole strides each sign of both axes must find for :func:`pipeline.walking.orient_on_gait` to compare them: the
+    given sign of a walker's 4 s cycles finds two (an independent simulator), and a sign that finds none is not
+    judged (a step test alone)."""
     sign_margin_deg: float = 15.0
     """How much more one-sidedly the knee must flex under the other sign of both axes for them to be turned
-    (:func:`pipeline.walking.orient_on_gait`, medians of :func:`pipeline.axes.knee_excursion_deg`) [deg]. The right
-    sign reads +7 .. +9 in crouch gait and +19 .. +30 in walking, the negated angle as far below zero, so a turned
-    sign differs by twice that: at least 14. Less is a near tie, in which neither sign's strides show a knee that
-    flexes and extends."""
+    (:func:`pipeline.walking.orient_on_gait`, medians of :func:`pipeline.axes.knee_excursion_deg`) [deg]. Each sign
+    is judged on its own strides: in this repository's walking the right sign reads +19 .. +22 and the wrong one, where
+    it finds strides at all, +2 .. +5 (16-20 apart); in an independent simulator's step-to gait the two lie 48-79
+    apart, the wrong one reading the negated knee. Less is a near tie, in which neither sign's strides show a knee
+    that flexes away from extension."""
     fit_margin_s: float = 0.1
     """Centre-fit samples stay this far [s] from a masked gap: filters and Eq. 1 differences are unreliable there."""
     max_fit_samples: int = 1000
@@ -206,8 +210,8 @@ class SyncParams:
     Levenberg-Marquardt fit of the centres, and the lags within ``max_lag_s`` grow with the rate (121 at 1000 Hz).
     The profile is one smooth bowl over the range (its second valleys, where a window has them, lie 30-60 ms away),
     so its least on a 10 ms grid lies next to the true one: on 2-minute walks at 200, 500 and 1000 Hz and runs at
-    200 Hz (seeds 0-1) every lag read equals the one read with every lag fitted to 0.1 ms. At 100 Hz and below
-    every lag is fitted."""
+    200 Hz (seeds 0-1) every lag read equals the one read with every lag fitted to 0.1 ms. Below 150 Hz the pass
+    is one sample: every lag is fitted."""
     wide_max_se_s: float = 0.004
     """Largest standard error [s] of a hinge window's lag the wide search takes: over +-0.15 s the shallow cost curve
     of a window without a walk (a stair flight, exercises) has false minima 50 ms out (standard errors 5.5-8 ms on
@@ -296,11 +300,11 @@ class PhaseParams:
     """Shortest plausible stride [s] for walking bouts."""
     max_period_s: float = 3.0
     """Longest plausible stride [s] (very slow walking). Step-to gait with crutches or a walker runs 2-5 s a cycle (two
-    steps, two pauses of double support); on an independent simulator 3 s lost the quarter of its strides that were
-    longer. Not raised: 4.5 s made the step-ups of a step test into strides (59 false on the sweep's step-test row
-    after a walk), and 4.5 s only between neighbours alike in period, which kept the step tests out, chained
-    sit-to-stand repetitions 4-5 s apart into bouts whose zero-angle updates fell in sitting, and the trace there
-    read down to -15 deg on 3 of 12 legs of another independent simulator."""
+    steps, two pauses of double support), and its longer cycles are lost (a quarter of an independent simulator's).
+    Longer strides are not taken: at 4.5 s the step-ups of a step test become strides (59 false on the sweep's
+    step-test row after a walk), and at 4.5 s between neighbours alike in period, sit-to-stand repetitions 4-5 s
+    apart chain into bouts whose zero-angle updates fall in sitting (the trace there read down to -15 deg on 3 of 12
+    legs of another independent simulator)."""
     period_tol: float = 0.35
     """A stride off its neighbours' median period by more than this share breaks the bout."""
     min_bout_peaks: int = 3
@@ -311,7 +315,7 @@ class PhaseParams:
     """Plausible stance share of a stride [%]; outside it the events are wrong. 60-65 % in walking at ordinary
     speed, more as it slows; in step-to gait a leg swings 0.45-0.7 s of a 2-3 s cycle (75-85 %), and the swing lobe
     the events come from is a little shorter than the swing: an independent simulator's step-to strides read
-    73-90 %, and 85 % had refused a third of those. The ``RUNNING`` preset keeps 85 %."""
+    73-90 %, a third of them above 85 %. The ``RUNNING`` preset keeps 85 %."""
     to_delay_s: float = 0.04
     """Toe-off after the shank minimum [s]: measured against the Tan et al. 2022 force plate."""
     hs_delay_s: float = 0.02

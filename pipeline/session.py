@@ -448,8 +448,8 @@ def _withhold_unanchored(legs: dict[str, LegResult], gait_legs: set[str], min_ga
     sessions of two simulators (sitting, seated extensions, sit-to-stand, jumps, a step test; no walking) the trace
     was 10-100 deg off, with the seated knee read near 0 deg. A gait stride dropped later as stair gait still counts:
     it turns the knee about the same axis (stair-only sessions: trace RMSE 0.7-1.7 deg). One or two strides of a
-    turn on the spot do not anchor it: in step-to (crutch) gait whose steps were not found as strides, they set the
-    signs and zero of a trace 15-45 deg off."""
+    turn on the spot do not anchor it: where a leg's own steps give no strides (crutch gait on an independent
+    simulator), they set the signs and zero of a trace 15-45 deg off."""
     out = dict(legs)
     for leg in sorted(legs):
         lr = legs[leg]

@@ -108,7 +108,7 @@ def synchronised_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, p
     if prep.valid.sum() < max(10, int(prep.fs_hz)):
         raise ValueError("less than one second of usable samples")
     g1, g2 = fit_gyros(prep, params.axes.fit_cutoff_hz)
-    axes = orient_on_gait(prep, _fitted_axes(prep, g1, g2, params), g1, g2, params)
+    axes = _fitted_axes(prep, g1, g2, params)
     streams = _LegStreams(leg, (si1, si2), (fs1, fs2), prep, (g1, g2))
     clock = clock_model(prep, g1, g2, axes, params.sync, params.axes)
     line = clock.applied
@@ -501,10 +501,12 @@ def _clock_after_stride_drift(streams: _LegStreams, drift: float, params: Pipeli
 
 
 def _fitted_axes(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, params: PipelineParams) -> JointAxes:
-    """The joint axes of a prepared leg (:func:`pipeline.axes.fit_joint_axes`) on its measured samples: a fill
-    repeats the neighbouring strides, and their timing would enter the fitted lag."""
-    return fit_joint_axes(g1, g2, prep.measured(), params.axes, up=axis_up(prep, params.axes),
+    """The joint axes of a prepared leg (:func:`pipeline.axes.fit_joint_axes`) on its measured samples (a fill
+    repeats the neighbouring strides, and their timing would enter the fitted lag), their common sign from gait
+    (:func:`pipeline.walking.orient_on_gait`)."""
+    axes = fit_joint_axes(g1, g2, prep.measured(), params.axes, up=axis_up(prep, params.axes),
                           gd2_rps2=angular_acceleration(g2, prep.fs_hz) if params.axes.fit_lag else None)
+    return orient_on_gait(prep, axes, g1, g2, params)
 
 
 def _short_session_lag(prep: PreparedLeg, g1: np.ndarray, g2: np.ndarray, axes: JointAxes, params: SyncParams,

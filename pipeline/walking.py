@@ -63,16 +63,17 @@ def orient_on_gait(prep: PreparedLeg, axes: JointAxes, g1: np.ndarray, g2: np.nd
     """``axes`` with both signs turned where gait says the shank's was wrong: the sign under which the knee flexes
     away from extension over the strides found (:func:`pipeline.axes.knee_excursion_deg`, median over strides, each
     sign's gait events and its thigh sign from them, :func:`pipeline.axes.orient_thigh_on_gait`), when both signs find
-    two strides at least and the turned one's figure is positive and ``AxesParams.sign_margin_deg`` above the given
-    one's. Where the given sign finds fewer, nothing is turned: a step test alone found no stride with it and three
-    with the other, which then anchored a trace 12 deg off. The stride counts do not decide: a turn's small steps
-    gave the wrong sign one or two strides more, and the given sign of a walker's 4 s cycles two strides only.
+    ``AxesParams.sign_min_strides`` strides at least and the turned one's figure is positive and
+    ``AxesParams.sign_margin_deg`` above the given one's. Where the given sign finds fewer, nothing is turned (a step
+    test alone: no stride under the given sign, three under the other, which would anchor a trace 12 deg off). The
+    stride counts do not decide: a turn's small steps can give the wrong sign one or two strides more, and a walker's
+    4 s cycles the given sign two only.
 
     Eq. 2 fixes the axes up to sign, and :func:`pipeline.axes.orient_axes` takes the shank's largest excursion as the
     forward swing. In step-to gait (crutches or a walker after a knee replacement) the leg that steps up beside the
     other flexes its knee 45-60 deg with a hip that moves 10-20: its shank turns backwards faster in early swing than
-    it swings forwards (an independent simulator: -228 .. -317 against +200 .. +262 deg/s), every one of its legs
-    took the backward turn for the swing, lost all strides and showed its knee angle upside down. Its excursion
+    it swings forwards (an independent simulator: -228 .. -317 against +200 .. +262 deg/s), so the largest excursion
+    is the backward turn: taken for the swing, it leaves the leg no stride and its knee angle upside down. Its excursion
     figure reads -26 .. -39 deg with that sign and +26 .. +41 with the other (the leading leg +11 .. +29 against
     -11 .. -28), and its reciprocal walking +24 .. +30 against +2.5 .. +2.9; this repository's simulator's walking
     +19 .. +22 against +2 .. +5 (where the turned sign finds strides at all). ``g1``, ``g2``: the fit gyros
@@ -82,15 +83,15 @@ def orient_on_gait(prep: PreparedLeg, axes: JointAxes, g1: np.ndarray, g2: np.nd
         turned = dataclasses.replace(axes, j1=sign * axes.j1, j2=sign * axes.j2)
         strides = gait_events(prep, turned, params)[1].strides
         j1 = orient_thigh_on_gait(turned.j1, turned.j2, g1, g2, strides, prep.fs_hz)
-        excursion = knee_excursion_deg(g1 @ j1, g2 @ turned.j2, strides, prep.fs_hz) if len(strides) >= 2 else None
-        if excursion is None or excursion.size < 2:
+        excursion = knee_excursion_deg(g1 @ j1, g2 @ turned.j2, strides, prep.fs_hz)
+        if excursion is None or excursion.size < params.axes.sign_min_strides:
             return axes
         scores.append(float(np.median(excursion)))
     if scores[1] <= max(scores[0] + params.axes.sign_margin_deg, 0.0):
         return axes
-    hinge = axes.hinge_j1 is not None and axes.hinge_j2 is not None
-    return dataclasses.replace(axes, j1=-axes.j1, j2=-axes.j2, hinge_j1=-axes.hinge_j1 if hinge else None,
-                               hinge_j2=-axes.hinge_j2 if hinge else None)
+    return dataclasses.replace(axes, j1=-axes.j1, j2=-axes.j2,
+                               hinge_j1=None if axes.hinge_j1 is None else -axes.hinge_j1,
+                               hinge_j2=None if axes.hinge_j2 is None else -axes.hinge_j2)
 
 
 def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: JointAxes | None = None,

@@ -10,6 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from pipeline.axes import (
+    JointAxes,
     JointCentres,
     accelerometer_angle_deg,
     angular_acceleration,
@@ -30,10 +31,11 @@ from pipeline.axes import (
     select_fit_samples,
 )
 from pipeline.params import WALKING, AxesParams
-from pipeline.prepare import nominal_fs, prepare_leg_si, to_si
+from pipeline.prepare import PreparedLeg
 from pipeline.simulate import SimConfig, simulate_session
 from pipeline.sync import synchronised_leg
-from pipeline.walking import build_walking_leg_input, fit_gyros, gait_events, orient_on_gait
+from pipeline.walking import build_walking_leg_input, gait_events, orient_on_gait
+from tests.pipeline.legs import leg_streams, prepared
 
 
 def _hinge_gyros(seed: int, n: int = 3000, fs: float = 100.0):
@@ -419,18 +421,11 @@ def test_sensors_left_lying_off_the_body_do_not_level_the_knee_axes() -> None:
     assert len(errs) >= 10 and np.median(np.abs(errs)) < 3.0
 
 
-def _leg_prep(seed: int, leg: str):
-    sim = simulate_session(SimConfig(seed=seed, duration_s=60.0))
-    thigh = next(s for s in sim.streams if s.leg == leg and s.segment == "thigh")
-    shank = next(s for s in sim.streams if s.leg == leg and s.segment == "shank")
-    si1, si2 = to_si(thigh), to_si(shank)
-    prep = prepare_leg_si(leg, si1, si2, nominal_fs(thigh, si1[0]), nominal_fs(shank, si2[0]),
-                          params=WALKING.prepare)
-    g1, g2 = fit_gyros(prep, WALKING.axes.fit_cutoff_hz)
-    return prep, g1, g2, fit_joint_axes(g1, g2, prep.valid, WALKING.axes)
+def _leg_prep(seed: int, leg: str) -> tuple[PreparedLeg, np.ndarray, np.ndarray, JointAxes]:
+    return prepared(*leg_streams(simulate_session(SimConfig(seed=seed, duration_s=60.0)).streams, leg))
 
 
-@pytest.mark.parametrize(("seed", "leg"), [(0, "left"), (2, "right"), (5, "right")])
+@pytest.mark.parametrize(("seed", "leg"), [(0, "left"), (2, "right"), (5, "right"), (0, "right")])
 def test_both_axes_turned_round_are_turned_back_by_gait(seed: int, leg: str) -> None:
     """The axes' common sign from gait (pipeline.walking.orient_on_gait): given both axes turned round (what the
     largest-excursion rule does where a shank turns back faster in early swing than it swings forwards, as in the
@@ -439,7 +434,7 @@ def test_both_axes_turned_round_are_turned_back_by_gait(seed: int, leg: str) -> 
     prep, g1, g2, axes = _leg_prep(seed, leg)
     assert orient_on_gait(prep, axes, g1, g2, WALKING) is axes
     wrong = dataclasses.replace(axes, j1=-axes.j1, j2=-axes.j2)
-    assert len(gait_events(prep, wrong, WALKING)[1].strides) >= WALKING.axes.min_gait_strides  # it finds strides
+    assert len(gait_events(prep, wrong, WALKING)[1].strides) >= WALKING.axes.sign_min_strides  # (0, right): two
     back = orient_on_gait(prep, wrong, g1, g2, WALKING)
     assert np.allclose(back.j1, axes.j1) and np.allclose(back.j2, axes.j2)
     strides = gait_events(prep, axes, WALKING)[1].strides
@@ -450,9 +445,9 @@ def test_both_axes_turned_round_are_turned_back_by_gait(seed: int, leg: str) -> 
 
 
 def test_a_sign_that_finds_no_gait_is_not_judged() -> None:
-    """Where the given sign finds fewer than ``min_gait_strides`` strides, the other is not taken for it, however
-    gait-like its strides (a step test alone: the other sign's three strides anchored a trace 12 deg off)."""
+    """Where the given sign finds fewer than ``sign_min_strides`` strides, the other is not taken for it, however
+    gait-like its strides (a step test alone: the other sign's three strides would anchor a trace 12 deg off)."""
     prep, g1, g2, axes = _leg_prep(1, "left")
     wrong = dataclasses.replace(axes, j1=-axes.j1, j2=-axes.j2)
-    assert len(gait_events(prep, wrong, WALKING)[1].strides) < WALKING.axes.min_gait_strides
+    assert len(gait_events(prep, wrong, WALKING)[1].strides) < WALKING.axes.sign_min_strides
     assert orient_on_gait(prep, wrong, g1, g2, WALKING) is wrong

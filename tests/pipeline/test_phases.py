@@ -153,7 +153,7 @@ def _step_to_rate(t: np.ndarray, cycle_s: float, swing_dps: float, swing_s: floa
 @pytest.mark.parametrize("cycle_s", [2.6, 2.9])
 def test_step_to_gait_with_its_pauses_keeps_its_strides(cycle_s: float) -> None:
     """Step-to gait with crutches: two steps and two pauses make a cycle of 2-3 s (and more) in which each leg's
-    swing lobe lasts ~0.35 s, 85-90 % stance. Every cycle is a stride (85 % had refused them all)."""
+    swing lobe lasts ~0.35 s, 85-90 % stance. Every cycle is a stride."""
     fs = 100.0
     ev = detect_gait_events(_step_to_rate(np.arange(int(12 * cycle_s * fs)) / fs, cycle_s, 200.0), fs)
     strides = np.array(ev.strides)
@@ -161,4 +161,3 @@ def test_step_to_gait_with_its_pauses_keeps_its_strides(cycle_s: float) -> None:
     stance = (strides[:, 1] - strides[:, 0]) / (strides[:, 2] - strides[:, 0])
     assert np.all(stance > 0.85)
     assert np.allclose(np.diff(strides[:, 0]) / fs, cycle_s, atol=0.02)
-

@@ -14,7 +14,6 @@ from pipeline.axes import (
     LagEstimate,
     angular_acceleration,
     estimate_centre_lag_s,
-    fit_joint_axes,
     fit_margin_mask,
     one_valley,
 )
@@ -36,6 +35,8 @@ from pipeline.sync import (
 )
 from pipeline.walking import fit_gyros
 from tests.conftest import skip_without_real_data
+from tests.pipeline.legs import leg_streams as _leg_streams
+from tests.pipeline.legs import prepared as _prepared
 
 # straight walking (no turns): the hinge constraint carries no timing; clocks exact unless a lag is injected
 _STRAIGHT = dict(pattern="normal", duration_s=90.0, walking_turns=False, sync_offset_ms=0.0, clock_drift_ppm=0.0)
@@ -44,20 +45,6 @@ _STRAIGHT = dict(pattern="normal", duration_s=90.0, walking_turns=False, sync_of
 @pytest.fixture(scope="module")
 def straight():
     return simulate_session(SimConfig(seed=7, **_STRAIGHT))
-
-
-def _leg_streams(streams, leg: str, shank_lag_s: float = 0.0):
-    thigh = next(s for s in streams if s.leg == leg and s.segment == "thigh")
-    shank = next(s for s in streams if s.leg == leg and s.segment == "shank")
-    return thigh, dataclasses.replace(shank, t_s=shank.t_s + shank_lag_s)
-
-
-def _prepared(thigh, shank):
-    si1, si2 = to_si(thigh), to_si(shank)
-    prep = prepare_leg_si(thigh.leg, si1, si2, nominal_fs(thigh, si1[0]), nominal_fs(shank, si2[0]),
-                          params=WALKING.prepare)
-    g1, g2 = fit_gyros(prep, WALKING.axes.fit_cutoff_hz)
-    return prep, g1, g2, fit_joint_axes(g1, g2, prep.valid, WALKING.axes)
 
 
 @pytest.mark.parametrize("lag_ms", [15.0, -10.0])
