@@ -78,20 +78,18 @@ def orient_on_gait(prep: PreparedLeg, axes: JointAxes, g1: np.ndarray, g2: np.nd
     -11 .. -28), and its reciprocal walking +24 .. +30 against +2.5 .. +2.9; this repository's simulator's walking
     +19 .. +22 against +2 .. +5 (where the turned sign finds strides at all). ``g1``, ``g2``: the fit gyros
     (:func:`fit_gyros`)."""
+    turned = dataclasses.replace(axes, j1=-axes.j1, j2=-axes.j2,
+                                 hinge_j1=None if axes.hinge_j1 is None else -axes.hinge_j1,
+                                 hinge_j2=None if axes.hinge_j2 is None else -axes.hinge_j2)
     scores: list[float] = []
-    for sign in (1.0, -1.0):
-        turned = dataclasses.replace(axes, j1=sign * axes.j1, j2=sign * axes.j2)
-        strides = gait_events(prep, turned, params)[1].strides
-        j1 = orient_thigh_on_gait(turned.j1, turned.j2, g1, g2, strides, prep.fs_hz)
-        excursion = knee_excursion_deg(g1 @ j1, g2 @ turned.j2, strides, prep.fs_hz)
+    for candidate in (axes, turned):
+        strides = gait_events(prep, candidate, params)[1].strides
+        j1 = orient_thigh_on_gait(candidate.j1, candidate.j2, g1, g2, strides, prep.fs_hz)
+        excursion = knee_excursion_deg(g1 @ j1, g2 @ candidate.j2, strides, prep.fs_hz)
         if excursion is None or excursion.size < params.axes.sign_min_strides:
             return axes
         scores.append(float(np.median(excursion)))
-    if scores[1] <= max(scores[0] + params.axes.sign_margin_deg, 0.0):
-        return axes
-    return dataclasses.replace(axes, j1=-axes.j1, j2=-axes.j2,
-                               hinge_j1=None if axes.hinge_j1 is None else -axes.hinge_j1,
-                               hinge_j2=None if axes.hinge_j2 is None else -axes.hinge_j2)
+    return turned if scores[1] > max(scores[0] + params.axes.sign_margin_deg, 0.0) else axes
 
 
 def build_walking_leg_input(prep: PreparedLeg, params: PipelineParams, axes: JointAxes | None = None,
