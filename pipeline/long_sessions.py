@@ -206,6 +206,7 @@ class _Leg:
     masked: int = 0
     clock_disagreement: bool = False  # in any chunk
     gait_strides: int = 0
+    lowered: int = 0
     withheld: str | None = None  # the chunks' trace_withheld when every chunk withheld the leg's trace
     shown: bool = False  # some chunk showed the leg's trace
     mounting: MountingCheck | None = None  # the first chunk's check that found a mounting change
@@ -219,6 +220,7 @@ class _Leg:
         self.masked += d.masked_implausible_samples
         self.clock_disagreement |= d.clock_disagreement
         self.gait_strides += d.gait_strides
+        self.lowered += d.lowered_strides
         if d.trace_withheld is None:
             self.shown = True
         else:
@@ -306,7 +308,7 @@ class _Merged:
                                            n_fallback=sum(1 for s in strides if s.fallback), bouts=leg.bouts,
                                            bridged_gaps=leg.bridged, masked_implausible_samples=leg.masked,
                                            clock_disagreement=leg.clock_disagreement,
-                                           gait_strides=leg.gait_strides,
+                                           gait_strides=leg.gait_strides, lowered_strides=leg.lowered,
                                            trace_withheld=None if leg.shown else leg.withheld,
                                            mounting=leg.mounting if leg.mounting is not None else diag.mounting,
                                            not_worn_s=tuple(leg.not_worn), handled_s=tuple(leg.handled))

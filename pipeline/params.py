@@ -316,6 +316,11 @@ class PhaseParams:
     speed, more as it slows; in step-to gait a leg swings 0.45-0.7 s of a 2-3 s cycle (75-85 %), and the swing lobe
     the events come from is a little shorter than the swing: an independent simulator's step-to strides read
     73-90 %, a third of them above 85 %. The ``RUNNING`` preset keeps 85 %."""
+    min_swing_thigh_deg: float = -10.0
+    """Least forward turn of the thigh over a stride's swing [deg] for the stride to be a step
+    (:mod:`pipeline.stepping`): gait +4 .. +52 (one stride at a bout's end -3), marching in place -35 .. -39. Below
+    it, a lifted leg was lowered in place and the stride is dropped; the margin below zero keeps a shuffle's or a
+    bout end's nearly still thigh."""
     to_delay_s: float = 0.04
     """Toe-off after the shank minimum [s]: measured against the Tan et al. 2022 force plate."""
     hs_delay_s: float = 0.02

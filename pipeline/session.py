@@ -45,6 +45,7 @@ from pipeline.posture import thigh_upright_at
 from pipeline.prepare import SI, to_si
 from pipeline.quality import edge_reasons, gap_reasons, stride_quality, turn_reasons, with_reason
 from pipeline.running import build_running_leg_input, detect_running
+from pipeline.stepping import lowered_not_stepped
 from pipeline.sync import SyncedLeg, stride_clock_runaway, synchronised_leg
 from pipeline.types import (
     TRACE_WITHHELD_NO_GAIT,
@@ -149,7 +150,8 @@ def _note_assignment(legs: dict[str, LegResult], assigned: dict[str, str]) -> No
 
 def _angle_warnings(legs: dict[str, LegResult], posture: PostureParams) -> list[str]:
     """The warnings about each shown knee angle: clocks that run apart, a sensor remounted, a level carried from
-    standing, strides lost to implausible angles (:func:`_implausible_warnings`)."""
+    standing, strides that were no steps (:mod:`pipeline.stepping`), strides lost to implausible angles
+    (:func:`_implausible_warnings`)."""
     out = [f"{leg} leg: its thigh and shank clocks run apart faster than crystal clocks can; the knee angle's "
            "timing is unknown and its strides are kept out of trends (clock_disagreement)"
            for leg in sorted(legs) if _clock_unknown(legs[leg]) and not _withheld(legs[leg])]
@@ -157,6 +159,9 @@ def _angle_warnings(legs: dict[str, LegResult], posture: PostureParams) -> list[
             if (m := _mounting(legs[leg])) is not None and m.changed and not _withheld(legs[leg])]
     out += [_level_bridged_warning(leg, d) for leg in sorted(legs)
             if (d := legs[leg].diagnostics) is not None and d.level_bridged and not _withheld(legs[leg])]
+    out += [f"{leg} leg: {d.lowered_strides} stride(s) dropped: the thigh turned back through the swing, a lifted "
+            "leg lowered in place (marching, a landing), not a step" for leg in sorted(legs)
+            if (d := legs[leg].diagnostics) is not None and d.lowered_strides and not _withheld(legs[leg])]
     return out + _implausible_warnings(legs, posture)
 
 
@@ -620,13 +625,17 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
     not_worn, handled = not_worn_spans_s(data, other, data.params.worn) if data.activity == "walking" else ([], [])
     leg_reasons = (("clock_disagreement",) if clock_unknown else ()) + (("mounting_changed",) if mounting.changed
                                                                          else ())
-    strides = _strides(leg, data, result, leg_reasons)
+    thigh_sag = np.rad2deg(data.prep.gyr_thigh_rps @ data.axes.j1)
+    thigh_sag[~data.prep.valid] = np.nan
+    lowered = lowered_not_stepped(thigh_sag, data.events.strides, data.fs_hz, data.params.phases.min_swing_thigh_deg)
+    strides = _strides(leg, data, result, leg_reasons, lowered)
     if _mostly_mismatched(strides, data.params.quality):
         strides = with_reason(strides, "leg_mismatch", data.params.quality)
     n_gait = len(data.running_cycles) if data.running_cycles else \
         len(gait_strides(data.prep.t_s, data.events.strides, data.events.ms, other))
     diagnostics = dataclasses.replace(_diagnostics(data, synced, result, strides, running, calibration,
                                                    clock_unknown, n_gait), mounting=mounting,
+                                      lowered_strides=len(lowered),
                                       not_worn_s=_rounded_spans(not_worn), handled_s=_rounded_spans(handled))
     return LegResult(leg=leg, fs_hz=data.fs_hz, t_s=data.prep.t_s, angle_deg=result.angle_deg,
                      estimator=result.estimator, strides=strides, gaps_s=list(data.prep.gaps_s),
@@ -640,17 +649,19 @@ def _mostly_mismatched(strides: list[StrideMetrics], params: QualityParams) -> b
     return len(strides) >= params.leg_mismatch_min_strides and failed >= params.leg_mismatch_share * len(strides)
 
 
-def _strides(leg: str, data: LegInput, result: PolicyResult, leg_reasons: tuple[str, ...] = ()
-             ) -> list[StrideMetrics]:
+def _strides(leg: str, data: LegInput, result: PolicyResult, leg_reasons: tuple[str, ...] = (),
+             lowered: set[int] | frozenset[int] = frozenset()) -> list[StrideMetrics]:
     """Metrics of every stride whose angle is finite throughout, with the policy's choice for it and the data's
     own reasons (:mod:`pipeline.quality`: filled gaps and long bridges, unsteady bout edges, turns;
-    ``leg_reasons``: those of every stride of the leg)."""
+    ``leg_reasons``: those of every stride of the leg). ``lowered``: indices into ``data.events.strides`` of the
+    strides that are no steps (:mod:`pipeline.stepping`), left out."""
     angle, t_s = result.angle_deg, data.prep.t_s
     events = data.events
     out: list[StrideMetrics] = []
     # non-finite samples counted by prefix sum: one pass instead of a test per stride
     bad_cum = np.concatenate(([0], np.cumsum(~np.isfinite(angle))))
-    kept = [(s, c) for s, c in zip(events.strides, result.choices, strict=True) if bad_cum[s[2] + 1] == bad_cum[s[0]]]
+    kept = [(s, c) for k, (s, c) in enumerate(zip(events.strides, result.choices, strict=True))
+            if bad_cum[s[2] + 1] == bad_cum[s[0]] and k not in lowered]
     triples = [s for s, _ in kept]
     qp = data.params.quality
     # bridged holes long enough for the cubic to miss the swing-flexion rise (the shorter ones keep the peak)

@@ -355,6 +355,11 @@ _STAIR_DOWN = (((0, 8), (10, 18), (25, 25), (40, 40), (55, 75), (65, 92), (75, 9
                ((0, 22), (15, 18), (35, 12), (55, 20), (70, 35), (85, 38), (95, 28)), 1.30)
 _STAIR_RISE_M = 0.17
 _STAIR_TOP_S = 1.5  # standing on the landing between the flight up and the flight down
+# Marching in place (a rehabilitation warm-up, "high knees" at a walking cadence): each leg in turn lifted and
+# lowered, hip to 55 deg and knee to 75 deg, 0.7 s a leg; columns as _STEP. The foot leaves and meets the floor
+# beside the other one: the leg swings without stepping anywhere.
+_MARCH = np.array([(0.0, 0, 0, 0, 0, 0.0), (0.35, 75, 55, 0, 0, 0.0), (0.7, 0, 0, 0, 0, 0.0),
+                   (1.05, 0, 0, 75, 55, 0.0), (1.4, 0, 0, 0, 0, 0.0)])
 _STEP_TEST_REP_S = 2.4  # a step test's up-up-down-down at 100 steps/min (the step-up keyframes, compressed)
 # Seated knee extension (long-arc quadriceps exercise): (time s, knee extension from the seated angle as a share of
 # the way to _EXTENSION_KNEE_DEG): lift over 1.5 s, hold 2 s, lower over 1.5 s, rest 1.5 s.
@@ -415,7 +420,7 @@ def _keyframes(grid: np.ndarray, t0: float, frames: np.ndarray) -> np.ndarray:
     return out
 
 
-_MOVES = ("jump", "stairs", "stair_flight", "step_test")  # between-bout movements made by _add_moves
+_MOVES = ("jump", "stairs", "stair_flight", "step_test", "march")  # between-bout movements made by _add_moves
 
 
 def _move_duration_s(kind: str, reps: int = _MOVE_REPS, jump_rest_s: float = 1.0) -> float:
@@ -427,6 +432,8 @@ def _move_duration_s(kind: str, reps: int = _MOVE_REPS, jump_rest_s: float = 1.0
         return 0.5 * reps * (_STAIR_UP[2] + _STAIR_DOWN[2]) + _STAIR_TOP_S + 0.5 * (_STAIR_UP[2] + _STAIR_DOWN[2])
     if kind == "step_test":
         return reps * _STEP_TEST_REP_S
+    if kind == "march":
+        return reps * _MARCH[-1, 0]
     if kind == "seated_extension":
         return reps * _EXTENSION[-1, 0]
     return reps * (1.5 + 2.5 + 1.5 + 2.0)  # sit_to_stand: down, seated, up, standing
@@ -576,13 +583,13 @@ def _build_timeline(cfg: SimConfig, spec: _PatternSpec, rng: np.random.Generator
 
 def _add_moves(mv: _Moves, grid: np.ndarray, kind: str, t0: float, lead: int, legs: tuple[str, ...],
                reps: int = _MOVE_REPS, jump_rest_s: float = 1.0) -> None:
-    """Add ``reps`` jumps or step-ups starting at t0 to the movement layers ``mv``."""
+    """Add ``reps`` jumps, step-ups or marching steps (each leg once) starting at t0 to the movement layers ``mv``."""
     _start_layers(mv, grid, legs)
     if kind == "stair_flight":
         _add_stair_flight(mv, grid, t0, lead, legs, reps)
         return
     rep_s = _move_duration_s(kind, reps, jump_rest_s) / reps
-    frames = _STEP
+    frames = _MARCH if kind == "march" else _STEP
     if kind == "step_test":  # no rest between repetitions: the keyframes' own rests only
         frames = _STEP * np.array([_STEP_TEST_REP_S / _STEP[-1, 0], 1, 1, 1, 1, 1])
     for r in range(reps):
@@ -596,7 +603,10 @@ def _add_moves(mv: _Moves, grid: np.ndarray, kind: str, t0: float, lead: int, le
             mv.landings_s = np.append(mv.landings_s, t_r + _JUMP_LANDING_S)
         else:
             kf = _keyframes(grid, t_r, frames)
-            lead_leg = ("left", "right")[(lead + r) % 2]  # alternate the lead leg
+            # step-ups alternate the lead leg; a march's repetition already takes both legs in turn
+            lead_leg = ("left", "right")[(lead + (0 if kind == "march" else r)) % 2]
+            if kind == "march":  # each foot meets the floor as its lowering ends
+                mv.landings_s = np.append(mv.landings_s, t_r + _MARCH[[2, 4], 0])
             for leg in legs:
                 c = 0 if leg == lead_leg else 2
                 mv.knee[leg] += kf[:, c]

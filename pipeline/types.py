@@ -184,6 +184,9 @@ class LegDiagnostics:
     # strides the gait events delimit that the other leg's swings do not contradict (pipeline.bilateral.gait_strides;
     # running: foot-strike cycles), before any per-stride check
     gait_strides: int = 0
+    # strides dropped because the thigh turned back through their swing: a lifted leg lowered in place, as in
+    # marching, not a step (pipeline.stepping)
+    lowered_strides: int = 0
     # the mounting-change check (pipeline.mounting.MountingCheck); None where it did not run
     mounting: MountingCheck | None = None
     # time spans [s] in which the leg's sensors were not on the leg (pipeline.worn): nothing estimated there

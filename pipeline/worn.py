@@ -225,7 +225,8 @@ def joined(first: LegResult, parts: list[tuple[LegResult, np.ndarray]]) -> tuple
         changed = [d.mounting for d in diags if d.mounting is not None and d.mounting.changed]
         diag = dataclasses.replace(
             diag, n_strides=len(strides), n_fallback=sum(1 for st in strides if st.fallback),
-            gait_strides=sum(d.gait_strides for d in diags), bouts=sum(d.bouts for d in diags),
+            gait_strides=sum(d.gait_strides for d in diags),
+            lowered_strides=sum(d.lowered_strides for d in diags), bouts=sum(d.bouts for d in diags),
             bridged_gaps=sum(d.bridged_gaps for d in diags),
             masked_implausible_samples=sum(d.masked_implausible_samples for d in diags),
             clock_disagreement=any(d.clock_disagreement for d in diags),
