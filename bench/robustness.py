@@ -204,7 +204,8 @@ AXES: dict[str, Axis] = {
         _v("stair flights: 10 steps up, 10 down", activities=("stair_flight",)),
         _v("stair flights, knee and hip 3-D x1", activities=("stair_flight",), hip_3d=1.0, knee_3d=1.0),
         _v("a step test: 10 step-ups without rest", activities=("step_test",), move_reps=10),
-        _v("marching in place, 12 steps a leg", activities=("march",), move_reps=12)),
+        _v("marching in place, 12 steps a leg", activities=("march",), move_reps=12),
+        _v("high knees, 20 a leg (hip above the knee's bend)", activities=("high_knees",), move_reps=20)),
         note="Stair flights are step-over-step stair gait (Riener et al. 2002): alternating, stride-like, but the "
              "knee is loaded while flexed."),
     "exercise": Axis("Exercise sessions without walking (no stride in the truth; quiet standing at both ends)", (
@@ -216,6 +217,7 @@ AXES: dict[str, Axis] = {
         _v("a step test: 10 step-ups", walking=False, activities=("step_test",), move_reps=10),
         _v("a stair flight up and down", walking=False, activities=("stair_flight",)),
         _v("marching in place, 20 steps a leg", walking=False, activities=("march",), move_reps=20),
+        _v("high knees, 30 a leg", walking=False, activities=("high_knees",), move_reps=30),
         _v("all of them, knee and hip 3-D x1", walking=False, hip_3d=1.0, knee_3d=1.0, move_reps=6,
            activities=("sitting", "seated_extension", "sit_to_stand", "jump", "step_test", "stair_flight"))),
         note="A home exercise programme recorded alone. Nothing but gait anchors the knee axes and the angle's zero "

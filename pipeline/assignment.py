@@ -8,6 +8,13 @@ a second witness (the shank takes it first; Lafortune 1991) and it is on the sim
 the thigh's specific force changes faster than the shank's (ratio 0.64-0.68: soft tissue and sensor filtering), so
 it is reported, never decisive.
 
+Thigh and shank told apart by where the knee is: the swing-rate rule reads gait, and exercises that lift the thigh
+faster than gait swings the shank (high knees, marching, step-ups) make it read a right order as exchanged. The
+joint-centre fit (Seel et al. 2014, Eq. 5) gives each sensor's position relative to the knee centre in its own frame,
+and the segment's mean specific force points up along it (upright most of any session with gait): a thigh sensor
+lies above the knee, a shank sensor below it, whatever the movement (:func:`segments_by_centre`). It confirms or
+vetoes an exchange the rates made, once the leg has been processed.
+
 Thighs swapped between the legs: each knee is a hinge about a fixed centre, so the two sensors of one leg satisfy the
 rigid-body constraint of Seel et al. 2014 Eq. 5 (same knee-centre acceleration seen from both segments); a thigh of
 the other leg does not (its centre residual is 3-6x larger). When a leg's residual is suspicious, the swapped pairing
@@ -79,6 +86,31 @@ def check_segments(thigh: RawSensorStream, shank: RawSensorStream,
     else:
         verdict = "undecided"
     return SegmentCheck(round(float(rate), 3), round(float(impact), 3), verdict)
+
+
+def centre_heights_m(o1_m: np.ndarray, o2_m: np.ndarray, acc_thigh_mps2: np.ndarray, acc_shank_mps2: np.ndarray,
+                     valid: np.ndarray) -> tuple[float, float]:
+    """How far the thigh and the shank sensor lie above the knee centre [m]: their positions relative to it
+    (``o1_m``, ``o2_m`` (3,), Seel Eq. 5, each in its sensor's frame) along the segment's mean specific force over
+    the ``valid`` samples (``acc_*`` (N, 3) [m/s^2]), which points up the segment wherever it is mostly upright. NaN
+    without a valid sample or a specific force."""
+    out = []
+    for o, acc in ((o1_m, acc_thigh_mps2), (o2_m, acc_shank_mps2)):
+        up = np.mean(acc[valid], axis=0) if valid.any() else np.zeros(3)
+        norm = float(np.linalg.norm(up))
+        out.append(float(np.asarray(o) @ up) / norm if norm > 0 else float("nan"))
+    return out[0], out[1]
+
+
+def segments_by_centre(heights_m: tuple[float, float] | None, params: AssignmentParams = WALKING.assignment) -> str:
+    """``"as_labelled"`` when the thigh sensor lies above the knee centre by ``centre_height_margin_m`` more than the
+    shank sensor does (:func:`centre_heights_m`), ``"swapped"`` when it lies as far below, else ``"undecided"``."""
+    if heights_m is None or not np.all(np.isfinite(heights_m)):
+        return "undecided"
+    above = heights_m[0] - heights_m[1]
+    if above > params.centre_height_margin_m:
+        return "as_labelled"
+    return "swapped" if above < -params.centre_height_margin_m else "undecided"
 
 
 def pairing_suspicious(residuals_mps2: tuple[float, float], params: AssignmentParams = WALKING.assignment) -> bool:

@@ -316,11 +316,11 @@ class PhaseParams:
     speed, more as it slows; in step-to gait a leg swings 0.45-0.7 s of a 2-3 s cycle (75-85 %), and the swing lobe
     the events come from is a little shorter than the swing: an independent simulator's step-to strides read
     73-90 %, a third of them above 85 %. The ``RUNNING`` preset keeps 85 %."""
-    min_swing_thigh_deg: float = -10.0
+    min_swing_thigh_deg: float = 0.0
     """Least forward turn of the thigh over a stride's swing [deg] for the stride to be a step
-    (:mod:`pipeline.stepping`): gait +4 .. +52 (one stride at a bout's end -3), marching in place -35 .. -39. Below
-    it, a lifted leg was lowered in place and the stride is dropped; the margin below zero keeps a shuffle's or a
-    bout end's nearly still thigh."""
+    (:mod:`pipeline.stepping`). Zero is the physical bound: a foot that moves forward turns its thigh forward. Gait
+    +4 .. +52 on this repository's simulator (one stride at a bout's end -3), +3 .. +48 on an independent one;
+    marching in place -35 .. -39, side steps -2 .. -6. Below it the stride is dropped."""
     to_delay_s: float = 0.04
     """Toe-off after the shank minimum [s]: measured against the Tan et al. 2022 force plate."""
     hs_delay_s: float = 0.02
@@ -359,6 +359,11 @@ class AssignmentParams:
     testing: 0.04-0.22 with right labels on the simulator (up to 0.55 with a thigh sensor 50 cm from the knee),
     0.38-0.92 with the thighs swapped; 0.64-0.65 with right labels on the real biomechZoo trial, so there every
     session is tested (the decision itself is relative: :func:`pipeline.assignment.swapped_pairing_better`)."""
+    centre_height_margin_m: float = 0.05
+    """How far above the knee centre the thigh sensor must lie, less how far the shank sensor does, for the centres
+    to say which sensor is which [m] (:func:`pipeline.assignment.segments_by_centre`): +0.26 .. +0.45 with the right
+    order on the simulator (walking, crouch, running, sitting between bouts), +0.25 / +0.30 on the real biomechZoo
+    trial; -0.30 .. -0.38 where the swing rates had exchanged a right order (high knees between walks)."""
     pairing_gain: float = 0.5
     """The swapped thigh pairing is taken when its summed residual is below this share of the labelled one."""
     shift_window: float = 0.3

@@ -17,8 +17,10 @@ import numpy as np
 
 from pipeline import ALGORITHM_VERSION
 from pipeline.assignment import (
+    centre_heights_m,
     check_segments,
     pairing_suspicious,
+    segments_by_centre,
     side_verdict,
     swapped_pairing_better,
     weight_shift_dps,
@@ -85,8 +87,6 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
     session_params = params if params is not None else preset(activity)  # a leg's own preset may differ
     ap = session_params.assignment
     assigned: dict[str, str] = {}
-    legs: dict[str, LegResult] = {}
-    swings: dict[str, np.ndarray] = {}
     synced: dict[str, SyncedLeg] = {}
     # each leg's label check right before its synchronisation, sharing its streams' conversion (held for one leg
     # at a time); the label checks' warnings still come before the legs' own
@@ -106,16 +106,8 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
         del si
     warnings += label_warnings + leg_warnings
     warnings += _offset_warnings(synced, by_leg, session_params.posture)
-    events = _leg_events(synced, activity, params)
-    others = _other_legs(synced, events, session_params)
-    for leg in sorted(synced):
-        segs = by_leg[leg]
-        try:
-            legs[leg], swings[leg] = _process_leg(leg, segs["thigh"], segs["shank"], activity, estimator, params,
-                                                  (calibration or {}).get(leg), synced[leg], others.get(leg),
-                                                  events.get(leg))
-        except ValueError as exc:
-            warnings.append(f"{leg} leg skipped: {exc}")
+    legs, swings, others = _processed_legs(synced, by_leg, activity, estimator, params, calibration, assigned,
+                                           warnings)
     legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
                                         warnings, others)
     # the other leg's strides are judged against this leg as it was recorded, still where its sensors were off
@@ -242,18 +234,98 @@ def _check_labels(leg: str, segs: dict[str, RawSensorStream], params: Assignment
     return si["thigh"], si["shank"]
 
 
+def _withdraw_exchange(leg: str, warnings: list[str]) -> None:
+    """Take back the warning of :func:`_check_labels` that exchanged the leg's thigh and shank (in place)."""
+    warnings[:] = [w for w in warnings if not w.startswith(f"{leg} leg: the sensor labelled thigh moves like a shank")]
+
+
+def _processed_legs(synced: dict[str, SyncedLeg], by_leg: dict[str, dict[str, RawSensorStream]], activity: str,
+                    estimator: str, params: PipelineParams | None,
+                    calibration: Mapping[str, KneeCalibration] | None, assigned: dict[str, str],
+                    warnings: list[str]) -> tuple[dict[str, LegResult], dict[str, np.ndarray], dict[str, OtherLeg]]:
+    """Every synchronised leg processed (:func:`_each_leg`); all again where the joint centres veto an exchange of
+    thigh and shank (:func:`_centre_vetoes`; ``synced`` re-synchronised in place), since the other leg's swings
+    change with it. Returns the legs, their mid-swing times and the other legs' swings."""
+    ap = (params if params is not None else preset(activity)).assignment
+    legs, swings, others, skipped = _each_leg(synced, by_leg, activity, estimator, params, calibration)
+    vetoed = _centre_vetoes(legs, by_leg, assigned, warnings, ap)
+    if vetoed:
+        for leg in vetoed:
+            try:
+                synced[leg] = _synced(leg, by_leg[leg]["thigh"], by_leg[leg]["shank"], activity, params)
+            except ValueError:
+                del synced[leg]
+        legs, swings, others, skipped = _each_leg(synced, by_leg, activity, estimator, params, calibration)
+    warnings += skipped
+    return legs, swings, others
+
+
+def _each_leg(synced: dict[str, SyncedLeg], by_leg: dict[str, dict[str, RawSensorStream]], activity: str,
+              estimator: str, params: PipelineParams | None, calibration: Mapping[str, KneeCalibration] | None
+              ) -> tuple[dict[str, LegResult], dict[str, np.ndarray], dict[str, OtherLeg], list[str]]:
+    """Every synchronised leg processed (:func:`_process_leg`) with the other leg's swings (:func:`_other_legs`):
+    the legs, their mid-swing times, the other legs' swings and the warnings of the legs skipped."""
+    events = _leg_events(synced, activity, params)
+    others = _other_legs(synced, events, params if params is not None else preset(activity))
+    legs: dict[str, LegResult] = {}
+    swings: dict[str, np.ndarray] = {}
+    skipped: list[str] = []
+    for leg in sorted(synced):
+        segs = by_leg[leg]
+        try:
+            legs[leg], swings[leg] = _process_leg(leg, segs["thigh"], segs["shank"], activity, estimator, params,
+                                                  (calibration or {}).get(leg), synced[leg], others.get(leg),
+                                                  events.get(leg))
+        except ValueError as exc:
+            skipped.append(f"{leg} leg skipped: {exc}")
+    return legs, swings, others, skipped
+
+
+def _centre_vetoes(legs: dict[str, LegResult], by_leg: dict[str, dict[str, RawSensorStream]],
+                   assigned: dict[str, str], warnings: list[str], ap: AssignmentParams) -> list[str]:
+    """The legs whose thigh and shank the swing rates exchanged where the joint centres put the knee above the sensor
+    taken for the thigh and below the one taken for the shank (:func:`pipeline.assignment.segments_by_centre`), and
+    with them any exchanged leg whose centres decide nothing (a lever arm beyond a body-worn sensor's): the same
+    movements set both legs' rates. Their streams are put back as labelled in ``by_leg`` (``assigned`` and
+    ``warnings`` in place), to be processed again. High knees or marching between walks lift the thigh faster than
+    gait swings the shank; the exchanged order took their strides for gait and lost the walk's. Only legs whose
+    exchanged order shows strides are judged: one without any is left to :func:`_keep_labels`, which takes the labels
+    back too and keeps no stride (a step test alone)."""
+    exchanged = [leg for leg, how in assigned.items()
+                 if how == "thigh_shank_exchanged" and leg in legs and legs[leg].strides]
+    heights = {leg: None if (d := legs[leg].diagnostics) is None else d.centre_heights_m for leg in exchanged}
+    verdict = {leg: segments_by_centre(heights[leg], ap) for leg in exchanged}
+    if "swapped" not in verdict.values():
+        return []
+    vetoed = [leg for leg in exchanged if verdict[leg] != "as_labelled"]
+    for leg in vetoed:
+        segs = by_leg[leg]
+        segs["thigh"], segs["shank"] = segs["shank"], segs["thigh"]
+        del assigned[leg]
+        _withdraw_exchange(leg, warnings)
+        h = heights[leg]
+        where = (f"the joint centres put the sensor labelled thigh {h[1]:.2f} m above the knee and the one labelled "
+                 f"shank {-h[0]:.2f} m below it") if verdict[leg] == "swapped" else \
+            "the joint centres do not confirm it, and they put the other leg's back as labelled"
+        warnings.append(f"{leg} leg: thigh and shank labels kept as given: the swing rates read them as exchanged "
+                        f"(exercises that lift the thigh fast), but {where}")
+    return vetoed
+
+
 def _keep_labels(leg: str, streams: Sequence[RawSensorStream], activity: str, estimator: str,
                  params: PipelineParams | None, calibration: KneeCalibration | None, other: OtherLeg | None,
                  legs: dict[str, LegResult], swings: dict[str, np.ndarray],
                  by_leg: dict[str, dict[str, RawSensorStream]], assigned: dict[str, str], warnings: list[str]) -> bool:
     """Process ``leg`` again with its thigh and shank as labelled (in place) after an exchange that left it without
     a gait stride (after the alternation and level-walking drops). The swing-rate rule
-    (:func:`pipeline.assignment.check_segments`) reads gait: a step test, jumps, squats or sit-to-stand alone move the
-    thigh faster than the shank (rate ratio 0.03-0.56 on the simulators), and every exercise-only session of an
-    independent simulator had its labels exchanged. Without gait nothing confirms the exchange, so the labels stand;
-    but a shank that swings slower than its thigh is not walking either (in gait it swings 2-3 x faster), so
-    whatever strides the labelled order shows are dropped (a step test alone gave 227 strides of trend quality
-    there, peaks ~20 deg against a true 70). False when the leg could not be processed as labelled (left as it was)."""
+    (:func:`pipeline.assignment.check_segments`) reads gait: a step test, jumps, squats, sit-to-stand or marching in
+    place move the thigh faster than the shank (rate ratio 0.03-0.56 on the simulators), and every exercise-only
+    session of an independent simulator had its labels exchanged. Without gait nothing confirms the exchange, so the
+    labels stand; but a shank that swings slower than its thigh is not walking either (in gait it swings 2-3 x
+    faster), so whatever strides the labelled order shows are dropped (a step test alone gave 227 strides of trend
+    quality there, peaks ~20 deg against a true 70). An exchange whose order shows strides is judged by the joint
+    centres first (:func:`_centre_vetoes`). False when the leg could not be processed as labelled (left as it
+    was)."""
     segs = _streams_by_leg(streams, [])[leg]
     try:
         synced = _synced(leg, segs["thigh"], segs["shank"], activity, params)
@@ -263,9 +335,9 @@ def _keep_labels(leg: str, streams: Sequence[RawSensorStream], activity: str, es
         return False
     by_leg[leg] = segs
     del assigned[leg]
+    _withdraw_exchange(leg, warnings)
     dropped = len(legs[leg].strides)
     legs[leg] = legs[leg].without(set(range(dropped)))
-    warnings[:] = [w for w in warnings if not w.startswith(f"{leg} leg: the sensor labelled thigh moves like a shank")]
     warnings.append(f"{leg} leg: thigh and shank labels kept as given: the swing rates read them as exchanged, but "
                     f"the leg has no gait stride either way (the shank swings slower than the thigh: not walking; "
                     f"{dropped} stride(s) dropped)")
@@ -287,7 +359,10 @@ def _check_thigh_pairing(legs: dict[str, LegResult], swings: dict[str, np.ndarra
                          assigned: dict[str, str], warnings: list[str], others: Mapping[str, OtherLeg]
                          ) -> tuple[dict[str, LegResult], dict[str, np.ndarray]]:
     """Both legs processed again with the thighs exchanged when a joint-centre residual is suspicious; the swapped
-    pairing is kept when it fits clearly better (:func:`pipeline.assignment.swapped_pairing_better`)."""
+    pairing is kept when it fits clearly better (:func:`pipeline.assignment.swapped_pairing_better`) and shows a
+    stride: without gait the residuals confirm nothing (marching in place alone, whose thigh and shank labels the
+    swing rates had already exchanged, fitted the other leg's sensors better on 3 of 5 report seeds, and its knee
+    angles then read 11 deg off)."""
     if set(legs) != {"left", "right"}:
         return legs, swings
     labelled = _centre_residuals(legs)
@@ -301,7 +376,7 @@ def _check_thigh_pairing(legs: dict[str, LegResult], swings: dict[str, np.ndarra
         runs = {}
     swapped = {k: v[0] for k, v in runs.items()}
     resid = _centre_residuals(swapped) if swapped else None
-    if resid is not None and swapped_pairing_better(labelled, resid, ap):
+    if resid is not None and swapped_pairing_better(labelled, resid, ap) and any(lr.strides for lr in swapped.values()):
         for k in ("left", "right"):
             assigned[k] = "thighs_exchanged_between_legs"
         warnings.append("thigh sensors exchanged between the legs: each fits the other leg's shank as a hinge "
@@ -625,14 +700,18 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
     not_worn, handled = not_worn_spans_s(data, other, data.params.worn) if data.activity == "walking" else ([], [])
     leg_reasons = (("clock_disagreement",) if clock_unknown else ()) + (("mounting_changed",) if mounting.changed
                                                                          else ())
+    # the thigh over the shank's swing: not judged where the two clocks' timing is unknown
     thigh_sag = np.rad2deg(data.prep.gyr_thigh_rps @ data.axes.j1)
     thigh_sag[~data.prep.valid] = np.nan
-    lowered = lowered_not_stepped(thigh_sag, data.events.strides, data.fs_hz, data.params.phases.min_swing_thigh_deg)
+    lowered = set() if clock_unknown else lowered_not_stepped(thigh_sag, data.events.strides, data.fs_hz,
+                                                              data.params.phases.min_swing_thigh_deg)
     strides = _strides(leg, data, result, leg_reasons, lowered)
     if _mostly_mismatched(strides, data.params.quality):
         strides = with_reason(strides, "leg_mismatch", data.params.quality)
+    # a lifted leg lowered in place (marching) alternates like gait but anchors nothing: it is no step
+    not_steps = {data.events.strides[k] for k in lowered}
     n_gait = len(data.running_cycles) if data.running_cycles else \
-        len(gait_strides(data.prep.t_s, data.events.strides, data.events.ms, other))
+        sum(s not in not_steps for s in gait_strides(data.prep.t_s, data.events.strides, data.events.ms, other))
     diagnostics = dataclasses.replace(_diagnostics(data, synced, result, strides, running, calibration,
                                                    clock_unknown, n_gait), mounting=mounting,
                                       lowered_strides=len(lowered),
@@ -722,7 +801,9 @@ def _diagnostics(data: LegInput, synced: SyncedLeg, result: PolicyResult, stride
         gyr_bias_shank_dps=tuple(np.round(np.degrees(synced.prep.gyr_bias_shank_rps), 2).tolist()),
         hinge_lean_deg=None if axes.lean_deg is None else tuple(round(x, 1) for x in axes.lean_deg),
         knee_axes_levelled=axes.leaning, clock_disagreement=clock_unknown,
-        weight_shift_dps=_weight_shift(data))
+        weight_shift_dps=_weight_shift(data),
+        centre_heights_m=tuple(round(h, 4) for h in centre_heights_m(
+            centres.o1, centres.o2, data.prep.acc_thigh_mps2, data.prep.acc_shank_mps2, data.prep.valid)))
 
 
 def _weight_shift(data: LegInput) -> tuple[float, float] | None:

@@ -360,6 +360,10 @@ _STAIR_TOP_S = 1.5  # standing on the landing between the flight up and the flig
 # beside the other one: the leg swings without stepping anywhere.
 _MARCH = np.array([(0.0, 0, 0, 0, 0, 0.0), (0.35, 75, 55, 0, 0, 0.0), (0.7, 0, 0, 0, 0, 0.0),
                    (1.05, 0, 0, 75, 55, 0.0), (1.4, 0, 0, 0, 0, 0.0)])
+# High knees (a brisk variant): the hip lifted to 75 deg, higher than the knee bends (70), 0.44 s a leg.
+_HIGH_KNEES = np.array([(0.0, 0, 0, 0, 0, 0.0), (0.22, 70, 75, 0, 0, 0.0), (0.44, 0, 0, 0, 0, 0.0),
+                        (0.66, 0, 0, 70, 75, 0.0), (0.88, 0, 0, 0, 0, 0.0)])
+_MARCHES = {"march": _MARCH, "high_knees": _HIGH_KNEES}
 _STEP_TEST_REP_S = 2.4  # a step test's up-up-down-down at 100 steps/min (the step-up keyframes, compressed)
 # Seated knee extension (long-arc quadriceps exercise): (time s, knee extension from the seated angle as a share of
 # the way to _EXTENSION_KNEE_DEG): lift over 1.5 s, hold 2 s, lower over 1.5 s, rest 1.5 s.
@@ -420,7 +424,8 @@ def _keyframes(grid: np.ndarray, t0: float, frames: np.ndarray) -> np.ndarray:
     return out
 
 
-_MOVES = ("jump", "stairs", "stair_flight", "step_test", "march")  # between-bout movements made by _add_moves
+# between-bout movements made by _add_moves
+_MOVES = ("jump", "stairs", "stair_flight", "step_test", "march", "high_knees")
 
 
 def _move_duration_s(kind: str, reps: int = _MOVE_REPS, jump_rest_s: float = 1.0) -> float:
@@ -432,8 +437,8 @@ def _move_duration_s(kind: str, reps: int = _MOVE_REPS, jump_rest_s: float = 1.0
         return 0.5 * reps * (_STAIR_UP[2] + _STAIR_DOWN[2]) + _STAIR_TOP_S + 0.5 * (_STAIR_UP[2] + _STAIR_DOWN[2])
     if kind == "step_test":
         return reps * _STEP_TEST_REP_S
-    if kind == "march":
-        return reps * _MARCH[-1, 0]
+    if kind in _MARCHES:
+        return reps * _MARCHES[kind][-1, 0]
     if kind == "seated_extension":
         return reps * _EXTENSION[-1, 0]
     return reps * (1.5 + 2.5 + 1.5 + 2.0)  # sit_to_stand: down, seated, up, standing
@@ -589,7 +594,7 @@ def _add_moves(mv: _Moves, grid: np.ndarray, kind: str, t0: float, lead: int, le
         _add_stair_flight(mv, grid, t0, lead, legs, reps)
         return
     rep_s = _move_duration_s(kind, reps, jump_rest_s) / reps
-    frames = _MARCH if kind == "march" else _STEP
+    frames = _MARCHES.get(kind, _STEP)
     if kind == "step_test":  # no rest between repetitions: the keyframes' own rests only
         frames = _STEP * np.array([_STEP_TEST_REP_S / _STEP[-1, 0], 1, 1, 1, 1, 1])
     for r in range(reps):
@@ -604,9 +609,9 @@ def _add_moves(mv: _Moves, grid: np.ndarray, kind: str, t0: float, lead: int, le
         else:
             kf = _keyframes(grid, t_r, frames)
             # step-ups alternate the lead leg; a march's repetition already takes both legs in turn
-            lead_leg = ("left", "right")[(lead + (0 if kind == "march" else r)) % 2]
-            if kind == "march":  # each foot meets the floor as its lowering ends
-                mv.landings_s = np.append(mv.landings_s, t_r + _MARCH[[2, 4], 0])
+            lead_leg = ("left", "right")[(lead + (0 if kind in _MARCHES else r)) % 2]
+            if kind in _MARCHES:  # each foot meets the floor as its lowering ends
+                mv.landings_s = np.append(mv.landings_s, t_r + frames[[2, 4], 0])
             for leg in legs:
                 c = 0 if leg == lead_leg else 2
                 mv.knee[leg] += kf[:, c]

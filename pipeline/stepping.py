@@ -7,10 +7,15 @@ shank swings forward, but the thigh comes down, turning back as far as it was li
 the two apart (both are a forward lobe between a backward turn and a foot contact, :mod:`pipeline.phases`); the
 thigh's over the same interval can, from the gyroscope alone and without any absolute level.
 
-Over each detected stride's swing (toe-off to the next heel strike): the real biomechZoo trial +30 .. +36 deg; the
-simulator's walking patterns (slow, fast, crouch, stiff-knee, a stiff hip at half its excursion, paces down to 0.4,
-3-D hips and knees, turns) and running +4 .. +52, a single stride at a bout's end -3; marching in place -35 .. -39,
-and the strides that span a jump's landing -31 .. -35.
+Side steps, which carry the foot sideways, turn the thigh hardly at all in the sagittal plane. So a step's thigh
+turns forward over its swing, and zero is the bound (``PhaseParams.min_swing_thigh_deg``).
+
+Over each detected stride's swing (toe-off to the next heel strike): the real biomechZoo trial +30 .. +36 deg; this
+repository's simulator's walking patterns (slow, fast, crouch, stiff-knee, a stiff hip at half its excursion, paces
+down to 0.4, 3-D hips and knees, turns) and running +4 .. +52, a single stride at a bout's end -3; an independent
+simulator's gait (normal, slow, a shuffle, crouch, high-knee gait) +3 .. +48. Marching in place -35 .. -39 (the
+independent simulator's -24 .. -32 where its events fell on the lowering), the strides that span a jump's landing
+-31 .. -35, the independent simulator's side steps -2 .. -6.
 """
 
 from __future__ import annotations

@@ -182,8 +182,10 @@ class LegDiagnostics:
     # was not: TRACE_WITHHELD_NO_GAIT
     trace_withheld: str | None = None
     # strides the gait events delimit that the other leg's swings do not contradict (pipeline.bilateral.gait_strides;
-    # running: foot-strike cycles), before any per-stride check
+    # running: foot-strike cycles) and that are steps (pipeline.stepping), before any other per-stride check
     gait_strides: int = 0
+    # how far the thigh and the shank sensor lie above the knee centre [m] (pipeline.assignment.centre_heights_m)
+    centre_heights_m: tuple[float, float] | None = None
     # strides dropped because the thigh turned back through their swing: a lifted leg lowered in place, as in
     # marching, not a step (pipeline.stepping)
     lowered_strides: int = 0

@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.assignment import check_segments, side_verdict, swapped_pairing_better
+from bench.matching import match_strides
+from pipeline.assignment import (
+    centre_heights_m,
+    check_segments,
+    segments_by_centre,
+    side_verdict,
+    swapped_pairing_better,
+)
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, simulate_session
 
@@ -174,3 +181,37 @@ def test_the_weight_shift_does_not_lean_with_where_the_thigh_rests() -> None:
     pad = lambda x, v: np.concatenate([x, np.full((10 * prep.n, *x.shape[1:]), v, dtype=x.dtype)])  # noqa: E731
     after = weight_shift_dps(pad(prep.gyr_thigh_rps, 0.0), padded, pad(prep.valid, True), data.axes.j1, strides)
     assert before is not None and after == pytest.approx(before, abs=1e-9)
+
+
+def test_the_knee_lies_below_the_thigh_sensor_and_above_the_shank_sensor() -> None:
+    """Seel Eq. 5's sensor positions along each segment's mean specific force: the thigh sensor above the knee
+    centre, the shank sensor below it, on a right order; the verdict needs the margin either way."""
+    up = np.tile([0.0, 0.0, 9.81], (50, 1))
+    valid = np.ones(50, dtype=bool)
+    heights = centre_heights_m(np.array([0.02, 0.07, 0.18]), np.array([0.01, 0.05, -0.15]), up, up, valid)
+    np.testing.assert_allclose(heights, (0.18, -0.15))
+    assert segments_by_centre(heights) == "as_labelled"
+    assert segments_by_centre((heights[1], heights[0])) == "swapped"
+    assert segments_by_centre((0.01, -0.01)) == "undecided"
+    assert segments_by_centre(None) == "undecided"
+    tilted = np.tile([0.0, 9.81, 0.0], (50, 1))  # the mean specific force along the sensor's y axis
+    assert centre_heights_m(np.array([0.0, 0.1, 0.0]), np.zeros(3), tilted, up, valid)[0] == pytest.approx(0.1)
+
+
+def test_high_knees_between_walks_keep_the_labels_and_the_walk() -> None:
+    """High knees lift the thigh faster than walking swings the shank, so over the session the swing rates read
+    every leg's labels as exchanged, and the exchanged order took the lifts for strides and lost the walk. The joint
+    centres put each thigh sensor above its knee: the labels stand, the walk's strides are found, and no stride lies
+    inside the exercise."""
+    sim = simulate_session(SimConfig(seed=2, n_strides=12, bout_strides=6, activities=("high_knees",), move_reps=20))
+    by_leg = {leg: {s.segment: s for s in sim.streams if s.leg == leg} for leg in ("left", "right")}
+    assert all(check_segments(d["thigh"], d["shank"]).verdict == "swapped" for d in by_leg.values())
+    res = process_session(sim.streams)
+    assert sum("joint centres put the sensor labelled thigh" in w for w in res.warnings) >= 1, res.warnings
+    (_, t0, t1), = sim.info["non_gait_s"]
+    for leg, lr in res.legs.items():
+        assert lr.diagnostics.assignment == "as_labelled", leg
+        steady = [t for t in sim.truth[leg].strides if t.steady]
+        assert len(match_strides(lr.strides, steady)) == len(steady), leg
+        assert not [s for s in lr.strides if t0 < s.t_end_s and s.t_start_s < t1], leg
+        assert _rmse(sim, lr) < 5.0, leg
