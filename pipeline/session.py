@@ -283,32 +283,32 @@ def _each_leg(synced: dict[str, SyncedLeg], by_leg: dict[str, dict[str, RawSenso
 
 def _centre_vetoes(legs: dict[str, LegResult], by_leg: dict[str, dict[str, RawSensorStream]],
                    assigned: dict[str, str], warnings: list[str], ap: AssignmentParams) -> list[str]:
-    """The legs whose thigh and shank the swing rates exchanged where the joint centres put the knee above the sensor
-    taken for the thigh and below the one taken for the shank (:func:`pipeline.assignment.segments_by_centre`), and
-    with them any exchanged leg whose centres decide nothing (a lever arm beyond a body-worn sensor's): the same
-    movements set both legs' rates. Their streams are put back as labelled in ``by_leg`` (``assigned`` and
-    ``warnings`` in place), to be processed again. High knees or marching between walks lift the thigh faster than
-    gait swings the shank; the exchanged order took their strides for gait and lost the walk's. Only legs whose
-    exchanged order shows strides are judged: one without any is left to :func:`_keep_labels`, which takes the labels
-    back too and keeps no stride (a step test alone)."""
-    exchanged = [leg for leg, how in assigned.items()
-                 if how == "thigh_shank_exchanged" and leg in legs and legs[leg].strides]
-    heights = {leg: None if (d := legs[leg].diagnostics) is None else d.centre_heights_m for leg in exchanged}
-    verdict = {leg: segments_by_centre(heights[leg], ap) for leg in exchanged}
-    if "swapped" not in verdict.values():
-        return []
-    vetoed = [leg for leg in exchanged if verdict[leg] != "as_labelled"]
-    for leg in vetoed:
+    """The legs whose thigh and shank the swing rates exchanged but the joint centres do not confirm it by putting the
+    knee below the sensor taken for the thigh and above the one taken for the shank
+    (:func:`pipeline.assignment.segments_by_centre`; they may put it the other way, or fit no body-worn lever arms).
+    Their streams are put back as labelled in ``by_leg`` (``assigned`` and ``warnings`` in place), to be processed
+    again: high knees or marching lift the thigh faster than gait swings the shank, and the exchanged order took
+    their lifts for strides (and, between walks, lost the walk's). Only legs whose exchanged order shows strides are
+    judged: one without any is left to :func:`_keep_labels`, which takes the labels back too and keeps no stride (a
+    step test alone)."""
+    vetoed = []
+    for leg in [leg for leg, how in assigned.items()
+                if how == "thigh_shank_exchanged" and leg in legs and legs[leg].strides]:
+        d = legs[leg].diagnostics
+        heights = None if d is None else d.centre_heights_m
+        verdict = segments_by_centre(heights, ap)
+        if verdict == "as_labelled":
+            continue
         segs = by_leg[leg]
         segs["thigh"], segs["shank"] = segs["shank"], segs["thigh"]
         del assigned[leg]
         _withdraw_exchange(leg, warnings)
-        h = heights[leg]
-        where = (f"the joint centres put the sensor labelled thigh {h[1]:.2f} m above the knee and the one labelled "
-                 f"shank {-h[0]:.2f} m below it") if verdict[leg] == "swapped" else \
-            "the joint centres do not confirm it, and they put the other leg's back as labelled"
+        where = (f"the joint centres put the sensor labelled thigh {heights[1]:.2f} m above the knee and the one "
+                 f"labelled shank {-heights[0]:.2f} m below it") if verdict == "swapped" and heights is not None \
+            else "the joint centres do not confirm it"
         warnings.append(f"{leg} leg: thigh and shank labels kept as given: the swing rates read them as exchanged "
                         f"(exercises that lift the thigh fast), but {where}")
+        vetoed.append(leg)
     return vetoed
 
 

@@ -215,3 +215,15 @@ def test_high_knees_between_walks_keep_the_labels_and_the_walk() -> None:
         assert len(match_strides(lr.strides, steady)) == len(steady), leg
         assert not [s for s in lr.strides if t0 < s.t_end_s and s.t_start_s < t1], leg
         assert _rmse(sim, lr) < 5.0, leg
+
+
+def test_high_knees_alone_give_no_stride_whatever_the_centres_say() -> None:
+    """High knees alone: the swing rates read every leg's labels as exchanged and the exchanged order took the lifts
+    for strides. Where the joint centres fit no body-worn lever arms in that order they confirm nothing, so the labels
+    stand; as labelled the lifts are no gait: no stride, and no trace without gait."""
+    sim = simulate_session(SimConfig(seed=101, walking=False, activities=("high_knees",), move_reps=30))
+    res = process_session(sim.streams)
+    assert sum("labels kept as given" in w for w in res.warnings) == 2, res.warnings
+    for lr in res.legs.values():
+        assert lr.diagnostics.assignment == "as_labelled" and not lr.strides
+        assert lr.diagnostics.trace_withheld == "no_gait"
