@@ -361,9 +361,9 @@ class AssignmentParams:
     session is tested (the decision itself is relative: :func:`pipeline.assignment.swapped_pairing_better`)."""
     centre_height_margin_m: float = 0.05
     """How far above the knee centre the thigh sensor must lie, less how far the shank sensor does, for the centres
-    to say which sensor is which [m] (:func:`pipeline.assignment.segments_by_centre`): +0.26 .. +0.45 with the right
+    to say which sensor is which [m] (:func:`pipeline.assignment.segments_by_centre`): +0.25 .. +0.41 with the right
     order on the simulator (walking, crouch, running, sitting between bouts), +0.25 / +0.30 on the real biomechZoo
-    trial; -0.30 .. -0.38 where the swing rates had exchanged a right order (high knees between walks)."""
+    trial; -0.29 .. -0.38 where the swing rates had exchanged a right order (high knees between walks)."""
     pairing_gain: float = 0.5
     """The swapped thigh pairing is taken when its summed residual is below this share of the labelled one."""
     shift_window: float = 0.3

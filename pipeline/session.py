@@ -151,8 +151,8 @@ def _angle_warnings(legs: dict[str, LegResult], posture: PostureParams) -> list[
             if (m := _mounting(legs[leg])) is not None and m.changed and not _withheld(legs[leg])]
     out += [_level_bridged_warning(leg, d) for leg in sorted(legs)
             if (d := legs[leg].diagnostics) is not None and d.level_bridged and not _withheld(legs[leg])]
-    out += [f"{leg} leg: {d.lowered_strides} stride(s) dropped: the thigh turned back through the swing, a lifted "
-            "leg lowered in place (marching, a landing), not a step" for leg in sorted(legs)
+    out += [f"{leg} leg: {d.lowered_strides} stride(s) dropped: the thigh did not turn forward through the swing, a "
+            "lifted leg lowered in place (marching) or a side step, not a step forward" for leg in sorted(legs)
             if (d := legs[leg].diagnostics) is not None and d.lowered_strides and not _withheld(legs[leg])]
     return out + _implausible_warnings(legs, posture)
 

@@ -1,4 +1,4 @@
-"""A step carries the thigh forward through the swing; lowering a lifted leg turns it back.
+"""A step carries the thigh forward through the swing; lowering a lifted leg turns it back, a side step hardly at all.
 
 In gait the hip flexes through the swing, from 10-20 deg of extension at toe-off to 25-35 deg of flexion before heel
 strike (Perry and Burnfield 2010, Ch. 4; running: Novacheck 1998), so the thigh turns forward while the shank swings
@@ -37,6 +37,6 @@ def thigh_swing_deg(thigh_sag_dps: np.ndarray, strides: list[tuple[int, int, int
 def lowered_not_stepped(thigh_sag_dps: np.ndarray, strides: list[tuple[int, int, int]], fs_hz: float,
                         min_swing_thigh_deg: float) -> set[int]:
     """Indices of the strides whose thigh turns forward by less than ``min_swing_thigh_deg`` [deg] over the swing
-    (:func:`thigh_swing_deg`): a lifted leg lowered in place, not a step."""
+    (:func:`thigh_swing_deg`): a lifted leg lowered in place or a side step, not a step forward."""
     swing = thigh_swing_deg(thigh_sag_dps, strides, fs_hz)
     return set(np.flatnonzero(swing < min_swing_thigh_deg).tolist())
