@@ -12,8 +12,9 @@ Thigh and shank told apart by where the knee is: the swing-rate rule reads gait,
 faster than gait swings the shank (high knees, marching, step-ups) make it read a right order as exchanged. The
 joint-centre fit (Seel et al. 2014, Eq. 5) gives each sensor's position relative to the knee centre in its own frame,
 and the segment's mean specific force points up along it (upright most of any session with gait): a thigh sensor
-lies above the knee, a shank sensor below it, whatever the movement (:func:`segments_by_centre`). It confirms or
-vetoes an exchange the rates made, once the leg has been processed.
+lies above the knee, a shank sensor below it, whatever the movement. The rule is relative: the sensor taken for
+the thigh must lie higher above the knee than the one taken for the shank (:func:`segments_by_centre`). It confirms
+or vetoes an exchange the rates made, once the leg has been processed.
 
 Thighs swapped between the legs: each knee is a hinge about a fixed centre, so the two sensors of one leg satisfy the
 rigid-body constraint of Seel et al. 2014 Eq. 5 (same knee-centre acceleration seen from both segments); a thigh of
@@ -96,15 +97,15 @@ def centre_heights_m(o1_m: np.ndarray, o2_m: np.ndarray, acc_thigh_mps2: np.ndar
     without a valid sample or a specific force."""
     out = []
     for o, acc in ((o1_m, acc_thigh_mps2), (o2_m, acc_shank_mps2)):
-        up = np.mean(acc[valid], axis=0) if valid.any() else np.zeros(3)
-        norm = float(np.linalg.norm(up))
-        out.append(float(np.asarray(o) @ up) / norm if norm > 0 else float("nan"))
+        up = mean_up(acc, valid)
+        out.append(float("nan") if up is None else float(np.asarray(o) @ up))
     return out[0], out[1]
 
 
 def segments_by_centre(heights_m: tuple[float, float] | None, params: AssignmentParams = WALKING.assignment) -> str:
-    """``"as_labelled"`` when the thigh sensor lies above the knee centre by ``centre_height_margin_m`` more than the
-    shank sensor does (:func:`centre_heights_m`), ``"swapped"`` when it lies as far below, else ``"undecided"``."""
+    """``"as_labelled"`` when the thigh sensor lies higher above the knee centre than the shank sensor, by more than
+    ``centre_height_margin_m`` (:func:`centre_heights_m`), ``"swapped"`` when it lies as much lower, else
+    ``"undecided"``."""
     if heights_m is None or not np.all(np.isfinite(heights_m)):
         return "undecided"
     above = heights_m[0] - heights_m[1]

@@ -105,9 +105,10 @@ def process_session(streams: Sequence[RawSensorStream], activity: str = "walking
             leg_warnings.append(f"{leg} leg skipped: {exc}")
         del si
     warnings += label_warnings + leg_warnings
-    warnings += _offset_warnings(synced, by_leg, session_params.posture)
     legs, swings, others = _processed_legs(synced, by_leg, activity, estimator, params, calibration, assigned,
                                            warnings)
+    # after any veto of a label exchange: the sensors as they were finally taken
+    warnings += _offset_warnings(synced, by_leg, session_params.posture)
     legs, swings = _check_thigh_pairing(legs, swings, by_leg, activity, estimator, params, calibration, ap, assigned,
                                         warnings, others)
     # the other leg's strides are judged against this leg as it was recorded, still where its sensors were off
@@ -151,8 +152,8 @@ def _angle_warnings(legs: dict[str, LegResult], posture: PostureParams) -> list[
             if (m := _mounting(legs[leg])) is not None and m.changed and not _withheld(legs[leg])]
     out += [_level_bridged_warning(leg, d) for leg in sorted(legs)
             if (d := legs[leg].diagnostics) is not None and d.level_bridged and not _withheld(legs[leg])]
-    out += [f"{leg} leg: {d.lowered_strides} stride(s) dropped: the thigh did not turn forward through the swing, a "
-            "lifted leg lowered in place (marching) or a side step, not a step forward" for leg in sorted(legs)
+    out += [f"{leg} leg: {d.lowered_strides} stride(s) dropped: the thigh did not turn forward through the swing, "
+            "no step forward (marching in place, side steps, a landing)" for leg in sorted(legs)
             if (d := legs[leg].diagnostics) is not None and d.lowered_strides and not _withheld(legs[leg])]
     return out + _implausible_warnings(legs, posture)
 
@@ -253,8 +254,9 @@ def _processed_legs(synced: dict[str, SyncedLeg], by_leg: dict[str, dict[str, Ra
         for leg in vetoed:
             try:
                 synced[leg] = _synced(leg, by_leg[leg]["thigh"], by_leg[leg]["shank"], activity, params)
-            except ValueError:
+            except ValueError as exc:
                 del synced[leg]
+                warnings.append(f"{leg} leg skipped: {exc}")
         legs, swings, others, skipped = _each_leg(synced, by_leg, activity, estimator, params, calibration)
     warnings += skipped
     return legs, swings, others
@@ -284,8 +286,8 @@ def _each_leg(synced: dict[str, SyncedLeg], by_leg: dict[str, dict[str, RawSenso
 def _centre_vetoes(legs: dict[str, LegResult], by_leg: dict[str, dict[str, RawSensorStream]],
                    assigned: dict[str, str], warnings: list[str], ap: AssignmentParams) -> list[str]:
     """The legs whose thigh and shank the swing rates exchanged but the joint centres do not confirm it by putting the
-    knee below the sensor taken for the thigh and above the one taken for the shank
-    (:func:`pipeline.assignment.segments_by_centre`; they may put it the other way, or fit no body-worn lever arms).
+    sensor taken for the thigh higher above the knee than the one taken for the shank
+    (:func:`pipeline.assignment.segments_by_centre`; they may put it lower, or fit no body-worn lever arms).
     Their streams are put back as labelled in ``by_leg`` (``assigned`` and ``warnings`` in place), to be processed
     again: high knees or marching lift the thigh faster than gait swings the shank, and the exchanged order took
     their lifts for strides (and, between walks, lost the walk's). Only legs whose exchanged order shows strides are
@@ -303,8 +305,8 @@ def _centre_vetoes(legs: dict[str, LegResult], by_leg: dict[str, dict[str, RawSe
         segs["thigh"], segs["shank"] = segs["shank"], segs["thigh"]
         del assigned[leg]
         _withdraw_exchange(leg, warnings)
-        where = (f"the joint centres put the sensor labelled thigh {heights[1]:.2f} m above the knee and the one "
-                 f"labelled shank {-heights[0]:.2f} m below it") if verdict == "swapped" and heights is not None \
+        where = (f"the joint centres put the sensor labelled thigh {heights[1] - heights[0]:.2f} m higher above the "
+                 "knee than the one labelled shank") if verdict == "swapped" and heights is not None \
             else "the joint centres do not confirm it"
         warnings.append(f"{leg} leg: thigh and shank labels kept as given: the swing rates read them as exchanged "
                         f"(exercises that lift the thigh fast), but {where}")
