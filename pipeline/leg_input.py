@@ -46,6 +46,12 @@ class LegInput:
         return self.prep.fs_hz
 
     @property
+    def thigh_sag_dps(self) -> np.ndarray:
+        """The thigh's sagittal rate g1.j1 [deg/s] (N,), forward positive, NaN where masked: the knee rate plus the
+        shank's."""
+        return self.rate_dps + self.shank_sag_dps
+
+    @property
     def filter_strides(self) -> list[tuple[int, int]]:
         """Stride intervals ``(start, stop)`` for de-biasing and tuning: running's foot-strike cycles when there
         are any, else the gait-event strides."""

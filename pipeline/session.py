@@ -703,9 +703,7 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
     leg_reasons = (("clock_disagreement",) if clock_unknown else ()) + (("mounting_changed",) if mounting.changed
                                                                          else ())
     # the thigh over the shank's swing: not judged where the two clocks' timing is unknown
-    thigh_sag = np.rad2deg(data.prep.gyr_thigh_rps @ data.axes.j1)
-    thigh_sag[~data.prep.valid] = np.nan
-    lowered = set() if clock_unknown else lowered_not_stepped(thigh_sag, data.events.strides, data.fs_hz,
+    lowered = set() if clock_unknown else lowered_not_stepped(data.thigh_sag_dps, data.events.strides, data.fs_hz,
                                                               data.params.phases.min_swing_thigh_deg)
     strides = _strides(leg, data, result, leg_reasons, lowered)
     if _mostly_mismatched(strides, data.params.quality):
@@ -771,7 +769,7 @@ def _clock_runaway(data: LegInput, corrected: bool) -> bool:
     ev = data.events
     ms = ev.ms[(ev.ms >= 0) & (ev.bout >= 0)]
     sync = data.params.sync
-    return stride_clock_runaway(data.prep.t_s, data.rate_dps + data.shank_sag_dps, ms, data.fs_hz, sync,
+    return stride_clock_runaway(data.prep.t_s, data.thigh_sag_dps, ms, data.fs_hz, sync,
                                 limit=sync.max_drift if corrected else sync.crystal_drift)
 
 
