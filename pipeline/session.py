@@ -245,12 +245,14 @@ def _processed_legs(synced: dict[str, SyncedLeg], by_leg: dict[str, dict[str, Ra
                     calibration: Mapping[str, KneeCalibration] | None, assigned: dict[str, str],
                     warnings: list[str]) -> tuple[dict[str, LegResult], dict[str, np.ndarray], dict[str, OtherLeg]]:
     """Every synchronised leg processed (:func:`_each_leg`); all again where the joint centres veto an exchange of
-    thigh and shank (:func:`_centre_vetoes`; ``synced`` re-synchronised in place), since the other leg's swings
-    change with it. Returns the legs, their mid-swing times and the other legs' swings."""
+    thigh and shank (:func:`_centre_vetoes`; ``synced`` re-synchronised in place, a leg that cannot be is skipped
+    with a warning), since the other leg's swings change with it. Returns the legs, their mid-swing times and the
+    other legs' swings."""
     ap = (params if params is not None else preset(activity)).assignment
     legs, swings, others, skipped = _each_leg(synced, by_leg, activity, estimator, params, calibration)
-    vetoed = _centre_vetoes(legs, by_leg, assigned, warnings, ap)
-    if vetoed:
+    # a vetoed leg changes the other's swings, and an exchanged leg that showed no stride may show some now: judged
+    # again until none is vetoed (a veto takes a leg's exchange back, so this ends after one pass per leg)
+    while vetoed := _centre_vetoes(legs, by_leg, assigned, warnings, ap):
         for leg in vetoed:
             try:
                 synced[leg] = _synced(leg, by_leg[leg]["thigh"], by_leg[leg]["shank"], activity, params)

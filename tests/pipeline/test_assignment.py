@@ -227,3 +227,28 @@ def test_high_knees_alone_give_no_stride_whatever_the_centres_say() -> None:
     for lr in res.legs.values():
         assert lr.diagnostics.assignment == "as_labelled" and not lr.strides
         assert lr.diagnostics.trace_withheld == "no_gait"
+
+
+def test_a_vetoed_leg_that_cannot_be_synchronised_again_is_skipped_with_its_reason(monkeypatch) -> None:
+    """A leg whose exchange the joint centres veto is synchronised again as labelled; where that fails, the leg is
+    skipped and says why, and none of the exchanged order's strides (the lifts of the high knees) is reported."""
+    import pipeline.session as session
+
+    sim = simulate_session(SimConfig(seed=2, n_strides=12, bout_strides=6, activities=("high_knees",), move_reps=20))
+    synced = session._synced
+    calls: list[str] = []
+
+    def first_pass_only(leg, *args, **kwargs):
+        calls.append(leg)
+        if len(calls) > 2:  # the first pass synchronises both legs; a veto's re-synchronisation comes after
+            raise ValueError("less than one second of usable samples")
+        return synced(leg, *args, **kwargs)
+
+    monkeypatch.setattr(session, "_synced", first_pass_only)
+    res = process_session(sim.streams)
+    vetoed = calls[2:]
+    assert vetoed, "the high knees' exchange was not vetoed"
+    for leg in vetoed:
+        assert leg not in res.legs
+        assert f"{leg} leg skipped: less than one second of usable samples" in res.warnings, res.warnings
+        assert any(w.startswith(f"{leg} leg: thigh and shank labels kept as given") for w in res.warnings)
