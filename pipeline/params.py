@@ -320,7 +320,14 @@ class PhaseParams:
     """Least forward turn of the thigh over a stride's swing [deg] for the stride to be a step
     (:mod:`pipeline.stepping`). Zero is the physical bound: a foot that moves forward turns its thigh forward. Gait
     +4 .. +52 on this repository's simulator (one stride at a bout's end -3), +3 .. +48 on an independent one;
-    marching in place -35 .. -39, side steps -2 .. -6. Below it the stride is dropped."""
+    marching in place -35 .. -39, side steps -2 .. -6. Below it, and below ``min_contact_thigh_deg``, the stride is
+    dropped."""
+    min_contact_thigh_deg: float = 10.0
+    """Least the thigh stands forward at the next heel strike of its most extended within the stride [deg]
+    (:func:`pipeline.stepping.thigh_landing_deg`), which spares a stride whose thigh turned back over the swing: in
+    running the detected toe-off lies in mid-swing and the thigh retracts before the strike (an independent
+    simulator's running strides that turned back landed 16-50 deg forward). A lowered leg lands where it stood:
+    marching 0 .. +3 deg on two simulators. About half-way between."""
     to_delay_s: float = 0.04
     """Toe-off after the shank minimum [s]: measured against the Tan et al. 2022 force plate."""
     hs_delay_s: float = 0.02

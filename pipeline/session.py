@@ -152,8 +152,9 @@ def _angle_warnings(legs: dict[str, LegResult], posture: PostureParams) -> list[
             if (m := _mounting(legs[leg])) is not None and m.changed and not _withheld(legs[leg])]
     out += [_level_bridged_warning(leg, d) for leg in sorted(legs)
             if (d := legs[leg].diagnostics) is not None and d.level_bridged and not _withheld(legs[leg])]
-    out += [f"{leg} leg: {d.lowered_strides} stride(s) dropped: the thigh did not turn forward through the swing, "
-            "no step forward (marching in place, side steps, a landing)" for leg in sorted(legs)
+    out += [f"{leg} leg: {d.lowered_strides} stride(s) dropped: the thigh did not turn forward through the swing "
+            "nor land forward of its push-off, no step forward (marching in place, side steps, a landing)"
+            for leg in sorted(legs)
             if (d := legs[leg].diagnostics) is not None and d.lowered_strides and not _withheld(legs[leg])]
     return out + _implausible_warnings(legs, posture)
 
@@ -706,7 +707,7 @@ def _process_leg(leg: str, thigh: RawSensorStream, shank: RawSensorStream, activ
                                                                          else ())
     # the thigh over the shank's swing: not judged where the two clocks' timing is unknown
     lowered = set() if clock_unknown else lowered_not_stepped(data.thigh_sag_dps, data.events.strides, data.fs_hz,
-                                                              data.params.phases.min_swing_thigh_deg)
+                                                              data.params.phases)
     strides = _strides(leg, data, result, leg_reasons, lowered)
     if _mostly_mismatched(strides, data.params.quality):
         strides = with_reason(strides, "leg_mismatch", data.params.quality)

@@ -10,6 +10,16 @@ thigh's over the same interval can, from the gyroscope alone and without any abs
 Side steps, which carry the foot sideways, turn the thigh hardly at all in the sagittal plane. So a step's thigh
 turns forward over its swing, and zero is the bound (``PhaseParams.min_swing_thigh_deg``).
 
+The swing is read from the detected toe-off, the start of the shank's forward lobe. In running that lies well
+after the true toe-off (the knee flexes fast in early swing and the shank keeps turning back), and the thigh
+retracts before the foot strikes (Novacheck 1998), so from the detected toe-off it may turn back a little although
+the leg ran forward: -6 .. +5 deg over an independent simulator's running strides, 19-40 % of them below zero. What
+still tells a step is where the thigh lands: at the next heel strike it stands forward of its most extended in the
+stride (push-off) by 16-50 deg in those running strides and 4-50 in this repository's walking patterns (the least a
+shuffle with a stiff hip), while a lowered leg lands where it stood (marching 0 .. +3 deg on both simulators). A
+stride is no step when it fails both: its thigh turns back over the swing and lands less than
+``PhaseParams.min_contact_thigh_deg`` forward of its most extended.
+
 Over each detected stride's swing (toe-off to the next heel strike): the real biomechZoo trial +30 .. +36 deg; this
 repository's simulator's walking patterns (slow, fast, crouch, stiff-knee, a stiff hip at half its excursion, paces
 down to 0.4, 3-D hips and knees, turns) and running +4 .. +52, a single stride at a bout's end -3; an independent
@@ -21,6 +31,8 @@ independent simulator's -24 .. -32 where its events fell on the lowering), the s
 from __future__ import annotations
 
 import numpy as np
+
+from pipeline.params import PhaseParams
 
 
 def thigh_swing_deg(thigh_sag_dps: np.ndarray, strides: list[tuple[int, int, int]], fs_hz: float) -> np.ndarray:
@@ -34,9 +46,26 @@ def thigh_swing_deg(thigh_sag_dps: np.ndarray, strides: list[tuple[int, int, int
     return out
 
 
+def thigh_landing_deg(thigh_sag_dps: np.ndarray, strides: list[tuple[int, int, int]], fs_hz: float) -> np.ndarray:
+    """Per stride ``(hs, to, hs_next)`` (sample indices), how far forward [deg] the thigh stands at the next heel
+    strike of where it was most extended within the stride (from ``hs`` to ``hs_next``): its sagittal rate
+    ``thigh_sag_dps`` (N,) [deg/s, sampled at ``fs_hz``, forward positive, NaN where masked] integrated, masked
+    samples left out. Never negative. (strides,) array."""
+    cum = np.concatenate(([0.0], np.cumsum(np.nan_to_num(thigh_sag_dps, nan=0.0)))) / fs_hz
+    out = np.zeros(len(strides))
+    for k, (hs, _, hs_next) in enumerate(strides):
+        out[k] = cum[hs_next + 1] - cum[hs:hs_next + 2].min()
+    return out
+
+
 def lowered_not_stepped(thigh_sag_dps: np.ndarray, strides: list[tuple[int, int, int]], fs_hz: float,
-                        min_swing_thigh_deg: float) -> set[int]:
-    """Indices of the strides whose thigh turns forward by less than ``min_swing_thigh_deg`` [deg] over the swing
-    (:func:`thigh_swing_deg`): a lifted leg lowered in place or a side step, not a step forward."""
+                        params: PhaseParams) -> set[int]:
+    """Indices of the strides whose thigh turns forward by less than ``params.min_swing_thigh_deg`` [deg] over the
+    swing (:func:`thigh_swing_deg`) and lands less than ``params.min_contact_thigh_deg`` forward of its most extended
+    (:func:`thigh_landing_deg`): a lifted leg lowered in place or a side step, not a step forward."""
     swing = thigh_swing_deg(thigh_sag_dps, strides, fs_hz)
-    return set(np.flatnonzero(swing < min_swing_thigh_deg).tolist())
+    back = np.flatnonzero(swing < params.min_swing_thigh_deg)
+    if back.size == 0:
+        return set()
+    landing = thigh_landing_deg(thigh_sag_dps, [strides[k] for k in back], fs_hz)
+    return set(back[landing < params.min_contact_thigh_deg].tolist())

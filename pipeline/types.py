@@ -186,8 +186,8 @@ class LegDiagnostics:
     gait_strides: int = 0
     # how far the thigh and the shank sensor lie above the knee centre [m] (pipeline.assignment.centre_heights_m)
     centre_heights_m: tuple[float, float] | None = None
-    # strides dropped because the thigh did not turn forward through their swing: a lifted leg lowered in place (as
-    # in marching) or a side step, no step forward (pipeline.stepping)
+    # strides dropped because the thigh neither turned forward through their swing nor landed forward of its push-off:
+    # a lifted leg lowered in place (as in marching) or a side step, no step forward (pipeline.stepping)
     lowered_strides: int = 0
     # the mounting-change check (pipeline.mounting.MountingCheck); None where it did not run
     mounting: MountingCheck | None = None

@@ -8,7 +8,7 @@ from bench.matching import match_strides
 from pipeline.params import PhaseParams
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, simulate_session
-from pipeline.stepping import lowered_not_stepped, thigh_swing_deg
+from pipeline.stepping import lowered_not_stepped, thigh_landing_deg, thigh_swing_deg
 
 FS_HZ = 100.0
 
@@ -31,8 +31,26 @@ def test_the_thigh_swing_is_summed_from_toe_off_to_heel_strike() -> None:
     holed[170:180] = np.nan
     assert thigh_swing_deg(holed, strides, FS_HZ)[1] == -38.0 * 30 / 40
     p = PhaseParams()
-    assert lowered_not_stepped(rate, strides, FS_HZ, p.min_swing_thigh_deg) == {1}
-    assert lowered_not_stepped(rate, [], FS_HZ, p.min_swing_thigh_deg) == set()
+    assert lowered_not_stepped(rate, strides, FS_HZ, p) == {1}
+    assert lowered_not_stepped(rate, [], FS_HZ, p) == set()
+
+
+def test_a_running_stride_whose_thigh_retracts_before_the_strike_is_a_step() -> None:
+    """Running: the thigh extends through the stance to push-off (-25 deg over 35 samples), flexes forward through
+    early swing (+50 over 25) and retracts before the strike (-8 over 40). The detected toe-off lies in mid-swing
+    (sample 60), from where the thigh turns back, but it lands 42 deg forward of push-off: a step. A march's thigh
+    lands where it stood."""
+    run = np.concatenate([np.full(35, -25.0 * FS_HZ / 35), np.full(25, 50.0 * FS_HZ / 25),
+                          np.full(40, -8.0 * FS_HZ / 40)])
+    march = _stride_rate(-38.0, +38.0)
+    rate = np.concatenate([run, march, [0.0]])
+    strides = [(0, 60, 100), (100, 160, 200)]
+    swing = thigh_swing_deg(rate, strides, FS_HZ)
+    assert swing[0] < 0.0 and swing[1] < 0.0
+    landing = thigh_landing_deg(rate, strides, FS_HZ)
+    # from push-off (the least) to the strike, with the strike's own sample of the next stance
+    np.testing.assert_allclose(landing, [50.0 - 8.0 + 38.0 / 60, 0.0], atol=1e-9)
+    assert lowered_not_stepped(rate, strides, FS_HZ, PhaseParams()) == {1}
 
 
 def test_marching_in_place_gives_no_strides_and_keeps_the_walk() -> None:
