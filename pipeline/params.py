@@ -670,16 +670,11 @@ class FusionParams:
     bridge_max_span_s: float = 60.0
     """Longest run of motion [s] between two standing periods that is bridged (a gyro's residual bias changes little
     within a minute; a longer walk keeps the mid-stance level)."""
-    bridge_one_sided_s: float = 4.0
-    """A walk broken by a hole or a turn is integrated from either standing end this far [s] (three strides or so)
-    without the far end's drift check: whole bridges of ~12 s on the sweep's tune seeds drifted p50 1.9, p90 3.9 deg
-    (planar), so a few seconds stay within ~1 deg."""
     bridge_max_turn_deg: float = 45.0
     """A run in which the body turns by more than this [deg] (the thigh's rotation about its mean up direction,
-    :func:`pipeline.quiet_bridge.heading_deg`) is bridged only up to the turn from either end (as across a hole,
-    ``bridge_one_sided_s``): the turn adds a step of up to its angle times the sine of the axes' misalignment
-    (:func:`pipeline.quiet_bridge.bridged_angle`). Straight walking rocks the thigh by the hip's rotation only (+-5
-    deg), a U-turn by 150-180 deg."""
+    :func:`pipeline.quiet_bridge.heading_deg`) is not bridged (as a run with a hole): the turn adds a step of up to
+    its angle times the sine of the axes' misalignment (:func:`pipeline.quiet_bridge.bridged_angle`). Straight
+    walking rocks the thigh by the hip's rotation only (+-5 deg), a U-turn by 150-180 deg."""
     bridge_max_drift_deg: float = 10.0
     """A bridge whose integral misses the static angle at its far end by more than this [deg] is not used: the
     axes, a hole or a posture change it cannot follow broke it."""
