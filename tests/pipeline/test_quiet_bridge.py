@@ -16,7 +16,9 @@ from pipeline.types import LegResult
 
 
 def _sim(seed: int) -> SimSession:
-    return simulate_session(SimConfig(pattern="normal", fs_hz=100.0, seed=seed, duration_s=90.0, bout_strides=12))
+    """A session whose walks are wholly measured (no packet lost): a walk with a hole has no bridge."""
+    return simulate_session(SimConfig(pattern="normal", fs_hz=100.0, seed=seed, duration_s=90.0, bout_strides=12,
+                                      packet_loss=0.0, outages_per_min=0.0))
 
 
 def _mean_peak_error(lr: LegResult, sim: SimSession, leg: str) -> float:
@@ -34,14 +36,15 @@ def test_legs_whose_levels_agree_keep_the_mid_stance_level() -> None:
         assert not lr.diagnostics.level_bridged
 
 
-@pytest.mark.parametrize("seed", [1, 4, 6])
+@pytest.mark.parametrize("seed", [1, 4, 5, 6])
 def test_a_failed_joint_centre_fit_is_caught_and_the_leg_takes_the_bridged_level(
         seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
     """Sensor positions 20-30 cm off (as a clock error absorbed by the joint-centre fit leaves them) move the
     mid-stance level by degrees; the static angles in standing do not see them, so the check takes the bridged level
-    and the leg's peak error returns to within 1.5 deg of the uncorrupted run's (seeds whose left leg has a whole
-    bridge: walks with a turn or an unfilled hole have none). The strides levelled by the cycle-mean gravity (the
-    default) need no joint centre at all: there the failed fit moves nothing."""
+    and the leg's peak error returns to within 1.5 deg of the uncorrupted run's. (Of seeds 0-6, on 0 and 2 the
+    corrupted fit moves the level by less than the check's bound, and on 3 the check reads 2.8 deg, just inside it.)
+    The strides levelled by the cycle-mean gravity (the default) need no joint centre at all: there the failed fit
+    moves nothing."""
     sim = _sim(seed)
     mid_stance = dataclasses.replace(WALKING, fusion=dataclasses.replace(WALKING.fusion, gravity_level=False))
     clean = _mean_peak_error(process_session(sim.streams, activity="walking", params=mid_stance).legs["left"], sim,
@@ -129,7 +132,8 @@ def test_bridges_run_from_standing_to_standing_and_never_across_a_turn(monkeypat
     """U-turns in every other bout: the thigh's heading shows them (> 120 deg); the bouts without one are bridged
     whole, from quiet standing to quiet standing, and no bridge holds a turn."""
     seen = _recorded_bridges(monkeypatch, SimConfig(pattern="normal", fs_hz=100.0, seed=2, duration_s=90.0,
-                                                    bout_strides=12, walking_turns=True))
+                                                    bout_strides=12, walking_turns=True, packet_loss=0.0,
+                                                    outages_per_min=0.0))
     limit = WALKING.fusion.bridge_max_turn_deg
     for bridged, heading, standing, _, _ in seen:
         assert np.ptp(heading) > 120.0
@@ -140,21 +144,18 @@ def test_bridges_run_from_standing_to_standing_and_never_across_a_turn(monkeypat
             assert standing[max(a - 1, 0)] and standing[min(b, standing.size - 1)]
 
 
-def test_a_walk_with_an_unfilled_hole_is_not_bridged_from_either_end(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Bursty packet loss: a walk with a hole left masked has no integral to its far end, and none is taken from one
-    end alone (nothing would check its drift); holes filled from the neighbouring strides are crossed, the far end's
-    drift check bounding what they add. Every bridge runs from standing to standing over usable samples, and some
-    cross a filled hole."""
+def test_a_walk_with_a_hole_is_not_bridged_from_either_end(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Bursty packet loss: a walk with a hole, filled or not, has no measured integral to its far end, and none is
+    taken from one end alone (nothing would check its drift). Every bridge runs over measured samples from standing
+    to standing."""
     seen = _recorded_bridges(monkeypatch, SimConfig(pattern="normal", fs_hz=100.0, seed=4, duration_s=90.0,
                                                     bout_strides=8, walking_turns=False, packet_loss=0.03,
                                                     loss_model="bursty"))
-    crossed = 0
-    for bridged, _, standing, measured, valid in seen:
+    for bridged, _, standing, measured, _ in seen:
+        assert not measured.all()
         for a, b in _pieces(bridged):
-            assert valid[a:b].all()
+            assert measured[a:b].all()
             assert standing[max(a - 1, 0)] and standing[min(b, standing.size - 1)]
-            crossed += int(not measured[a:b].all())
-    assert crossed
 
 
 def test_cf_fallback_strides_of_a_bridged_leg_move_with_it(monkeypatch: pytest.MonkeyPatch) -> None:
