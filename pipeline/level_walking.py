@@ -11,11 +11,23 @@ the simulator's walking patterns (fast to stiff-knee and crouch, 3-D knees, 50 H
 stair flights. Running never stays near extension (a running leg is not judged). The strides that lead onto or
 off a stair step are transitions, neither (:func:`next_to`): the last one before a flight lifts the foot onto the
 first step, the first one after it takes its stance on the last.
+
+Where the stance holds long pauses (a step test: up onto a step, both feet on it, down again) the knee rests near
+extension for most of the stride and the share passes. What still tells a step down from a step of level gait is
+where the knee flexes most: level walking flexes it most in swing (60-70 deg) and only 10-25 deg in loading
+response, while lowering the body off a step flexes the stance knee to 60-75 deg under load and swings a nearly
+straight leg (:func:`stance_above_swing`). Over every stride of this repository's simulator's walking patterns, the
+real trial and two independent simulators' gait, step-to gait and sit-to-stand between walks, the stance never
+flexed beyond the swing's peak (0.0 deg); an independent simulator's step-downs flexed 37-39 deg beyond it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
+
+from pipeline.types import StrideValues
 
 
 def near_extension_share(angle_deg: np.ndarray, t_s: np.ndarray, spans_s: np.ndarray, band_deg: float
@@ -40,6 +52,14 @@ def not_level_walking(angle_deg: np.ndarray, t_s: np.ndarray, spans_s: np.ndarra
     less than ``min_share`` of the stride (:func:`near_extension_share`): stair or step-like, not level gait."""
     share = near_extension_share(angle_deg, t_s, spans_s, band_deg)
     return np.flatnonzero(share < min_share).tolist()
+
+
+def stance_above_swing(strides: Sequence[StrideValues], margin_deg: float) -> list[int]:
+    """Indices of the strides whose knee flexes more in stance than at its swing peak, by more than ``margin_deg``
+    [deg]: the stride's range (its largest flexion less its least) beyond its swing peak less its least. A step
+    down, not level gait."""
+    return [k for k, s in enumerate(strides)
+            if s.rom_deg - (s.peak_swing_flexion_deg - s.min_flexion_deg) > margin_deg]
 
 
 def next_to(spans_s: np.ndarray, idx: list[int] | set[int], tol_s: float = 0.02) -> list[int]:

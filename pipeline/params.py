@@ -342,6 +342,11 @@ class PhaseParams:
     level_min_share: float = 0.5
     """Least share of a walking stride near extension for it to be level gait: real walking 0.59-0.68, the
     simulator's walking patterns 0.61-0.80, its stair flights 0.29-0.41 (:mod:`pipeline.level_walking`)."""
+    stance_above_swing_deg: float = 10.0
+    """A walking stride whose knee flexes more in stance than at its swing peak by more than this [deg] is a step
+    down, not level gait (:func:`pipeline.level_walking.stance_above_swing`): level gait 0.0 on every stride of
+    four sources (README), an independent simulator's step-downs 37-39. The margin spares a shuffle whose swing peak
+    is as small as its loading response."""
     gap_guard_s: float = 0.15
     """No stride whose heel strikes lie closer than this [s] to a masked sample: an event searched up to a hole
     (heel strike up to ``impact_window_s[1]`` after the swing lobe's end) may have fallen inside it, and the nearest

@@ -29,7 +29,7 @@ from pipeline.bilateral import OtherLeg, gait_strides, mid_swings_s, non_alterna
 from pipeline.constants import G_MPS2
 from pipeline.estimators import get_estimator
 from pipeline.leg_input import LegInput
-from pipeline.level_walking import next_to, not_level_walking
+from pipeline.level_walking import next_to, not_level_walking, stance_above_swing
 from pipeline.metrics import stride_values_many
 from pipeline.mounting import check_mounting, with_level_step
 from pipeline.params import (
@@ -495,12 +495,18 @@ def _level_strides(legs: dict[str, LegResult], params: PhaseParams, warnings: li
             continue
         spans = np.array([(s.t_start_s, s.t_end_s) for s in lr.strides])
         stairs = not_level_walking(lr.angle_deg, lr.t_s, spans, params.level_band_deg, params.level_min_share)
-        onto = next_to(spans, stairs)
+        downs = [k for k in stance_above_swing(lr.strides, params.stance_above_swing_deg) if k not in stairs]
+        onto = next_to(spans, [*stairs, *downs])
         if stairs:
-            out[leg] = lr.without({*stairs, *onto})
-            warnings.append(f"{leg} leg: {len(stairs) + len(onto)} stride(s) dropped: the knee stayed near extension "
-                            f"for less than {params.level_min_share:.0%} of the stride (stairs or step-ups, not level "
-                            f"gait){f', or the stride led onto or off such a one ({len(onto)})' if onto else ''}")
+            warnings.append(f"{leg} leg: {len(stairs)} stride(s) dropped: the knee stayed near extension for less "
+                            f"than {params.level_min_share:.0%} of the stride (stairs or step-ups, not level gait)")
+        if downs:
+            warnings.append(f"{leg} leg: {len(downs)} stride(s) dropped: the knee flexed more in stance than in swing "
+                            "(stepping down, not level gait)")
+        if onto:
+            warnings.append(f"{leg} leg: {len(onto)} stride(s) dropped: the stride led onto or off a stair or a step")
+        if stairs or downs:
+            out[leg] = lr.without({*stairs, *downs, *onto})
     return out
 
 

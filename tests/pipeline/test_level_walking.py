@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from bench.matching import match_strides
-from pipeline.level_walking import near_extension_share, next_to, not_level_walking
+from pipeline.level_walking import near_extension_share, next_to, not_level_walking, stance_above_swing
+from pipeline.metrics import stride_values_many
 from pipeline.params import PhaseParams
 from pipeline.session import process_session
 from pipeline.simulate import SimConfig, simulate_session
@@ -33,6 +34,24 @@ def test_stair_gait_is_far_from_extension_and_walking_is_not() -> None:
     masked = angle.copy()
     masked[200:400] = np.nan  # a stride without an angle is not judged
     assert not_level_walking(masked, t_s, spans, p.level_band_deg, p.level_min_share) == [2]
+
+
+def test_a_step_down_flexes_the_knee_more_in_stance_than_in_swing() -> None:
+    """Level walking flexes the knee most in swing (~60 deg) and ~18 deg in loading response; stepping down off a
+    step lowers the body on a stance knee flexed to ~66 deg and swings a leg flexed ~29 deg. A long pause near
+    extension on the step (both feet on it) keeps the step-down's share near extension high: only where the knee
+    flexes most tells it."""
+    walk = _stride([(0, 5), (12, 18), (40, 5), (60, 38), (72, 60), (100, 5)])
+    down = _stride([(0, 5), (10, 5), (35, 66), (55, 10), (65, 12), (80, 29), (100, 5)])
+    t_s = np.arange(400) * 0.01
+    angle = np.concatenate([walk, down])
+    strides = [(0, 120, 200), (200, 330, 399)]
+    values = stride_values_many(angle, t_s, strides)
+    p = PhaseParams()
+    assert values[1].peak_swing_flexion_deg < 30.0 < values[1].rom_deg - 30.0
+    assert stance_above_swing(values, p.stance_above_swing_deg) == [1]
+    assert not_level_walking(angle, t_s, np.array([(0.0, 2.0), (2.0, 3.99)]), p.level_band_deg,
+                             p.level_min_share) == []
 
 
 def test_a_stair_flight_gives_no_strides_and_keeps_the_walk() -> None:
@@ -75,5 +94,5 @@ def test_a_step_onto_a_landing_is_no_gait_stride() -> None:
                                                               "step_test", "stair_flight"), impact_balanced=False))
     res = process_session(sim.streams)
     assert not [s for lr in res.legs.values() for s in lr.strides if s.quality >= 0.5]
-    assert any("led onto or off such a one" in w or "did not swing in anti-phase" in w
+    assert any("led onto or off a stair or a step" in w or "did not swing in anti-phase" in w
                for w in res.warnings if w.startswith("left leg"))
