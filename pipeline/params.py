@@ -818,8 +818,8 @@ class RunningParams:
     whole standing-to-standing bridges only): beyond this [deg] the leg takes the bridged level. Wider than walking's
     (``FusionParams.bridge_disagree_deg``): with 3-D hip and knee motion the running knee rate about a hinge axis drifts
     more, and on the sweep's tune seeds (``joint_3d_mixed``, running 6 g) correct legs disagreed by up to 4.3 deg (1.5
-    times that here; with one-sided pieces, 8.8); sensor positions put 20-30 cm off moved running legs by 4.5-10 deg
-    (tune seeds 0-4). So only gross failures are caught."""
+    times that here); sensor positions put 20-30 cm off moved running legs by 4.5-10 deg (tune seeds 0-4). So only
+    gross failures are caught."""
     level_wander_deg: float = 6.0
     """A running stride whose filter level against GO's (the mean of GO minus the filter's angle over the stride,
     :func:`pipeline.policy.go_offsets`) lies more than this [deg] from the leg's median is out of trends

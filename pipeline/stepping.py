@@ -48,9 +48,9 @@ def thigh_swing_deg(thigh_sag_dps: np.ndarray, strides: list[tuple[int, int, int
 
 def thigh_landing_deg(thigh_sag_dps: np.ndarray, strides: list[tuple[int, int, int]], fs_hz: float) -> np.ndarray:
     """Per stride ``(hs, to, hs_next)`` (sample indices), how far forward [deg] the thigh stands at the next heel
-    strike of where it was most extended within the stride (from ``hs`` to ``hs_next``): its sagittal rate
-    ``thigh_sag_dps`` (N,) [deg/s, sampled at ``fs_hz``, forward positive, NaN where masked] integrated, masked
-    samples left out. Never negative. (strides,) array."""
+    strike of where it was most extended within the stride: its sagittal rate ``thigh_sag_dps`` (N,) [deg/s, sampled
+    at ``fs_hz``, forward positive, NaN where masked] integrated, masked samples left out, from ``hs`` through the
+    strike's own sample (as :func:`thigh_swing_deg`). Never negative. (strides,) array."""
     cum = np.concatenate(([0.0], np.cumsum(np.nan_to_num(thigh_sag_dps, nan=0.0)))) / fs_hz
     out = np.zeros(len(strides))
     for k, (hs, _, hs_next) in enumerate(strides):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import inspect
+
 import numpy as np
 import pytest
 
@@ -236,19 +238,38 @@ def test_a_vetoed_leg_that_cannot_be_synchronised_again_is_skipped_with_its_reas
 
     sim = simulate_session(SimConfig(seed=2, n_strides=12, bout_strides=6, activities=("high_knees",), move_reps=20))
     synced = session._synced
-    calls: list[str] = []
+    vetoed: list[str] = []
 
-    def first_pass_only(leg, *args, **kwargs):
-        calls.append(leg)
-        if len(calls) > 2:  # the first pass synchronises both legs; a veto's re-synchronisation comes after
+    def failing_after_a_veto(leg, *args, **kwargs):
+        if inspect.stack()[1].function == "_processed_legs":  # a veto's re-synchronisation
+            vetoed.append(leg)
             raise ValueError("less than one second of usable samples")
         return synced(leg, *args, **kwargs)
 
-    monkeypatch.setattr(session, "_synced", first_pass_only)
+    monkeypatch.setattr(session, "_synced", failing_after_a_veto)
     res = process_session(sim.streams)
-    vetoed = calls[2:]
     assert vetoed, "the high knees' exchange was not vetoed"
     for leg in vetoed:
         assert leg not in res.legs
         assert f"{leg} leg skipped: less than one second of usable samples" in res.warnings, res.warnings
         assert any(w.startswith(f"{leg} leg: thigh and shank labels kept as given") for w in res.warnings)
+
+
+def test_after_a_veto_the_exchanged_legs_are_judged_again(monkeypatch) -> None:
+    """A veto changes the other leg's swings, so every exchange still standing is judged again on the legs processed
+    after it, until a pass vetoes nothing: the high knees between walks veto on the first pass and the joint centres
+    are asked once more."""
+    import pipeline.session as session
+
+    sim = simulate_session(SimConfig(seed=2, n_strides=12, bout_strides=6, activities=("high_knees",), move_reps=20))
+    judge = session._centre_vetoes
+    passes: list[list[str]] = []
+
+    def recorded(*args, **kwargs):
+        passes.append(judge(*args, **kwargs))
+        return passes[-1]
+
+    monkeypatch.setattr(session, "_centre_vetoes", recorded)
+    res = process_session(sim.streams)
+    assert passes[0] and passes[-1] == [] and len(passes) >= 2, passes
+    assert all(lr.diagnostics.assignment == "as_labelled" for lr in res.legs.values())

@@ -54,6 +54,32 @@ def test_a_step_down_flexes_the_knee_more_in_stance_than_in_swing() -> None:
                              p.level_min_share) == []
 
 
+def test_a_walking_stride_flexed_most_in_stance_goes_with_its_neighbours_and_is_said() -> None:
+    """The session's level-gait check on a processed walk whose one stride flexes 25 deg more in stance than at its
+    swing peak (its range widened): that stride and the two that share its heel strikes (the step onto and off the
+    step) are dropped, the session says why, and the other strides stay."""
+    import dataclasses
+
+    from pipeline.session import _level_strides
+
+    sim = simulate_session(SimConfig(pattern="normal", seed=2, duration_s=60.0, bout_strides=10,
+                                     activities=("standing",)))
+    lr = process_session(sim.streams).legs["left"]
+    k = len(lr.strides) // 2
+    s = lr.strides[k]
+    assert abs(lr.strides[k - 1].t_end_s - s.t_start_s) < 1e-9 and abs(s.t_end_s - lr.strides[k + 1].t_start_s) < 1e-9
+    down = dataclasses.replace(lr, strides=[*lr.strides[:k], dataclasses.replace(s, rom_deg=s.rom_deg + 25.0),
+                                            *lr.strides[k + 1:]])
+    warnings: list[str] = []
+    kept = _level_strides({"left": down}, PhaseParams(), warnings)["left"]
+    assert [x.t_start_s for x in kept.strides] == [x.t_start_s for i, x in enumerate(lr.strides)
+                                                   if i not in (k - 1, k, k + 1)]
+    assert "left leg: 1 stride(s) dropped: the knee flexed more in stance than in swing (stepping down, not level " \
+           "gait)" in warnings
+    assert "left leg: 2 stride(s) dropped: the stride led onto or off a stair or a step" in warnings
+    assert _level_strides({"left": lr}, PhaseParams(), [])["left"].strides == lr.strides
+
+
 def test_a_stair_flight_gives_no_strides_and_keeps_the_walk() -> None:
     """Ten steps up and ten down, step over step between two walking bouts: the legs alternate like gait and the
     strides used to enter trends with ~100 deg of swing flexion; now none lies inside the flight, and the walking
