@@ -445,6 +445,10 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
         # soft tissue enters it (pipeline.cycle_gravity); its strides need no calm mid-stance samples
         shift, gravity = _window_gravity_offsets(leg, go_rel, standing, arr, p)
         offs = np.where(gravity, shift, offs)
+        if gravity.sum() >= p.gravity_fill_min_strides:
+            # a stride with a hole has no gravity level of its own; its neighbours' is the leg's, which changes slowly
+            mid = 0.5 * (arr[:, 0] + arr[:, 2])
+            offs = np.where(gravity, shift, np.interp(mid, mid[gravity], shift[gravity]))
     if absolute_ok and strides:
         # the level the gyros carry from the quiet standing around each walk (quiet_bridge), against the mid-stance
         # level of the strides whose GO holds (a GO that found no zero crossing or drifted has no level to check)
