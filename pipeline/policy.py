@@ -7,8 +7,10 @@ never extends would read 0 deg there. Each stride's GO curve is therefore made a
 knee - GO) over its mid-stance, the gravity knee being the angle between the two segments' gravity directions in the
 joint plane with gravity from the stride's mean specific force (:mod:`pipeline.cycle_gravity`: over a stride each
 segment's velocity returns, so that mean is gravity, free of joint-centre, lever-arm, impact and soft-tissue terms)
-carried to each sample by the gyros; where the stride gives none (a hole, a clipped sample, a jump), by the mean of
-(accelerometer angle - GO) over the calm samples of its mid-stance (Seel Eq. 6-7 angle).
+carried to each sample by the gyros; where the stride gives none (a hole, a clipped sample, a jump), by its
+gravity-levelled neighbours' level interpolated in time (``FusionParams.gravity_fill_min_strides``), and where the
+leg has too few of those, by the mean of (accelerometer angle - GO) over the calm samples of its mid-stance (Seel
+Eq. 6-7 angle).
 Both take their zero from quiet upright standing (:func:`pipeline.posture.standing_reference`). The per-stride
 offsets are smoothed with a running median over neighbouring strides (the true minimum flexion changes slowly) and
 interpolated between stride centres so the trace is continuous. Without standing in the session the offset stays 0
@@ -449,6 +451,7 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
             # a stride with a hole has no gravity level of its own; its neighbours' is the leg's, which changes slowly
             mid = 0.5 * (arr[:, 0] + arr[:, 2])
             offs = np.where(gravity, shift, np.interp(mid, mid[gravity], shift[gravity]))
+            gravity = np.ones_like(gravity)  # every stride's level is gravity's now: none needs calm samples
     if absolute_ok and strides:
         # the level the gyros carry from the quiet standing around each walk (quiet_bridge), against the mid-stance
         # level of the strides whose GO holds (a GO that found no zero crossing or drifted has no level to check)
