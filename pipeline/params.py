@@ -639,7 +639,8 @@ class FusionParams:
     """Level each walking stride over its mid-stance, each running cycle at its foot strike, from the cycle-mean gravity
     (:mod:`pipeline.cycle_gravity`; :func:`pipeline.policy.gravity_shifts` for running): no joint centre, impact, lever
     arm or soft-tissue term enters it. Walking strides without one (a hole, a clipped sample, a mean force off g: a
-    jump, a step) keep the mid-stance accelerometer level. On an independent simulator (3-D knee and hip, thigh soft
+    jump, a step) take their gravity-levelled neighbours' (``gravity_fill_min_strides``), else keep the mid-stance
+    accelerometer level. On an independent simulator (3-D knee and hip, thigh soft
     tissue, 50-200 Hz, true standing flexion given) the walking legs' peak bias SD 0.7-1.3 -> 0.4-0.6 deg, legs beyond 1
     deg 3-9 -> 0-3 of 16; on this repository's (tune seeds 0-3, calibrated) fast walking -0.42 +- 0.33 -> -0.07 +- 0.21,
     normal unchanged, 3-D hip and knee x2 with a 6 deg varus -0.41 +- 1.67 -> -0.57 +- 1.16 (read at the heel strike
@@ -654,12 +655,13 @@ class FusionParams:
     """Fewer running cycles with a gravity level leave the filter's level as it is."""
     gravity_fill_min_strides: int = 3
     """A walking leg with at least this many strides levelled by their own gravity gives each stride without one (a
-    stride holding a hole or a saturated sample: the gyros cannot carry gravity through it) the level of those
-    strides, interpolated in time, instead of its accelerometer mid-stance level. A leg's stance level changes
-    slowly from stride to stride (``offset_smooth``), and the accelerometer's rests on the joint centres and lever
-    arms, which failed leg by leg on an independent simulator with 3-D knees: under 10 % bursty packet loss, where
-    most strides hold a hole, held-out legs carried their own level 4-6 deg off (peak LoA -8.6 .. 5.2 deg, 12 % of
-    trend strides more than 5 deg off); from the neighbours' gravity -3.8 .. 1.7 and none (README, Accuracy)."""
+    hole or a saturated sample in it, which the gyros cannot carry gravity through; a mean force off g: a jump, a
+    step) within ``offset_smooth`` strides of them their level (running median over them, interpolated in time)
+    instead of its accelerometer mid-stance level (:func:`pipeline.policy._gravity_filled`). A leg's stance level
+    changes slowly from stride to stride, and the accelerometer's rests on the joint centres and lever arms, which
+    failed leg by leg on an independent simulator with 3-D knees: under 10 % bursty packet loss, where most strides
+    hold a hole, held-out legs carried their own level 4-6 deg off (peak LoA -8.6 .. 5.2 deg, 12 % of trend strides
+    more than 5 deg off); from the neighbours' gravity -3.8 .. 1.7 and none (README, Accuracy)."""
     offset_smooth: int = 11
     """Running median width [strides] of the per-stride offsets: the true minimum changes slowly."""
     drift_max_deg: float = 15.0
@@ -668,13 +670,13 @@ class FusionParams:
     """SD [deg] of GO minus CF over a stride beyond which the stride gets a mismatch note."""
     bridge_disagree_deg: float = 3.0
     """The level carried from standing by the gyros (:mod:`pipeline.quiet_bridge`) checks the strides' mid-stance level
-    (from each stride's gravity, else the accelerometer angle): where the two differ by more than this [deg] (median
-    over the leg's strides that have both), the leg takes the bridged level. The accelerometer's mid-stance level rests
-    on the joint centres and the thigh-shank clock and fails by 10-30 deg when they fail; gravity's rests on the axes
-    and the clock only; the bridge on static angles only. Where nothing failed the bridge and the accelerometer level
-    agreed within 2.45 deg on every leg of the sweep's tune seeds (p95 1.0), so agreeing legs keep the validated
-    mid-stance level. 4 deg before the bridges stopped at turns (max 3.4 then); 3 deg was better than 4 on the
-    independent simulator's tune seeds and on its held-out ones (README, Accuracy)."""
+    (from each stride's gravity or its neighbours', else the accelerometer angle): where the two differ by more than
+    this [deg] (median over the leg's strides that have both), the leg takes the bridged level. The accelerometer's
+    mid-stance level rests on the joint centres and the thigh-shank clock and fails by 10-30 deg when they fail;
+    gravity's rests on the axes and the clock only; the bridge on static angles only. Where nothing failed the bridge
+    and the accelerometer level agreed within 2.45 deg on every leg of the sweep's tune seeds (p95 1.0), so agreeing
+    legs keep the validated mid-stance level. 4 deg before the bridges stopped at turns (max 3.4 then); 3 deg was
+    better than 4 on the independent simulator's tune seeds and on its held-out ones (README, Accuracy)."""
     bridge_min_strides: int = 3
     """Strides with both levels that the check needs."""
     bridge_anchor_s: float = 0.5

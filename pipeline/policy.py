@@ -82,8 +82,8 @@ class PolicyResult:
     offset_median_deg: float | None = None
     tuning: TuningDiagnostics | None = None
     masked_implausible_samples: int = 0  # samples outside ``PostureParams.plausible_knee_deg``, set to NaN
-    # the gyro-bridged level minus the strides' mid-stance level (gravity's or the accelerometer's) [deg] (median over
-    # strides), and whether the bridged one was taken (FusionParams.bridge_disagree_deg)
+    # the gyro-bridged level minus the strides' mid-stance level (gravity's, its neighbours' or the accelerometer's)
+    # [deg] (median over strides), and whether the bridged one was taken (FusionParams.bridge_disagree_deg)
     bridge_check_deg: float | None = None
     level_bridged: bool = False
     # the same check on the CF fallback strides alone (their level follows the accelerometer in motion), and whether
@@ -323,6 +323,26 @@ def _window_gravity_offsets(leg: LegInput, go_rel: np.ndarray, standing: np.ndar
         return segment_sums(np.where(ok, d, 0.0), lo, hi) / np.maximum(n, 1), n > 0
 
 
+def _gravity_filled(offs: np.ndarray, shift: np.ndarray, gravity: np.ndarray, strides: np.ndarray, p: FusionParams
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Per stride ``(hs, to, hs_next)`` (K, 3), its level [deg] and whether it comes from gravity: its own
+    (``shift`` where ``gravity``), else, within ``FusionParams.offset_smooth`` strides of a gravity-levelled one and
+    where the leg has ``gravity_fill_min_strides`` of them, theirs (running median over them, interpolated in time at
+    the stride's middle), else its accelerometer level ``offs``. A stride with a hole has no gravity level of its own
+    (the gyros cannot carry gravity through it), and a leg's level changes slowly from stride to stride; the median
+    keeps one wrong gravity stride from spreading, and the reach keeps a level from travelling to another bout."""
+    idx = np.flatnonzero(gravity)
+    if idx.size < p.gravity_fill_min_strides or idx.size == gravity.size:
+        return np.where(gravity, shift, offs), gravity
+    mid = 0.5 * (strides[:, 0] + strides[:, 2])
+    level = np.interp(mid, mid[idx], _running_median(shift[idx], p.offset_smooth))
+    after = np.minimum(np.searchsorted(idx, np.arange(gravity.size)), idx.size - 1)
+    reach = np.minimum(np.abs(idx[after] - np.arange(gravity.size)),
+                       np.abs(idx[np.maximum(after - 1, 0)] - np.arange(gravity.size)))
+    filled = ~gravity & (reach <= p.offset_smooth)
+    return np.where(gravity, shift, np.where(filled, level, offs)), gravity | filled
+
+
 def stance_offsets(leg: LegInput, go_rel: np.ndarray, strides: list[tuple[int, int, int]]
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Mean of (accelerometer angle - GO) [deg] over the calm mid-stance samples of each stride, and the calm-sample
@@ -402,7 +422,8 @@ def _go_failures(go_diag: GoDiagnostics, p: FusionParams, lo: np.ndarray, hi: np
 def _choose(flags: _StrideFlags, k: int, absolute_ok: bool, quiet_count: int, p: FusionParams,
             q: QualityParams, level_reasons: tuple[str, ...] = (), gravity: bool = False) -> StrideChoice:
     """GO or the CF fallback for stride ``k``, its quality and reasons. ``gravity``: GO's level in the stride comes
-    from the cycle-mean gravity, which needs no calm mid-stance samples (the CF's level does)."""
+    from the cycle-mean gravity (its own or its neighbours', :func:`_gravity_filled`), which needs no calm mid-stance
+    samples (the CF's level does)."""
     failed = [reason for flag, reason in ((not flags.go_complete[k], "no_go_estimate"),
                                           (flags.no_crossing[k], "no_zero_crossing"), (flags.drifted[k], "drift"),
                                           (flags.saturated[k], "saturation")) if flag]
@@ -443,15 +464,10 @@ def fuse(leg: LegInput, go_rel: np.ndarray, go_diag: GoDiagnostics, cf: np.ndarr
     lo, hi = arr[:, 0], arr[:, 2] + 1
     gravity = np.zeros(len(strides), dtype=bool)  # strides levelled by the cycle-mean gravity
     if absolute_ok and strides and p.gravity_level:
-        # the stride's mean gravity over its mid-stance, where the stride gives it: no joint centre, lever arm or
-        # soft tissue enters it (pipeline.cycle_gravity); its strides need no calm mid-stance samples
+        # the stride's mean gravity over its mid-stance, where the stride gives it (else its neighbours'): no joint
+        # centre, lever arm or soft tissue enters it (pipeline.cycle_gravity); its strides need no calm samples
         shift, gravity = _window_gravity_offsets(leg, go_rel, standing, arr, p)
-        offs = np.where(gravity, shift, offs)
-        if gravity.sum() >= p.gravity_fill_min_strides:
-            # a stride with a hole has no gravity level of its own; its neighbours' is the leg's, which changes slowly
-            mid = 0.5 * (arr[:, 0] + arr[:, 2])
-            offs = np.where(gravity, shift, np.interp(mid, mid[gravity], shift[gravity]))
-            gravity = np.ones_like(gravity)  # every stride's level is gravity's now: none needs calm samples
+        offs, gravity = _gravity_filled(offs, shift, gravity, arr, p)
     if absolute_ok and strides:
         # the level the gyros carry from the quiet standing around each walk (quiet_bridge), against the mid-stance
         # level of the strides whose GO holds (a GO that found no zero crossing or drifted has no level to check)

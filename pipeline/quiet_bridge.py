@@ -19,8 +19,8 @@ Used where the run between the two standing periods is wholly measured, holds no
 hole filled from the neighbouring strides (:func:`pipeline.prepare.periodic_fill`): the integral would take their
 change over the hole, and crossing the fills of 156 ms holes moved two of ten legs of this repository's simulator
 under 5 % packet loss by 3.4-3.5 deg (to -2.0 and -5.4 deg of peak error). Elsewhere the policy keeps its strides'
-mid-stance levels (from each stride's gravity, or the accelerometer angle where a stride gives none), which this
-one checks (:func:`pipeline.policy.fuse`, :func:`level_check`).
+mid-stance levels (from each stride's gravity or its neighbours', or the accelerometer angle), which this one
+checks (:func:`pipeline.policy.fuse`, :func:`level_check`).
 
 A walk broken by a hole or a turn is not integrated from either end alone either: without the far end nothing
 checks or removes the drift, which need not be small. On an independent simulator (3-D hips and knees, gyro biases
