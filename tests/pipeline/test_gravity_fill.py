@@ -41,7 +41,8 @@ def test_strides_with_holes_keep_their_level_when_the_joint_centre_fit_fails(
 
     def recorded(leg, go_rel, standing, strides, p):  # type: ignore[no-untyped-def]
         shift, gravity = window_offsets(leg, go_rel, standing, strides, p)
-        own_gravity[leg.prep.leg] = dict(zip(np.round(leg.prep.t_s[strides[:, 0]], 3).tolist(), gravity.tolist()))
+        starts = np.round(leg.prep.t_s[strides[:, 0]], 3).tolist()
+        own_gravity[leg.prep.leg] = dict(zip(starts, gravity.tolist(), strict=True))
         return shift, gravity
 
     monkeypatch.setattr(policy, "_window_gravity_offsets", recorded)
