@@ -639,7 +639,7 @@ class FusionParams:
     """Level each walking stride over its mid-stance, each running cycle at its foot strike, from the cycle-mean gravity
     (:mod:`pipeline.cycle_gravity`; :func:`pipeline.policy.gravity_shifts` for running): no joint centre, impact, lever
     arm or soft-tissue term enters it. Walking strides without one (a hole, a clipped sample, a mean force off g: a
-    jump, a step) take their gravity-levelled neighbours' (``gravity_fill_min_strides``), else keep the mid-stance
+    jump, a step) take their gravity-levelled neighbours' (``gravity_min_cycles``), else keep the mid-stance
     accelerometer level. On an independent simulator (3-D knee and hip, thigh soft
     tissue, 50-200 Hz, true standing flexion given) the walking legs' peak bias SD 0.7-1.3 -> 0.4-0.6 deg, legs beyond 1
     deg 3-9 -> 0-3 of 16; on this repository's (tune seeds 0-3, calibrated) fast walking -0.42 +- 0.33 -> -0.07 +- 0.21,
@@ -652,16 +652,15 @@ class FusionParams:
     in the knee) and the gyros carried the frame through it. On the simulator's runs the norms lie within 0.5 of g
     (5th-95th percentile, 100-200 Hz, 3-D hip and knee x2); 1 m/s^2 along the vertical is 6 % of g."""
     gravity_min_cycles: int = 3
-    """Fewer running cycles with a gravity level leave the filter's level as it is."""
-    gravity_fill_min_strides: int = 3
-    """A walking leg with at least this many strides levelled by their own gravity gives each stride without one (a
-    hole or a saturated sample in it, which the gyros cannot carry gravity through; a mean force off g: a jump, a
-    step) within ``offset_smooth`` strides of them their level (running median over them, interpolated in time)
-    instead of its accelerometer mid-stance level (:func:`pipeline.policy._gravity_filled`). A leg's stance level
-    changes slowly from stride to stride, and the accelerometer's rests on the joint centres and lever arms, which
-    failed leg by leg on an independent simulator with 3-D knees: under 10 % bursty packet loss, where most strides
-    hold a hole, held-out legs carried their own level 4-6 deg off (peak LoA -8.6 .. 5.2 deg, 12 % of trend strides
-    more than 5 deg off); from the neighbours' gravity -3.8 .. 1.7 and none (README, Accuracy)."""
+    """Least strides or cycles with a gravity level of their own for a leg's gravity level to reach further. Running:
+    fewer cycles leave the filter's level as it is. Walking: each stride without one (a hole or a saturated sample in
+    it, which the gyros cannot carry gravity through; a mean force off g: a jump, a step) within ``offset_smooth``
+    strides of them takes their level (running median over them, interpolated in time) instead of its accelerometer
+    mid-stance level (:func:`pipeline.policy._gravity_filled`): a leg's stance level changes slowly from stride to
+    stride, and the accelerometer's rests on the joint centres and lever arms, which failed leg by leg on an
+    independent simulator with 3-D knees. Under 10 % bursty packet loss, where most strides hold a hole, held-out
+    legs there carried their own level 4-6 deg off (peak LoA -8.6 .. 5.2 deg, 12 % of trend strides more than 5 deg
+    off); from the neighbours' gravity -3.7 .. 1.6 and none (README, Accuracy)."""
     offset_smooth: int = 11
     """Running median width [strides] of the per-stride offsets: the true minimum changes slowly."""
     drift_max_deg: float = 15.0

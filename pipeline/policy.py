@@ -8,7 +8,7 @@ knee - GO) over its mid-stance, the gravity knee being the angle between the two
 joint plane with gravity from the stride's mean specific force (:mod:`pipeline.cycle_gravity`: over a stride each
 segment's velocity returns, so that mean is gravity, free of joint-centre, lever-arm, impact and soft-tissue terms)
 carried to each sample by the gyros; where the stride gives none (a hole, a clipped sample, a jump), by its
-gravity-levelled neighbours' level interpolated in time (``FusionParams.gravity_fill_min_strides``), and where the
+gravity-levelled neighbours' level interpolated in time (``FusionParams.gravity_min_cycles``), and where the
 leg has too few of those, by the mean of (accelerometer angle - GO) over the calm samples of its mid-stance (Seel
 Eq. 6-7 angle).
 Both take their zero from quiet upright standing (:func:`pipeline.posture.standing_reference`). The per-stride
@@ -327,12 +327,12 @@ def _gravity_filled(offs: np.ndarray, shift: np.ndarray, gravity: np.ndarray, st
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Per stride ``(hs, to, hs_next)`` (K, 3), its level [deg] and whether it comes from gravity: its own
     (``shift`` where ``gravity``), else, within ``FusionParams.offset_smooth`` strides of a gravity-levelled one and
-    where the leg has ``gravity_fill_min_strides`` of them, theirs (running median over them, interpolated in time at
+    where the leg has ``gravity_min_cycles`` of them, theirs (running median over them, interpolated in time at
     the stride's middle), else its accelerometer level ``offs``. A stride with a hole has no gravity level of its own
     (the gyros cannot carry gravity through it), and a leg's level changes slowly from stride to stride; the median
     keeps one wrong gravity stride from spreading, and the reach keeps a level from travelling to another bout."""
     idx = np.flatnonzero(gravity)
-    if idx.size < p.gravity_fill_min_strides or idx.size == gravity.size:
+    if idx.size < p.gravity_min_cycles or idx.size == gravity.size:
         return np.where(gravity, shift, offs), gravity
     mid = 0.5 * (strides[:, 0] + strides[:, 2])
     level = np.interp(mid, mid[idx], _running_median(shift[idx], p.offset_smooth))

@@ -54,12 +54,6 @@ def heading_deg(leg: LegInput) -> np.ndarray:
     return integrate_runs(rate, prep.fs_hz, np.ones(prep.n, dtype=bool))
 
 
-def _clear(heading: np.ndarray, measured: np.ndarray, max_turn_deg: float) -> int:
-    """How many leading samples are measured and keep ``heading`` within ``max_turn_deg`` of its first value."""
-    stop = np.flatnonzero(~measured | (np.abs(heading - heading[0]) > max_turn_deg))
-    return int(stop[0]) if stop.size else heading.size
-
-
 def bridged_angle(leg: LegInput, zero_deg: float, params: FusionParams, standing: np.ndarray) -> np.ndarray:
     """(N,) absolute knee angle [deg] between quiet standing periods (NaN elsewhere): the knee rate ``leg.rate_dps``
     integrated from the standing before each run of motion to the standing after it, drift-corrected linearly so that
@@ -89,7 +83,8 @@ def bridged_angle(leg: LegInput, zero_deg: float, params: FusionParams, standing
         if b - a < 2 or (b - a) / fs > params.bridge_max_span_s:
             continue
         seg = rate[a - 1:b + 1]
-        if _clear(heading[a - 1:b + 1], np.isfinite(seg), params.bridge_max_turn_deg) < seg.size:
+        turn = heading[a - 1:b + 1]
+        if not np.isfinite(seg).all() or np.abs(turn - turn[0]).max() > params.bridge_max_turn_deg:
             continue  # a hole or a turn inside
         lvl_a = float(np.median(leg.acc_angle_deg[max(a - anchor, int(starts[k])):a])) - zero_deg
         lvl_b = float(np.median(leg.acc_angle_deg[b:min(b + anchor, int(stops[k + 1]))])) - zero_deg

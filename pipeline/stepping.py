@@ -39,11 +39,7 @@ def thigh_swing_deg(thigh_sag_dps: np.ndarray, strides: list[tuple[int, int, int
     """Per stride ``(hs, to, hs_next)`` (sample indices), the thigh's rotation [deg] from toe-off to the next heel
     strike: its sagittal rate ``thigh_sag_dps`` (N,) [deg/s, sampled at ``fs_hz``, forward positive, NaN where
     masked] summed over the swing, masked samples left out. (strides,) array."""
-    cum = np.concatenate(([0.0], np.cumsum(np.nan_to_num(thigh_sag_dps, nan=0.0))))
-    out = np.zeros(len(strides))
-    for k, (_, to, hs_next) in enumerate(strides):
-        out[k] = (cum[hs_next + 1] - cum[to]) / fs_hz
-    return out
+    return _swing_deg(_summed(thigh_sag_dps), strides, fs_hz)
 
 
 def thigh_landing_deg(thigh_sag_dps: np.ndarray, strides: list[tuple[int, int, int]], fs_hz: float) -> np.ndarray:
@@ -51,11 +47,7 @@ def thigh_landing_deg(thigh_sag_dps: np.ndarray, strides: list[tuple[int, int, i
     strike of where it was most extended within the stride: its sagittal rate ``thigh_sag_dps`` (N,) [deg/s, sampled
     at ``fs_hz``, forward positive, NaN where masked] integrated, masked samples left out, from ``hs`` through the
     strike's own sample (as :func:`thigh_swing_deg`). Never negative. (strides,) array."""
-    cum = np.concatenate(([0.0], np.cumsum(np.nan_to_num(thigh_sag_dps, nan=0.0)))) / fs_hz
-    out = np.zeros(len(strides))
-    for k, (hs, _, hs_next) in enumerate(strides):
-        out[k] = cum[hs_next + 1] - cum[hs:hs_next + 2].min()
-    return out
+    return _landing_deg(_summed(thigh_sag_dps), strides, fs_hz)
 
 
 def lowered_not_stepped(thigh_sag_dps: np.ndarray, strides: list[tuple[int, int, int]], fs_hz: float,
@@ -63,9 +55,32 @@ def lowered_not_stepped(thigh_sag_dps: np.ndarray, strides: list[tuple[int, int,
     """Indices of the strides whose thigh turns forward by less than ``params.min_swing_thigh_deg`` [deg] over the
     swing (:func:`thigh_swing_deg`) and lands less than ``params.min_contact_thigh_deg`` forward of its most extended
     (:func:`thigh_landing_deg`): a lifted leg lowered in place or a side step, not a step forward."""
-    swing = thigh_swing_deg(thigh_sag_dps, strides, fs_hz)
-    back = np.flatnonzero(swing < params.min_swing_thigh_deg)
+    cum = _summed(thigh_sag_dps)
+    back = np.flatnonzero(_swing_deg(cum, strides, fs_hz) < params.min_swing_thigh_deg)
     if back.size == 0:
         return set()
-    landing = thigh_landing_deg(thigh_sag_dps, [strides[k] for k in back], fs_hz)
+    landing = _landing_deg(cum, [strides[k] for k in back], fs_hz)
     return set(back[landing < params.min_contact_thigh_deg].tolist())
+
+
+def _summed(rate_dps: np.ndarray) -> np.ndarray:
+    """(N + 1,) running sum of ``rate_dps`` (N,) from 0, masked (NaN) samples adding nothing: entry ``i`` sums the
+    samples before ``i``."""
+    return np.concatenate(([0.0], np.cumsum(np.nan_to_num(rate_dps, nan=0.0))))
+
+
+def _swing_deg(cum: np.ndarray, strides: list[tuple[int, int, int]], fs_hz: float) -> np.ndarray:
+    """:func:`thigh_swing_deg` from the rate's running sum ``cum`` (:func:`_summed`)."""
+    out = np.zeros(len(strides))
+    for k, (_, to, hs_next) in enumerate(strides):
+        out[k] = (cum[hs_next + 1] - cum[to]) / fs_hz
+    return out
+
+
+def _landing_deg(cum: np.ndarray, strides: list[tuple[int, int, int]], fs_hz: float) -> np.ndarray:
+    """:func:`thigh_landing_deg` from the rate's running sum ``cum`` (:func:`_summed`)."""
+    angle = cum / fs_hz
+    out = np.zeros(len(strides))
+    for k, (hs, _, hs_next) in enumerate(strides):
+        out[k] = angle[hs_next + 1] - angle[hs:hs_next + 2].min()
+    return out

@@ -1,5 +1,5 @@
 """pipeline.policy.fuse: a walking stride without a gravity level of its own (a hole in it) takes its gravity-levelled
-neighbours' level (FusionParams.gravity_fill_min_strides), so a failed joint-centre fit, which moves only the
+neighbours' level (FusionParams.gravity_min_cycles), so a failed joint-centre fit, which moves only the
 accelerometer's mid-stance level, leaves it where the clean run had it."""
 
 from __future__ import annotations
